@@ -1,0 +1,13 @@
+"""User-facing errors: every bad input names its source, the field and the problem."""
+
+
+class InputError(Exception):
+    """Bad user input. The CLI prints it and exits with code 2, never a traceback."""
+
+    def __init__(self, source: str, field: str, problem: str):
+        self.source, self.field, self.problem = str(source), str(field), str(problem)
+        super().__init__(f"{self.source}: {self.field}: {self.problem}")
+
+
+class AllCandidatesFailed(RuntimeError):
+    """Every candidate of a generation blew up: the search has nothing to learn from."""

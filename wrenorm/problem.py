@@ -1,0 +1,78 @@
+"""What a system supplies to the engine: parameters, conditions, and a batched error.
+
+A *condition* is one experiment (a command profile, a motor rate, a hand path). The engine
+fits on `train` conditions and validates on `held_out` ones the search never sees.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from .params import ParameterSpace
+
+
+@dataclass
+class Condition:
+    name: str
+    data: Any = None
+    meta: dict = field(default_factory=dict)
+
+
+class Problem(ABC):
+    """A system to fit. Subclasses set the attributes in __init__ and implement `errors`.
+
+    Attributes
+    ----------
+    task:        short name ("pd", "rope", "swimmer")
+    space:       ParameterSpace (measured values are the search's starting point)
+    train:       conditions the search fits
+    held_out:    conditions kept back for validation
+    tolerance:   held-out error (same units as `errors`) under which the verdict is `absorbed`
+    resolution:  what sets the coarse model's resolution, e.g. {"f_sim": 100.0}
+    device:      Warp device string ("cpu" or "cuda")
+    error_doc:   one sentence saying what `errors` measures (goes into result.json)
+    """
+
+    task: str
+    space: ParameterSpace
+    train: list[Condition]
+    held_out: list[Condition]
+    tolerance: float
+    resolution: dict
+    device: str = "cpu"
+    error_doc: str = ""
+
+    @abstractmethod
+    def errors(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+        """values (B, P) full parameter sets -> (B, C) non-negative errors, one per condition.
+
+        One call simulates every candidate under every condition (batched). A candidate whose
+        simulation blows up gets a non-finite error; it must never raise.
+        """
+
+    def errors_and_grad(self, values: np.ndarray, conditions: Sequence[Condition]):
+        """(B, C) errors and (B, C, P) d error / d value, for gradient searches.
+
+        Systems with a differentiable kernel override this (Warp tape). The default says no.
+        """
+        raise NotImplementedError(f"task {self.task!r} has no differentiable error")
+
+    @property
+    def differentiable(self) -> bool:
+        return type(self).errors_and_grad is not Problem.errors_and_grad
+
+    def report(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
+        """Task-specific fields added to result.json (e.g. analytic predictions, speeds)."""
+        return {}
+
+    def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:
+        """Log reference, measured-parameter and fitted-parameter behaviour to a viz.Recorder."""
+
+
+def finite_or_inf(errors: np.ndarray) -> np.ndarray:
+    """Blow-ups (NaN, Inf, negative garbage) cost the candidate, never the run."""
+    errors = np.asarray(errors, dtype=np.float64)
+    return np.where(np.isfinite(errors) & (errors >= 0), errors, np.inf)
