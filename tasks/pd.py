@@ -1,0 +1,351 @@
+"""PD control at finite simulation frequency (paper, section 2).
+
+Observable: the joint angle q(t) under a family of commands (steps, sines, chirps).
+Omitted physics: the continuous evolution between physics steps (the simulator samples and
+holds the controller and integrates with a first-order scheme).
+Parameters: J, K_P, K_D and a velocity feed-forward gain K_FF, from their measured values
+(K_FF = 0: the real controller has none). Analytic expectation, first order in the effective
+delay delta: K_D^sim = K_D + delta K_P, J^sim = J + delta K_D, K_P^sim = K_P.
+Reference: the continuous-time joint integrated to 1e-11 relative tolerance (DOP853), or a
+measured log (CSV with columns time, q, q_d, qd_d).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from wrenorm.errors import InputError
+from wrenorm.params import Parameter, ParameterSpace
+from wrenorm.problem import Condition, Problem
+
+MEASURED = {"J": 0.05, "K_P": 20.0, "K_D": 0.5}
+DURATION = 3.0
+RAMP = 0.05  # s, rise time of a commanded step
+FADE_IN = 0.3  # s, smooth start of periodic commands
+
+
+def _quintic(t, t0, width, height):
+    """Minimum-jerk ramp from 0 to `height` over [t0, t0 + width]: value, rate, acceleration."""
+    s = np.clip((t - t0) / width, 0.0, 1.0)
+    inside = (t > t0) & (t < t0 + width)
+    return (height * (10 * s**3 - 15 * s**4 + 6 * s**5),
+            np.where(inside, height * (30 * s**2 - 60 * s**3 + 30 * s**4) / width, 0.0),
+            np.where(inside, height * (60 * s - 180 * s**2 + 120 * s**3) / width**2, 0.0))
+DEFAULT_F_SIM = [100.0]
+
+# ---- commands: q_d(t), qd_d(t) -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Command:
+    """An analytic joint command. kind: step | sine | chirp | multisine."""
+
+    name: str
+    kind: str
+    amplitude: float
+    f0: float = 0.0
+    f1: float = 0.0
+    t0: float = 0.1  # steps switch here: a multiple of every simulator period used
+
+    def __call__(self, t: np.ndarray):
+        """(q_d, qd_d, qdd_d) at times t. Every command starts at rest: a jump in q_d or qd_d at
+        t = 0 (or anywhere) cannot be placed between two simulator samples, an O(dt) timing
+        error that no parameter can absorb."""
+        t = np.asarray(t, np.float64)
+        A = self.amplitude
+        if self.kind == "step":  # as a trajectory generator emits it: a quintic ramp
+            return _quintic(t, self.t0, RAMP, A)
+        if self.kind == "sine":
+            w = 2 * np.pi * self.f0
+            base = (A * np.sin(w * t), A * w * np.cos(w * t), -A * w * w * np.sin(w * t))
+        elif self.kind == "chirp":  # linear chirp from f0 to f1 over DURATION
+            k = (self.f1 - self.f0) / DURATION
+            phase = 2 * np.pi * (self.f0 * t + 0.5 * k * t * t)
+            w = 2 * np.pi * (self.f0 + k * t)
+            base = (A * np.sin(phase), A * np.cos(phase) * w, A * (-np.sin(phase) * w * w + np.cos(phase) * 2 * np.pi * k))
+        elif self.kind == "multisine":
+            fs = (self.f0, self.f1, self.f0 + self.f1)
+            ws = [2 * np.pi * f for f in fs]
+            base = (sum(A / 3 * np.sin(w * t + i) for i, w in enumerate(ws)),
+                    sum(A / 3 * w * np.cos(w * t + i) for i, w in enumerate(ws)),
+                    sum(-A / 3 * w * w * np.sin(w * t + i) for i, w in enumerate(ws)))
+        else:
+            raise ValueError(self.kind)
+        e = _quintic(t, 0.0, FADE_IN, 1.0)
+        return (e[0] * base[0], e[1] * base[0] + e[0] * base[1],
+                e[2] * base[0] + 2 * e[1] * base[1] + e[0] * base[2])
+
+
+TRAIN_COMMANDS = [
+    Command("step_0.5", "step", 0.5),
+    Command("sine_1Hz", "sine", 0.3, 1.0),
+    Command("chirp_0.2-4Hz", "chirp", 0.2, 0.2, 4.0),
+]
+HELD_OUT_COMMANDS = [
+    Command("step_-0.8", "step", -0.8, t0=0.5),
+    Command("sine_2.5Hz", "sine", 0.2, 2.5),
+    Command("multisine_0.7+1.9Hz", "multisine", 0.6, 0.7, 1.9),
+]
+
+
+def continuous_reference(cmd: Command, J: float, KP: float, KD: float, times: np.ndarray,
+                         init=(0.0, 0.0)) -> np.ndarray:
+    """q(times) of J q'' = K_P (q_d - q) + K_D (qd_d - q'), to 1e-11 relative tolerance."""
+
+    def rhs(t, y):
+        qd, qdd, _ = cmd(t)
+        return [y[1], (KP * (qd - y[0]) + KD * (qdd - y[1])) / J]
+
+    # integrate piecewise so the ramp's kinks sit on segment boundaries
+    kinks = [cmd.t0, cmd.t0 + RAMP] if cmd.kind == "step" else [FADE_IN]
+    breaks = [0.0] + [k for k in kinks if 0 < k < times[-1]] + [float(times[-1])]
+    y = np.asarray(init, np.float64)
+    q = np.empty_like(times)
+    for a, b in zip(breaks[:-1], breaks[1:]):
+        sel = (times >= a) & ((times < b) if b < times[-1] else (times <= b))
+        sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-13, dense_output=True)
+        if not sol.success:
+            raise RuntimeError(sol.message)
+        q[sel] = sol.sol(times[sel])[0]
+        y = sol.y[:, -1]
+    return q
+
+
+# ---- measured logs -------------------------------------------------------------------
+
+LOG_COLUMNS = ("time", "q", "q_d", "qd_d")
+
+
+@dataclass
+class MeasuredLog:
+    path: str
+    time: np.ndarray
+    q: np.ndarray
+    q_d: np.ndarray
+    qd_d: np.ndarray
+
+
+def load_log(path: str | Path) -> MeasuredLog:
+    """A measured joint log: CSV with header columns time, q, q_d, qd_d (SI units, rad, rad/s)."""
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise InputError(src, "file", "does not exist or is not a file")
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(src, "file", f"cannot be read as CSV text ({e.__class__.__name__})") from None
+    if not rows:
+        raise InputError(src, "header", "file is empty")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in LOG_COLUMNS if c not in header]
+    if missing:
+        raise InputError(src, "header", f"missing column(s) {missing}; need {list(LOG_COLUMNS)}, got {header}")
+    idx = [header.index(c) for c in LOG_COLUMNS]
+    data = []
+    for line, row in enumerate(rows[1:], start=2):
+        if not row or all(not x.strip() for x in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(src, f"line {line}", f"has {len(row)} fields, header has {len(header)}")
+        try:
+            data.append([float(row[i]) for i in idx])
+        except ValueError:
+            raise InputError(src, f"line {line}", f"non-numeric value in {row}") from None
+    if len(data) < 20:
+        raise InputError(src, "rows", f"need at least 20 samples, got {len(data)}")
+    arr = np.asarray(data)
+    for j, name in enumerate(LOG_COLUMNS):
+        bad = ~np.isfinite(arr[:, j])
+        if bad.any():
+            raise InputError(src, name, f"non-finite value at data row {int(np.argmax(bad)) + 1}")
+    t = arr[:, 0]
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise InputError(src, "time", f"must increase strictly (row {int(np.argmax(dt <= 0)) + 2})")
+    return MeasuredLog(src, t - t[0], arr[:, 1], arr[:, 2], arr[:, 3])
+
+
+# ---- the problem -------------------------------------------------------------------
+
+
+def parameter_space(J: float, KP: float, KD: float) -> ParameterSpace:
+    return ParameterSpace([
+        Parameter("J", J, J / 5, J * 5, "log", unit="kg m^2", doc="joint inertia"),
+        # q(t) is unchanged when (J, K_P, K_D, K_FF) are all scaled together, so one of them
+        # fixes the gauge; the paper's matching keeps K_P^sim = K_P^real.
+        Parameter("K_P", KP, KP / 4, KP * 4, "log", frozen=True, unit="N m/rad",
+                  doc="proportional gain (frozen: fixes the scale the motion cannot see)"),
+        Parameter("K_D", KD, KD / 5, KD * 5, "log", unit="N m s/rad", doc="derivative gain (velocity feedback)"),
+        Parameter("K_FF", 0.0, -3 * KD, 3 * KD, "linear", unit="N m s/rad",
+                  doc="extra velocity feed-forward gain on qd_d (the paper's command-side correction)"),
+        Parameter("K_AFF", 0.0, -J, J, "linear", unit="kg m^2",
+                  doc="acceleration feed-forward gain on qdd_d (explicit Euler delays the velocity command)"),
+    ])
+
+
+class PDProblem(Problem):
+    task = "pd"
+    error_doc = "RMS of q_sim - q_ref over the command, divided by the RMS of q_ref (per condition)"
+
+    def __init__(self, f_sim: float, integrator: str = "semi-implicit", device: str = "cpu",
+                 J: float = MEASURED["J"], KP: float = MEASURED["K_P"], KD: float = MEASURED["K_D"],
+                 log: MeasuredLog | None = None, tolerance: float = 0.02,
+                 train: list[Command] | None = None, held_out: list[Command] | None = None):
+        from wrenorm.kernels import pd as kpd
+
+        _check_positive({"f_sim": f_sim, "J": J, "K_P": KP, "K_D": KD})
+        if integrator not in kpd.INTEGRATORS:
+            raise InputError("--integrator", "integrator", f"unknown {integrator!r}; choose from {list(kpd.INTEGRATORS)}")
+        self.kpd = kpd
+        self.f_sim, self.dt = float(f_sim), 1.0 / float(f_sim)
+        self.integrator_name, self.integrator = integrator, kpd.INTEGRATORS[integrator]
+        self.device = device
+        self.true = {"J": J, "K_P": KP, "K_D": KD}
+        self.space = parameter_space(J, KP, KD)
+        self.tolerance = tolerance
+        self.resolution = {"f_sim": self.f_sim, "dt": self.dt, "integrator": integrator}
+        if log is None:
+            self.train = [self._analytic_condition(c) for c in (train or TRAIN_COMMANDS)]
+            self.held_out = [self._analytic_condition(c) for c in (held_out or HELD_OUT_COMMANDS)]
+        else:
+            self.train, self.held_out = self._log_conditions(log)
+        self._cache: dict = {}
+
+    # conditions carry everything sampled at the simulator's steps
+    def _analytic_condition(self, cmd: Command) -> Condition:
+        n = int(round(DURATION * self.f_sim))
+        t = np.arange(n + 1) * self.dt
+        q_d, qd_d, qdd_d = cmd(t[:-1])
+        q_ref = continuous_reference(cmd, self.true["J"], self.true["K_P"], self.true["K_D"], t)
+        return Condition(cmd.name, {"t": t, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "q_ref": q_ref, "init": (0.0, 0.0)},
+                         {"command": cmd.__dict__})
+
+    def _log_conditions(self, log: MeasuredLog):
+        """First 2/3 of the log fits, the last 1/3 validates; each part starts from the logged state."""
+        from scipy.interpolate import CubicSpline
+
+        T = log.time[-1]
+        if T * self.f_sim < 30:
+            raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
+        q_spline = CubicSpline(log.time, log.q)
+        conds = []
+        for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items():
+            n = int(np.floor((b - a) * self.f_sim))
+            t = a + np.arange(n + 1) * self.dt
+            conds.append(Condition(name, {
+                "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
+                "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
+                "q_ref": q_spline(t), "init": (float(q_spline(a)), float(q_spline(a, 1)))}, {"source": log.path}))
+        return conds[:1], conds[1:]
+
+    def _commands(self, conditions):
+        key = tuple(id(c) for c in conditions)
+        if key not in self._cache:
+            n = min(len(c.data["q_d"]) for c in conditions)
+            self._cache[key] = self.kpd.PDCommands(
+                np.stack([c.data["q_d"][:n] for c in conditions]), np.stack([c.data["qd_d"][:n] for c in conditions]),
+                np.stack([c.data["qdd_d"][:n] for c in conditions]),
+                np.stack([c.data["q_ref"][:n + 1] for c in conditions]),
+                np.array([c.data["init"] for c in conditions], np.float64), self.device)
+        return self._cache[key]
+
+    def errors(self, values, conditions):
+        errs, _ = self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt)
+        return errs
+
+    def errors_and_grad(self, values, conditions):
+        return self.kpd.simulate_with_grad(values, self._commands(conditions), self.integrator, self.dt)
+
+    def trajectories(self, values, conditions):
+        return self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt, record=True)[1]
+
+    def residuals(self, values, conditions):
+        """Signed residuals (B, R): q_sim - q_ref over all conditions, each scaled as in `errors`."""
+        cmds = self._commands(conditions)
+        traj = self.trajectories(values, conditions)[:, :, 1:]
+        ref = np.stack([c.data["q_ref"][1:cmds.n_steps + 1] for c in conditions])
+        scale = cmds.ref_scale.numpy()[None, :, None] * np.sqrt(cmds.n_steps)
+        return ((traj - ref[None]) / scale).reshape(len(values), -1)
+
+    # --- the paper's predictions ----------------------------------------------------
+    def analytic(self, fitted: dict) -> dict:
+        J, KP, KD, dt = self.true["J"], self.true["K_P"], self.true["K_D"], self.dt
+        c = ANALYTIC_DELAY[self.integrator_name]
+        d_kd, d_j = c["K_D"] * dt, c["J"] * dt
+        delay_kd = (fitted["K_D"] - KD) / KP
+        delay_j = (fitted["J"] - J) / KD
+        return {
+            "dt": dt,
+            "delay_model": c["why"],
+            "delay_K_D_over_dt": c["K_D"],
+            "delay_J_over_dt": c["J"],
+            "K_D_sim_first_order": KD + d_kd * KP,
+            "J_sim_first_order": J + d_j * KD,
+            "J_sim_second_order": J + d_j * KD + d_j ** 2 * KP / 2,
+            "second_order_inertia_term": d_j ** 2 * KP / 2,
+            "K_FF_first_order": -d_kd * KP,
+            "fitted_delay_from_K_D": delay_kd,
+            "fitted_delay_from_J": delay_j,
+            "fitted_delay_from_K_D_over_dt": delay_kd / dt,
+            "fitted_delay_from_J_over_dt": delay_j / dt,
+        }
+
+    def report(self, fitted, measured):
+        f = self.space.as_dict(fitted)
+        return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name}
+
+    def record(self, rec, fitted, measured):
+        conds = self.train + self.held_out
+        for group in (self.train, self.held_out):
+            traj = self.trajectories(np.stack([measured, fitted]), group)
+            for j, c in enumerate(group):
+                t = c.data["t"][: traj.shape[2]]
+                split = "train" if group is self.train else "held_out"
+                rec.log_series(f"reference/{split}/{c.name}/q", t, c.data["q_ref"][: len(t)])
+                rec.log_series(f"measured/{split}/{c.name}/q", t, traj[0, j])
+                rec.log_series(f"fitted/{split}/{c.name}/q", t, traj[1, j])
+                rec.log_series(f"command/{split}/{c.name}/q_d", t[:-1], c.data["q_d"][: len(t) - 1])
+        del conds
+
+
+# Effective delay of each integrator, derived on the staggered grid each scheme implies
+# (see README, "PD: what the fit measures"); the fit measures it independently.
+ANALYTIC_DELAY = {
+    "semi-implicit": {"K_D": 0.0, "J": 0.5, "why": "semi-implicit Euler: v_k is the mean velocity over the previous step (lags by dt/2); q_k is current"},
+    "explicit": {"K_D": 1.0, "J": 0.5, "why": "explicit Euler: the force from (q_k, v_k) acts at t_k + dt; q lags by dt, v by dt/2"},
+}
+
+
+def _check_positive(values: dict) -> None:
+    for name, v in values.items():
+        if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            raise InputError("options", name, f"must be a positive finite number, got {v!r}")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--f-sim", type=float, nargs="+", default=DEFAULT_F_SIM, metavar="HZ",
+                   help="simulation frequency (several: one fit each, result.json holds `runs`)")
+    p.add_argument("--integrator", default="semi-implicit", choices=["semi-implicit", "explicit"])
+    p.add_argument("--J", type=float, default=MEASURED["J"], help="measured joint inertia [kg m^2]")
+    p.add_argument("--K-P", dest="K_P", type=float, default=MEASURED["K_P"], help="real proportional gain [N m/rad]")
+    p.add_argument("--K-D", dest="K_D", type=float, default=MEASURED["K_D"], help="real derivative gain [N m s/rad]")
+    p.add_argument("--reference", default=None, metavar="FILE.csv",
+                   help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
+    p.add_argument("--generations", type=int, default=60)
+    p.add_argument("--popsize", type=int, default=24)
+    p.add_argument("--polish", type=int, default=0, help="gradient (Warp tape + Adam) iterations after CMA-ES")
+
+
+def build_problems(args, device: str) -> list[PDProblem]:
+    _check_positive({"J": args.J, "K_P": args.K_P, "K_D": args.K_D})
+    for f in args.f_sim:
+        _check_positive({"f_sim": f})
+    log = load_log(args.reference) if args.reference else None
+    return [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]

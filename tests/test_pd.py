@@ -1,0 +1,161 @@
+"""PD at finite simulation frequency: the fit must land on the paper's analytic answer."""
+import json
+
+import numpy as np
+import pytest
+
+from wrenorm import search
+from wrenorm.cli import main
+from wrenorm.tasks.pd import ANALYTIC_DELAY, PDProblem
+
+
+def _fit(f_sim, integrator="semi-implicit", generations=120):
+    p = PDProblem(f_sim, integrator)
+    r = search.cmaes(p, seed=3, popsize=24, generations=generations, sigma0=0.1, quiet=True)
+    return p, p.space.as_dict(r.best_values), r
+
+
+@pytest.mark.parametrize("integrator", ["semi-implicit", "explicit"])
+def test_fit_matches_first_order_formulas_and_rest_shrinks_like_dt2(integrator):
+    J, KP, KD = 0.05, 20.0, 0.5
+    c = ANALYTIC_DELAY[integrator]
+    gaps = {}
+    for f in (200.0, 400.0):  # dt K_P / K_D = 0.2 and 0.1
+        p, fit, _ = _fit(f, integrator)
+        dt = 1.0 / f
+        kd_1 = KD + c["K_D"] * dt * KP
+        j_1 = J + c["J"] * dt * KD
+        assert fit["K_D"] == pytest.approx(kd_1, rel=0.02)
+        assert fit["J"] == pytest.approx(j_1, rel=0.02)
+        assert fit["K_P"] == KP  # frozen: the gauge
+        # the correction itself is resolved, not just the total
+        assert (fit["J"] - J) == pytest.approx(c["J"] * dt * KD, rel=0.2)
+        gaps[f] = (abs(fit["J"] - j_1), abs(fit["K_D"] - kd_1))
+    # halving dt divides what first order leaves over by about four
+    ratio_j = gaps[200.0][0] / gaps[400.0][0]
+    assert 2.8 < ratio_j < 5.7, ratio_j
+    if integrator == "explicit":  # semi-implicit K_D gap is already at noise level
+        ratio_kd = gaps[200.0][1] / gaps[400.0][1]
+        assert 2.8 < ratio_kd < 5.7, ratio_kd
+
+
+def test_second_order_inertia_term():
+    p, fit, _ = _fit(100.0)
+    a = p.analytic(fit)
+    # second-order formula explains the fitted J better than first order
+    assert abs(fit["J"] - a["J_sim_second_order"]) < 0.3 * abs(fit["J"] - a["J_sim_first_order"])
+
+
+def test_tape_gradient_matches_central_differences():
+    p = PDProblem(100.0, "explicit")
+    x = np.array([[0.055, 20.0, 0.6, 0.01, 0.002]])
+    errs, grad = p.errors_and_grad(x, p.train)
+    assert np.allclose(errs, p.errors(x, p.train), rtol=1e-10)
+    for i in range(x.shape[1]):
+        h = 1e-6 * max(abs(x[0, i]), 1e-2)
+        xp, xm = x.copy(), x.copy()
+        xp[0, i] += h
+        xm[0, i] -= h
+        fd = (p.errors(xp, p.train) - p.errors(xm, p.train)) / (2 * h)
+        assert np.allclose(grad[0, :, i], fd[0], rtol=1e-4, atol=1e-8), (i, grad[0, :, i], fd[0])
+
+
+def test_cmaes_and_gradient_search_agree():
+    p, fit, r = _fit(200.0, generations=100)
+    start = p.space.measured
+    g = search.gradient(p, start, iterations=400, lr=0.02, quiet=True)
+    gfit = p.space.as_dict(g.best_values)
+    for name in ("J", "K_D"):
+        assert gfit[name] == pytest.approx(fit[name], rel=0.01), name
+    assert g.best_loss < 1.5 * r.best_loss
+
+
+def test_held_out_error_drops_with_fitted_parameters():
+    p, fit, r = _fit(100.0, generations=60)
+    x = np.stack([p.space.measured, r.best_values])
+    errs = p.errors(x, p.held_out)
+    assert np.all(errs[1] < errs[0])
+    assert errs[1].max() < 0.02
+
+
+def test_blown_up_candidate_costs_only_itself():
+    p = PDProblem(100.0)
+    x = np.stack([p.space.measured, p.space.measured])
+    x[1, 0] = 1e-6  # tiny inertia: explicit growth, overflow
+    loss, _ = search.mean_loss(p, x, p.train)
+    assert np.isfinite(loss[0]) and not np.isfinite(loss[1]) or loss[1] > 1e6
+
+
+def test_cli_fit_writes_result_and_recording(tmp_path):
+    out = tmp_path / "run"
+    assert main(["fit", "pd", "--out", str(out), "--quiet", "--generations", "30"]) == 0
+    r = json.loads((out / "result.json").read_text())
+    for key in ("schema", "task", "resolution", "parameters", "loss", "validation", "seed", "device",
+                "wall_seconds", "versions", "analytic"):
+        assert key in r
+    assert set(r["parameters"]["J"]) >= {"measured", "fitted", "bounds", "std"}
+    assert r["validation"]["verdict"] in ("absorbed", "expand")
+    assert r["loss"]["fitted"] < r["loss"]["measured"]
+    from wrenorm.viz.readback import entity_paths
+
+    paths = entity_paths(out / "recording.rrd")
+    assert "/reference/train/sine_1Hz/q" in paths
+    assert "/fitted/held_out/sine_2.5Hz/q" in paths
+    assert "/measured/train/sine_1Hz/q" in paths
+    assert "/search/loss/best" in paths
+
+
+def test_cli_several_frequencies_give_runs(tmp_path):
+    out = tmp_path / "multi"
+    assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--generations", "40",
+                 "--f-sim", "100", "400"]) == 0
+    r = json.loads((out / "result.json").read_text())
+    assert [run["f_sim"] for run in r["runs"]] == [100.0, 400.0]
+    d = [run["analytic"]["fitted_delay_from_J"] for run in r["runs"]]
+    assert d[0] / d[1] == pytest.approx(4.0, rel=0.15)  # delay proportional to 1/f_sim
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--f-sim", "0"], "f_sim"),
+    (["--f-sim", "-50"], "f_sim"),
+    (["--J", "0"], "J"),
+    (["--J", "-1"], "J"),
+])
+def test_impossible_values_exit_2(tmp_path, capsys, argv, needle):
+    assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", *argv]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("content,field", [
+    ("time,q,q_d\n0,0,0\n", "header"),
+    ("time,q,q_d,qd_d\n" + "".join(f"{i*0.01},0,x,0\n" for i in range(30)), "line 2"),
+    ("time,q,q_d,qd_d\n" + "".join(f"{i*0.01},0,0,0\n" for i in range(5)), "rows"),
+    ("time,q,q_d,qd_d\n" + "".join(f"{(i % 7)*0.01},0,0,0\n" for i in range(40)), "time"),
+    ("time,q,q_d,qd_d\n" + "".join(f"{i*0.01},nan,0,0\n" for i in range(40)), "q"),
+])
+def test_malformed_csv_exit_2(tmp_path, capsys, content, field):
+    f = tmp_path / "log.csv"
+    f.write_text(content)
+    assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", "--reference", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert str(f) in err and field in err
+
+
+def test_measured_log_reference(tmp_path):
+    """A log made by the continuous joint is fitted like the built-in reference."""
+    from wrenorm.tasks.pd import Command, continuous_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(0, 4.0, 0.001)
+    q = continuous_reference(cmd, 0.05, 20.0, 0.5, t)
+    q_d, qd_d, _ = cmd(t)
+    f = tmp_path / "log.csv"
+    np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    out = tmp_path / "run"
+    assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--reference", str(f),
+                 "--generations", "50"]) == 0
+    r = json.loads((out / "result.json").read_text())
+    assert r["parameters"]["J"]["fitted"] == pytest.approx(0.0525, rel=0.03)
+    v = r["validation"]["conditions"]["log_validate"]
+    assert v["fitted_error"] < v["measured_error"]

@@ -1,0 +1,101 @@
+"""Rerun recordings of a fit: reference, measured-parameter and fitted-parameter behaviour.
+
+rerun-sdk is imported here only, so simulation and fitting run without it (the GPU machine,
+minimal installs). A Recorder writes to a temporary file that is renamed into place on close,
+so a killed run never leaves a recording that looks complete.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+COLORS = {
+    "reference": (230, 230, 230),
+    "measured": (230, 120, 40),
+    "fitted": (40, 160, 230),
+}
+
+
+def rerun_available() -> bool:
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _color_for(path: str):
+    return COLORS.get(path.split("/", 1)[0])
+
+
+class Recorder:
+    """Thin wrapper over a rerun RecordingStream saving to `path` (atomically, on close)."""
+
+    def __init__(self, path: str | os.PathLike, application_id: str = "wrenorm", recording_id: str | None = None):
+        import rerun as rr
+
+        self._rr = rr
+        self.path = Path(path)
+        self._tmp = self.path.with_name(self.path.name + ".partial")
+        self.stream = rr.RecordingStream(application_id, recording_id=recording_id)
+        self.stream.save(str(self._tmp))
+
+    # --- time ----------------------------------------------------------------
+    def _at(self, t: float | None, timeline: str):
+        if t is None:
+            self.stream.disable_timeline(timeline) if hasattr(self.stream, "disable_timeline") else None
+        elif timeline == "generation":
+            self.stream.set_time(timeline, sequence=int(t))
+        else:
+            self.stream.set_time(timeline, duration=float(t))
+
+    # --- archetypes -----------------------------------------------------------
+    def log_scalar(self, path: str, t: float, value: float, timeline: str = "sim_time") -> None:
+        self._at(t, timeline)
+        self.stream.log(path, self._rr.Scalars(float(value)))
+
+    def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time"):
+        self._at(t, timeline)
+        self.stream.log(path, self._rr.Points3D(np.asarray(positions, np.float32), colors=colors or _color_for(path), radii=radii))
+
+    def log_lines3d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
+        self._at(t, timeline)
+        strips = [np.asarray(s, np.float32) for s in strips]
+        self.stream.log(path, self._rr.LineStrips3D(strips, colors=colors or _color_for(path), radii=radii))
+
+    def log_points2d(self, path, t, positions, colors=None, radii=None, timeline="sim_time"):
+        self._at(t, timeline)
+        self.stream.log(path, self._rr.Points2D(np.asarray(positions, np.float32), colors=colors or _color_for(path), radii=radii))
+
+    def log_lines2d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
+        self._at(t, timeline)
+        strips = [np.asarray(s, np.float32) for s in strips]
+        self.stream.log(path, self._rr.LineStrips2D(strips, colors=colors or _color_for(path), radii=radii))
+
+    def log_series(self, path: str, times: np.ndarray, values: np.ndarray, timeline: str = "sim_time") -> None:
+        """A whole scalar time series in one call (columnar), for long trajectories."""
+        rr = self._rr
+        times = np.asarray(times, np.float64)
+        column = rr.TimeColumn(timeline, sequence=times.astype(np.int64)) if timeline == "generation" else rr.TimeColumn(timeline, duration=times)
+        self.stream.send_columns(path, indexes=[column], columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
+        color = _color_for(path)
+        if color is not None:
+            self.stream.log(path, rr.SeriesLines(colors=[color], names=[path.split("/", 1)[0]]), static=True)
+
+    def log_text(self, path: str, text: str) -> None:
+        self.stream.log(path, self._rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+    def close(self) -> Path:
+        self.stream.flush()
+        self.stream.disconnect() if hasattr(self.stream, "disconnect") else None
+        os.replace(self._tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        try:
+            self.stream.disconnect()
+        finally:
+            if self._tmp.exists():
+                self._tmp.unlink()

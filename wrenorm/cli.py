@@ -1,0 +1,152 @@
+"""Command line: `python -m wrenorm fit pd|rope|swimmer`, `view`, `reference rope`, `bench`.
+
+Every user mistake (bad file, bad option value) ends with one line naming the file or option,
+the field and the problem, and exit code 2 — never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+from pathlib import Path
+
+from .errors import AllCandidatesFailed, InputError
+
+TASKS = ("pd", "rope", "swimmer")
+
+
+def _task_module(name: str):
+    return importlib.import_module(f"wrenorm.tasks.{name}")
+
+
+def _default_out(task: str) -> Path:
+    return Path("runs") / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _device(name: str) -> str:
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    if name == "cuda" and not wp.is_cuda_available():
+        raise InputError("--device", "device", "cuda requested but no CUDA device is available")
+    return "cuda:0" if name == "cuda" else "cpu"
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="wrenorm", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    fit = sub.add_parser("fit", help="fit a system's effective parameters")
+    fit_sub = fit.add_subparsers(dest="task", required=True)
+    for task in TASKS:
+        tp = fit_sub.add_parser(task, help=f"fit the {task} system")
+        tp.add_argument("--out", type=Path, default=None, help="run folder (default runs/<task>-<time>)")
+        tp.add_argument("--seed", type=_positive_int, default=0)
+        tp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+        tp.add_argument("--resume", action="store_true", help="continue the interrupted fit in --out")
+        tp.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder")
+        tp.add_argument("--quiet", action="store_true", help="no progress lines")
+        tp.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
+        try:
+            _task_module(task).add_arguments(tp)
+        except ModuleNotFoundError:
+            tp.set_defaults(_missing=True)
+    view = sub.add_parser("view", help="open a run's recording in the Rerun viewer")
+    view.add_argument("run", type=Path)
+    ref = sub.add_parser("reference", help="generate a reference")
+    ref_sub = ref.add_subparsers(dest="system", required=True)
+    rope_ref = ref_sub.add_parser("rope", help="fine newton rope reference (.npz)")
+    try:
+        importlib.import_module("wrenorm.tasks.rope_reference").add_reference_arguments(rope_ref)
+    except ModuleNotFoundError:
+        pass
+    bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
+    try:
+        importlib.import_module("wrenorm.bench").add_arguments(bench)
+    except ModuleNotFoundError:
+        pass
+    return p
+
+
+def cmd_fit(args) -> int:
+    from .fit import prepare_out, run_fits
+
+    if getattr(args, "_missing", False):
+        raise InputError("fit", args.task, "this system is not available in this build")
+    device = _device(args.device)
+    mod = _task_module(args.task)
+    problems = mod.build_problems(args, device) if hasattr(mod, "build_problems") else [mod.build_problem(args, device)]
+    out = prepare_out(args.out or _default_out(args.task), resume=args.resume, force=args.force)
+    print(f"wrenorm fit {args.task}: writing {out}", file=sys.stderr)
+    result = run_fits(problems, out, args, mod)
+    _print_summary(result, out)
+    return 0
+
+
+def _print_summary(result: dict, out: Path) -> None:
+    runs = result.get("runs", [result])
+    for r in runs:
+        res = r["resolution"]
+        print(f"\n{r['task']} at {res}: loss measured {r['loss']['measured']:.4g} -> fitted {r['loss']['fitted']:.4g}")
+        for name, p in r["parameters"].items():
+            tag = " (frozen)" if p["frozen"] else ""
+            std = f" ± {p['std']:.3g}" if p.get("std") is not None else ""
+            print(f"  {name:>10}: measured {p['measured']:<10.5g} fitted {p['fitted']:.5g}{std}{tag}")
+        v = r["validation"]
+        print(f"  held-out verdict: {v['verdict']}" + (
+            f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g},"
+            f" tolerance {v['tolerance']})" if "mean_measured_error" in v else ""))
+        if r.get("uncertainty", {}).get("warning"):
+            print(f"  warning: {r['uncertainty']['warning']}")
+    print(f"\nresult: {out / 'result.json'}" + (f"   view: python -m wrenorm view {out}" if (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd")) else ""))
+
+
+def cmd_view(args) -> int:
+    run = args.run
+    rrd = run / "recording.rrd" if run.is_dir() else run
+    if not rrd.exists():
+        raise InputError(str(run), "recording.rrd", "no recording in this run folder")
+    try:
+        import rerun as rr
+    except ImportError:
+        raise InputError("view", "rerun-sdk", "not installed: pip install 'wrenorm[viz]'") from None
+    import subprocess
+
+    files = [str(rrd)] + ([str(p) for p in sorted(run.glob("*/recording.rrd"))] if run.is_dir() else [])
+    files = [f for f in files if Path(f).exists()]
+    return subprocess.call([sys.executable, "-m", "rerun", *files])
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "fit":
+            return cmd_fit(args)
+        if args.command == "view":
+            return cmd_view(args)
+        if args.command == "reference":
+            return importlib.import_module("wrenorm.tasks.rope_reference").run_reference(args)
+        if args.command == "bench":
+            return importlib.import_module("wrenorm.bench").run(args)
+    except InputError as e:
+        print(f"wrenorm: error: {e}", file=sys.stderr)
+        return 2
+    except AllCandidatesFailed as e:
+        print(f"wrenorm: fit failed: {e}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print("\nwrenorm: interrupted; continue with --resume --out <folder>", file=sys.stderr)
+        return 130
+    return 1

@@ -1,0 +1,235 @@
+"""One fit, start to finish: search, validation on held-out conditions, results, recording.
+
+This is the paper's procedure as code: the Problem names the observable and the parameters
+(measured values are the start); the search fits the free ones on the training conditions;
+validation re-runs the held-out conditions with measured and with fitted parameters and says
+whether the omitted physics was absorbed.
+"""
+from __future__ import annotations
+
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import search as searches
+from .errors import InputError
+from .problem import Problem, finite_or_inf
+from .results import SCHEMA, versions, write_json
+from .uncertainty import uncertainty
+
+STATE_FILE = "search_state.pkl"
+
+
+def prepare_out(out: Path, resume: bool, force: bool) -> Path:
+    """Refuse to clobber an earlier run unless told to (--force), or continue it (--resume)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(str(out), "--out", "exists and is not a folder")
+    existing = out.exists() and any(out.iterdir())
+    if resume:
+        if not (out / STATE_FILE).exists() and not any(out.glob(f"*/{STATE_FILE}")):
+            raise InputError(str(out), "--resume", f"no saved search state ({STATE_FILE}) in this folder to resume from")
+    elif existing:
+        if not force:
+            raise InputError(str(out), "--out", "folder exists and is not empty; pass --force to overwrite it or --resume to continue it")
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> dict:
+    if not problem.held_out:
+        return {"conditions": {}, "verdict": "unvalidated", "tolerance": problem.tolerance,
+                "note": "no held-out conditions: nothing to validate on"}
+    errs = finite_or_inf(problem.errors(np.stack([measured, fitted]), problem.held_out))
+    conditions = {
+        c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j])}
+        for j, c in enumerate(problem.held_out)
+    }
+    worst = float(np.max(errs[1]))
+    verdict = "absorbed" if worst <= problem.tolerance else "expand"
+    return {
+        "conditions": conditions,
+        "mean_measured_error": float(np.mean(errs[0])),
+        "mean_fitted_error": float(np.mean(errs[1])),
+        "worst_fitted_error": worst,
+        "tolerance": problem.tolerance,
+        "verdict": verdict,
+        "meaning": (
+            "absorbed: the fitted parameters reproduce conditions the search never saw within tolerance, so the "
+            "omitted physics is absorbed into them" if verdict == "absorbed" else
+            "expand: fitted parameters do not keep held-out conditions within tolerance; the parameter set or the "
+            "simulator must grow"
+        ),
+    }
+
+
+def run_fit(
+    problem: Problem,
+    out: str | Path,
+    seed: int = 0,
+    resume: bool = False,
+    generations: int = 60,
+    popsize: int | None = None,
+    sigma0: float = 0.2,
+    polish: int = 0,
+    start: np.ndarray | None = None,
+    record: bool = True,
+    quiet: bool = False,
+    extra: dict | None = None,
+) -> dict:
+    """Fit `problem`, write OUT/result.json (+ recording.rrd, plots); return the result dict."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    space = problem.space
+    measured = space.measured
+    res = searches.cmaes(
+        problem, seed=seed, popsize=popsize, generations=generations, sigma0=sigma0, start=start,
+        checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
+    )
+    methods = ["cmaes"]
+    fitted, history = res.best_values, {"cmaes": res.history}
+    if polish and problem.differentiable:
+        g = searches.gradient(problem, fitted, iterations=polish, quiet=quiet)
+        history["gradient"] = g.history
+        methods.append("gradient")
+        if g.best_loss < res.best_loss:
+            fitted = g.best_values
+    losses, _ = searches.mean_loss(problem, np.stack([measured, fitted]), problem.train)
+    unc = uncertainty(problem, fitted)
+    params = {}
+    for i, p in enumerate(space.parameters):
+        params[p.name] = {
+            "measured": p.measured,
+            "fitted": float(fitted[i]),
+            "bounds": [p.lower, p.upper],
+            "std": unc["std"].get(p.name),
+            "scale": p.scale,
+            "frozen": p.frozen,
+            "unit": p.unit,
+            "ratio_to_measured": float(fitted[i] / p.measured) if p.measured else None,
+        }
+    result = {
+        "schema": SCHEMA,
+        "task": problem.task,
+        "resolution": problem.resolution,
+        "parameters": params,
+        "loss": {"measured": float(losses[0]), "fitted": float(losses[1]), "meaning": problem.error_doc},
+        "train": [c.name for c in problem.train],
+        "validation": _validation(problem, measured, fitted),
+        "uncertainty": {k: v for k, v in unc.items() if k != "std"},
+        "search": {
+            "methods": methods,
+            "generations": len(res.history),
+            "evaluations": res.evaluations,
+            "blowups": res.blowups,
+            "stop": res.stop,
+            "popsize": popsize,
+            "sigma0": sigma0,
+        },
+        "seed": seed,
+        "device": problem.device,
+        "versions": versions(),
+    }
+    result.update(problem.report(fitted, measured))
+    if extra:
+        result.update(extra)
+    if record:
+        _record(problem, out, result, history, fitted, measured, quiet)
+    _plot(out, problem, history, quiet)
+    result["wall_seconds"] = time.perf_counter() - t0
+    write_json(out / "result.json", result)
+    return result
+
+
+def _summary_markdown(result: dict) -> str:
+    lines = [f"# {result['task']} fit", "", f"resolution: `{result['resolution']}`", "",
+             "| parameter | measured | fitted | std |", "|---|---|---|---|"]
+    for name, p in result["parameters"].items():
+        std = "" if p["std"] is None else f"{p['std']:.4g}"
+        lines.append(f"| {name} | {p['measured']:.6g} | {p['fitted']:.6g} | {std} |")
+    v = result["validation"]
+    lines += ["", f"loss: measured {result['loss']['measured']:.4g}, fitted {result['loss']['fitted']:.4g}",
+              f"validation verdict: **{v['verdict']}** (tolerance {v['tolerance']})"]
+    for name, c in v["conditions"].items():
+        lines.append(f"- {name}: measured-parameter error {c['measured_error']:.4g}, fitted {c['fitted_error']:.4g}")
+    return "\n".join(lines)
+
+
+def _record(problem, out, result, history, fitted, measured, quiet):
+    from wrenorm.viz.record import Recorder, rerun_available
+
+    if not rerun_available():
+        if not quiet:
+            print("rerun-sdk not installed: no recording written (pip install 'wrenorm[viz]')", file=sys.stderr)
+        return
+    rec = Recorder(out / "recording.rrd", recording_id=f"{problem.task}-seed{result['seed']}")
+    try:
+        rec.log_text("summary", _summary_markdown(result))
+        names = problem.space.names
+        for h in history.get("cmaes", []):
+            g = h["generation"]
+            rec.log_scalar("search/loss/best", g, h["best"], timeline="generation")
+            rec.log_scalar("search/loss/median", g, h["median"], timeline="generation")
+            for name, v, m in zip(names, h["values"], problem.space.measured):
+                if not problem.space[name].frozen:
+                    rec.log_scalar(f"search/parameters/{name}", g, v / m if m else v, timeline="generation")
+        problem.record(rec, fitted, measured)
+        rec.close()
+    except BaseException:
+        rec.abort()
+        raise
+
+
+def _plot(out, problem, history, quiet):
+    try:
+        from wrenorm.viz.plots import plot_search
+    except ImportError:  # matplotlib missing: plots are a convenience, never fatal
+        return
+    plot_search(out / "search.png", problem, history)
+
+
+def run_fits(problems: list, out: Path, args, module) -> dict:
+    """Fit one problem into OUT, or several (e.g. one per f_sim) into OUT/<label>/ with a combined
+    OUT/result.json holding `runs`. Each fit starts from its predecessor's result."""
+    common = dict(
+        seed=args.seed, resume=args.resume, quiet=args.quiet, record=not args.no_record,
+        generations=getattr(args, "generations", 60), popsize=getattr(args, "popsize", None),
+        polish=getattr(args, "polish", 0),
+    )
+    if len(problems) == 1:
+        return run_fit(problems[0], out, **common)
+    t0 = time.perf_counter()
+    runs, start = [], None
+    for prob in problems:
+        label = "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in prob.resolution.items()
+                         if k not in ("dt", "integrator"))
+        sub = out / label
+        done = sub / "result.json"
+        if args.resume and done.exists():
+            import json
+
+            r = json.loads(done.read_text())
+        else:
+            r = run_fit(prob, sub, start=start, **common)
+        r["folder"] = label
+        runs.append(r)
+        start = np.array([r["parameters"][n]["fitted"] for n in prob.space.names])
+    combined = {
+        "schema": SCHEMA,
+        "task": problems[0].task,
+        "resolutions": [p.resolution for p in problems],
+        "runs": runs,
+        "seed": args.seed,
+        "device": problems[0].device,
+        "versions": versions(),
+        "wall_seconds": time.perf_counter() - t0,
+    }
+    if hasattr(module, "summarise_runs"):
+        combined.update(module.summarise_runs(runs, out))
+    write_json(out / "result.json", combined)
+    return combined
