@@ -7,6 +7,7 @@
 """
 from __future__ import annotations
 
+import os
 import pickle
 import sys
 import time
@@ -22,6 +23,7 @@ from .results import write_atomic
 
 # pycma ranks candidates, so a blown-up candidate only needs to rank last.
 _BLOWUP_LOSS = 1e30
+_SLOW = float(os.environ.get("WRENORM_TEST_SLOW_GENERATION", "0") or 0)
 
 
 @dataclass
@@ -131,6 +133,8 @@ def cmaes(
         if checkpoint:
             blob = {"es": es, "history": history, "counts": counts, "best": best, "np_random": np.random.get_state()}
             write_atomic(checkpoint, pickle.dumps(blob))
+        if _SLOW:  # fault-injection hook for the kill -9 / --resume test
+            time.sleep(_SLOW)
     stop = ", ".join(f"{k}" for k in es.stop()) or ("generations" if len(history) >= generations else "")
     return SearchResult("cmaes", best[1], best[0], history, counts["evaluations"], counts["blowups"], stop)
 
