@@ -1,0 +1,353 @@
+"""Reference rope: file format, loader errors, self-collision detector, shipped references, and a
+short newton run."""
+import io
+import os
+import time
+import zipfile
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from wrenorm.errors import InputError
+from wrenorm.tasks.rope_collision import candidate_pairs, segment_distances
+from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
+from wrenorm.tasks.rope_reference import (
+    RopeReference, builtin_reference_path, builtin_references, first_self_collision, load_reference,
+    save_reference, validate_arrays)
+
+L, R, M = 1.1, 0.005, 23
+
+
+def hanging_ref(T=50, dt=0.004, M=M):
+    t = np.arange(T) * dt
+    hand = np.tile([0.0, 0.0, 1.6], (T, 1))
+    s = np.linspace(0.0, 1.0, M)
+    markers = np.zeros((T, M, 3))
+    markers[:, :, 2] = 1.6 - s * L
+    markers[:, :, 0] = 0.01 * np.sin(3 * s)[None, :] * np.sin(t)[:, None]
+    return RopeReference(t, markers, hand, L, 0.2, R, 3e-3, s, "test")
+
+
+def as_dict(ref):
+    return {"time": ref.time, "markers": ref.markers, "hand": ref.hand, "length": ref.length, "mass": ref.mass,
+            "radius": ref.radius, "bend_stiffness": ref.bend_stiffness, "marker_arclength": ref.marker_arclength}
+
+
+def write_npz(path, data):
+    with open(path, "wb") as fh:
+        np.savez(fh, **{k: v for k, v in data.items() if v is not None})
+
+
+# ------------------------------------------------------------------------------------------ file format
+
+def test_round_trip(tmp_path):
+    ref = hanging_ref()
+    p = tmp_path / "sub" / "ref.npz"
+    save_reference(p, ref)
+    got = load_reference(p)
+    np.testing.assert_allclose(got.time, ref.time)
+    np.testing.assert_allclose(got.markers, ref.markers, atol=1e-6)  # stored as float32
+    np.testing.assert_allclose(got.hand, ref.hand, atol=1e-6)
+    np.testing.assert_allclose(got.marker_arclength, ref.marker_arclength)
+    assert (got.length, got.mass, got.radius, got.bend_stiffness, got.source) == (L, 0.2, R, 3e-3, "test")
+    assert not [f for f in os.listdir(p.parent) if f != "ref.npz"], "temporary file left behind"
+
+
+def test_optional_fields_default(tmp_path):
+    d = as_dict(hanging_ref())
+    d["bend_stiffness"] = None
+    d["marker_arclength"] = None
+    write_npz(tmp_path / "r.npz", d)
+    got = load_reference(tmp_path / "r.npz")
+    assert got.bend_stiffness is None
+    np.testing.assert_allclose(got.marker_arclength, np.linspace(0, 1, M))
+
+
+def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
+    p = tmp_path / "r.npz"
+    save_reference(p, hanging_ref())
+    bad = hanging_ref()
+    bad.markers = bad.markers * 1000.0  # millimetres
+    with pytest.raises(InputError):
+        save_reference(p, bad)
+    assert load_reference(p).markers.max() < 2.0
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda d: d.pop("hand"), "hand"),
+    (lambda d: d.update(markers=d["markers"] * 1000.0), "markers"),
+    (lambda d: d.update(hand=d["hand"] * 1000.0, markers=d["markers"] * 1000.0), "markers"),
+    (lambda d: d.update(length=1100.0), "length"),
+    (lambda d: d.update(time=d["time"] ** 1.5), "time"),
+    (lambda d: d.update(time=d["time"][::-1].copy()), "time"),
+    (lambda d: d.update(time=d["time"] * 1000.0), "time"),
+    (lambda d: d["markers"].__setitem__((3, 4, 1), np.nan), "markers"),
+    (lambda d: d["hand"].__setitem__((0, 0), np.inf), "hand"),
+    (lambda d: d.update(markers=d["markers"][:, :, :2].copy()), "markers"),
+    (lambda d: d.update(markers=d["markers"][:-1].copy()), "markers"),
+    (lambda d: d.update(radius=2.0), "radius"),
+    (lambda d: d.update(mass=-1.0), "mass"),
+    (lambda d: d.update(marker_arclength=d["marker_arclength"][::-1].copy()), "marker_arclength"),
+    (lambda d: d.update(hand=d["hand"] + 0.5), "markers"),  # marker 0 is not at the hand
+    (lambda d: d.update(length=0.3), "markers"),  # markers spread over more than the rope length
+])
+def test_named_errors(tmp_path, mutate, field):
+    d = as_dict(hanging_ref())
+    mutate(d)
+    write_npz(tmp_path / "bad.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "bad.npz")
+    assert e.value.field == field and e.value.source == str(tmp_path / "bad.npz")
+
+
+def test_file_errors(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        load_reference(tmp_path / "missing.npz")
+    with pytest.raises(InputError, match="regular file"):
+        load_reference(tmp_path)
+    (tmp_path / "text.npz").write_text("time,markers\n1,2\n")
+    with pytest.raises(InputError, match="npz"):
+        load_reference(tmp_path / "text.npz")
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    with pytest.raises(InputError):
+        load_reference(tmp_path / "plain.npy")
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("time.npy", b"garbage")
+    (tmp_path / "zip.npz").write_bytes(buf.getvalue())
+    with pytest.raises(InputError, match="file"):
+        load_reference(tmp_path / "zip.npz")
+    obj = as_dict(hanging_ref())
+    obj["time"] = np.array([object()] * 50, dtype=object)
+    np.savez(tmp_path / "pickle.npz", **obj)
+    with pytest.raises(InputError):
+        load_reference(tmp_path / "pickle.npz")
+
+
+def _check_only_input_errors(path, data):
+    write_npz(path, data)
+    try:
+        load_reference(path)
+    except InputError:
+        pass
+
+
+finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=120, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(field=st.sampled_from(["time", "markers", "hand", "length", "mass", "radius", "bend_stiffness",
+                              "marker_arclength"]),
+       value=hnp.arrays(dtype=st.sampled_from([np.float64, np.float32, np.int64, np.bool_, np.complex128]),
+                        shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=6),
+                        elements=None))
+def test_fuzz_one_field(tmp_path, field, value):
+    d = as_dict(hanging_ref(T=6))
+    d[field] = value
+    _check_only_input_errors(tmp_path / "f.npz", d)
+
+
+@settings(max_examples=60, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(scale=st.sampled_from([1e-3, 1.0, 1e3]), noise=finite_or_not, where=st.integers(0, 5),
+       drop=st.sampled_from([None, "time", "markers", "hand", "length", "mass", "radius"]),
+       dt_jitter=st.floats(0.0, 0.5))
+def test_fuzz_extremes(tmp_path, scale, noise, where, drop, dt_jitter):
+    d = as_dict(hanging_ref(T=6))
+    d["markers"] = d["markers"] * scale
+    d["markers"][where, where % M, where % 3] += noise
+    d["time"] = d["time"] + dt_jitter * 0.004 * np.sin(np.arange(6) * 2.3)
+    if drop:
+        d.pop(drop)
+    _check_only_input_errors(tmp_path / "f.npz", d)
+
+
+@settings(max_examples=60, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(blob=st.binary(max_size=400), zip_prefix=st.booleans())
+def test_fuzz_bytes(tmp_path, blob, zip_prefix):
+    p = tmp_path / "b.npz"
+    p.write_bytes((b"PK\x03\x04" if zip_prefix else b"") + blob)
+    with pytest.raises(InputError):
+        load_reference(p)
+
+
+# ------------------------------------------------------------------------------------ collision detector
+
+def test_segment_distance_against_brute_force():
+    rng = np.random.default_rng(0)
+    p0, p1, q0, q1 = (rng.normal(size=(60, 3)) for _ in range(4))
+    p1[:10] = p0[:10] + 0.3 * (q1[:10] - q0[:10])  # parallel cases
+    d, u, v = segment_distances(p0, p1, q0, q1)
+    g = np.linspace(0, 1, 201)
+    a = p0[:, None, None] + (p1 - p0)[:, None, None] * g[None, :, None, None]
+    b = q0[:, None, None] + (q1 - q0)[:, None, None] * g[None, None, :, None]
+    brute = np.linalg.norm(a - b, axis=-1).min(axis=(1, 2))
+    assert np.all(d <= brute + 1e-12) and np.all(brute - d < 1e-2)
+    np.testing.assert_allclose(np.linalg.norm(p0 + (p1 - p0) * u[:, None] - q0 - (q1 - q0) * v[:, None], axis=1), d)
+
+
+def test_straight_and_bent_rope_never_collide():
+    ref = hanging_ref(T=30)
+    assert first_self_collision(ref) is None
+    # A tight U turn (bend radius 3 cm) has its legs 6 cm apart: no contact, however fine the markers.
+    s = np.linspace(0, 1, 121)
+    x = s * L
+    r_bend, straight = 0.03, 0.5 * (L - np.pi * 0.03)
+    pts = np.zeros((121, 3))
+    for k, a in enumerate(x):
+        if a < straight:
+            pts[k] = [0, 0, -a]
+        elif a < straight + np.pi * r_bend:
+            th = (a - straight) / r_bend
+            pts[k] = [r_bend - r_bend * np.cos(th), 0, -straight - r_bend * np.sin(th)]
+        else:
+            pts[k] = [2 * r_bend, 0, -straight + (a - straight - np.pi * r_bend)]
+    ref = RopeReference(np.arange(3) * 0.01, np.repeat(pts[None], 3, 0), np.zeros((3, 3)), L, 0.2, R, None, s)
+    assert first_self_collision(ref) is None
+
+
+def _closing_loop(T=40, dt=0.01, M=45):
+    """A rope laid as a circle of circumference 0.8 m whose two ends approach each other along the
+    circle's tangent line: free end at distance c(t) above the held straight part, c linear in t."""
+    s = np.linspace(0, 1, M)
+    a = s * L
+    t = np.arange(T) * dt
+    markers = np.zeros((T, M, 3))
+    lead = 0.15  # straight start from the hand (marker 0 at the origin)
+    circ = 0.8
+    rad = circ / (2 * np.pi)
+    c = 0.05 - 0.1 * t  # vertical offset of the loop's return: crosses 2R = 0.01 at t = 0.4 s
+    for k in range(T):
+        for m, am in enumerate(a):
+            if am <= lead:
+                markers[k, m] = [am, 0, 0]
+            elif am <= lead + circ:
+                th = (am - lead) / rad
+                markers[k, m] = [lead + rad * np.sin(th), 0, rad * (1 - np.cos(th)) + 0 * th]
+            else:
+                markers[k, m] = [lead + (am - lead - circ), 0, 0]
+            # Lift the loop's second lap out of plane so the ends pass at a controlled distance c.
+            if am > lead + 0.5 * circ:
+                markers[k, m, 1] = c[k] * min(1.0, (am - lead - 0.5 * circ) / (0.25 * circ))
+    return t, s, markers
+
+
+def test_loop_collision_time_and_arclengths():
+    t, s, markers = _closing_loop(T=60, dt=0.007)
+    ref = RopeReference(t, markers, markers[:, 0].copy(), L, 0.2, R, None, s)
+    ev = first_self_collision(ref)
+    # The gap falls linearly through zero at 0.4 s, between frames 57 (0.399) and 58 (0.406).
+    assert ev.index == 58
+    assert t[ev.index - 1] < ev.time <= t[ev.index]
+    assert ev.time == pytest.approx(0.4, abs=1e-6)
+    assert ev.gap_before > 0 >= ev.gap_at
+    # The loop returns at arc length lead + circ = 0.95 m onto the straight lead around x = lead.
+    assert ev.s_b * L == pytest.approx(0.95, abs=0.03)
+    assert ev.s_a * L == pytest.approx(0.15, abs=0.03)
+
+
+def test_contact_at_first_frame_reported_at_index_0():
+    t, s, markers = _closing_loop(T=10, dt=0.01)
+    markers = markers.copy()
+    markers[:, -8:, 1] = 0.0  # the loop's end lies on the lead from the start
+    ref = RopeReference(t, markers, markers[:, 0].copy(), L, 0.2, R, None, s)
+    assert first_self_collision(ref).index == 0
+
+
+def test_neighbour_exclusion():
+    s = np.linspace(0, 1, 65)
+    i, j = candidate_pairs(s, L, R)
+    gap = (j - i - 1) * (L / 64)
+    assert np.all(j - i >= 2) and np.all(gap > 2 * np.pi * R) and len(i) > 1000
+
+
+# --------------------------------------------------------------------------------------------- hand paths
+
+def test_hand_paths_are_c1_and_within_limits():
+    paths = builtin_hand_paths()
+    assert set(FIT_PATHS) <= set(paths) and set(HELD_OUT_PATHS) <= set(paths)
+    assert not set(FIT_PATHS) & set(HELD_OUT_PATHS)
+    for name, p in paths.items():
+        assert p.limit_violations() == [], name
+        np.testing.assert_allclose(p.velocities([0.0, p.duration]), 0.0, atol=1e-9)
+        edges = np.cumsum(p.durations)[:-1]
+        for e in edges:  # C1 across segment joints
+            np.testing.assert_allclose(p.positions([e - 1e-7]), p.positions([e + 1e-7]), atol=1e-5)
+            np.testing.assert_allclose(p.velocities([e - 1e-7]), p.velocities([e + 1e-7]), atol=1e-4)
+        tt = np.linspace(0.01, p.duration - 0.01, 50)
+        fd = (p.positions(tt + 1e-6) - p.positions(tt - 1e-6)) / 2e-6
+        np.testing.assert_allclose(p.velocities(tt), fd, atol=1e-5)
+        fd2 = (p.velocities(tt + 1e-6) - p.velocities(tt - 1e-6)) / 2e-6
+        np.testing.assert_allclose(p.accelerations(tt), fd2, atol=1e-3)
+
+
+def test_hand_path_limit_check():
+    slow = HandPath.through([0, 1], [[0, 0, 0], [0.1, 0, 0]], [[0, 0, 0], [0, 0, 0]])
+    slow.check_limits()
+    fast = HandPath.through([0, 0.05], [[0, 0, 0], [1.0, 0, 0]], [[0, 0, 0], [0, 0, 0]])
+    assert len(fast.limit_violations()) == 2
+    with pytest.raises(InputError):
+        fast.check_limits()
+    with pytest.raises(InputError):
+        HandPath(np.zeros((5, 3)), np.ones(1))
+
+
+# ------------------------------------------------------------------------------------- shipped references
+
+@pytest.mark.parametrize("kind", ["fit", "held_out"])
+def test_builtin_references_ship_and_collide(kind):
+    names = FIT_PATHS if kind == "fit" else HELD_OUT_PATHS
+    for name in names:
+        p = builtin_reference_path(name)
+        assert "wrenorm/data" in str(p).replace(os.sep, "/") and p.exists(), f"{p} is not shipped"
+    refs = builtin_references(kind)
+    assert len(refs) == len(names)
+    for name, ref in zip(names, refs):
+        ev = first_self_collision(ref)
+        assert ev is not None and 0.3 < ev.time < ref.time[-1] - 0.1, (name, ev)
+        # The rope hangs at rest at t=0 and stays inextensible within 2 %.
+        chord = np.linalg.norm(np.diff(ref.markers, axis=1), axis=2).sum(1)
+        assert np.all(np.abs(chord / ref.length - 1) < 0.02), name
+        np.testing.assert_allclose(ref.markers[0, -1], ref.hand[0] - [0, 0, ref.length], atol=2e-3)
+        np.testing.assert_allclose(ref.markers[:, 0], ref.hand, atol=2e-3)
+    total = sum(builtin_reference_path(n).stat().st_size for n in FIT_PATHS + HELD_OUT_PATHS)
+    assert total < 3e6
+
+
+# ----------------------------------------------------------------------------------------- newton run
+
+def test_short_newton_run_follows_hand_and_keeps_length():
+    from wrenorm.tasks.rope_newton import RopeMaterial, simulate
+
+    # Hand moves 0.1 m sideways in 0.16 s; the rope must be dragged along without stretching.
+    path = HandPath.through([0, 0.16], [[0, 0, 1.0], [0.1, 0, 1.0]], [[0, 0, 0], [0, 0, 0]])
+    t0 = time.perf_counter()
+    run = simulate(path, RopeMaterial(), segments=16, duration=0.2, frame_rate=250, substeps_per_frame=8)
+    assert time.perf_counter() - t0 < 60
+    assert run.substeps == 400
+    lengths = np.linalg.norm(np.diff(run.nodes, axis=1), axis=2).sum(1)
+    assert np.all(np.abs(lengths / 1.1 - 1) < 0.02)
+    np.testing.assert_allclose(run.nodes[:, 0], path.positions(run.time), atol=2e-3)
+    # Free end lags behind the hand (it is a rope, not a rigid rod) but has started to move.
+    assert -0.01 < run.nodes[-1, -1, 0] < 0.1 and run.nodes[-1, -1, 0] < 0.5 * run.nodes[-1, 0, 0]
+    # Free fall check: nothing pushes the tip up while the hand stays at height.
+    assert run.nodes[:, -1, 2].max() < 1.0 - 1.1 + 0.02
+
+
+def test_unshipped_variant_goes_to_user_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("WRENORM_CACHE", str(tmp_path))
+    assert builtin_reference_path("flick", "stiff") == tmp_path / "rope_stiff_flick.npz"
+    assert builtin_reference_path("flick", "default").parent.name == "data"
+    with pytest.raises(InputError):
+        builtin_references("training")
+
+
+def test_cli_rejects_unknown_path(tmp_path, capsys):
+    from wrenorm.tasks.rope_reference import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--out", str(tmp_path / "x.npz"), "--path", "nope"])
+    assert e.value.code == 2 and not (tmp_path / "x.npz").exists()
+    assert main(["--out", str(tmp_path / "x.npz"), "--duration", "-1"]) == 2
