@@ -349,3 +349,22 @@ def build_problems(args, device: str) -> list[PDProblem]:
         _check_positive({"f_sim": f})
     log = load_log(args.reference) if args.reference else None
     return [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
+
+
+# ---- resolution flow ------------------------------------------------------------------
+FLOW_GENERATIONS = 80
+
+
+def add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--integrator", default="semi-implicit", choices=["semi-implicit", "explicit"])
+
+
+def flow_problems(args, device: str) -> list[PDProblem]:
+    freqs = sorted(args.resolutions or [50.0, 100.0, 200.0, 400.0, 800.0])
+    for f in freqs:
+        _check_positive({"f_sim": f})
+    return [PDProblem(f, args.integrator, device) for f in freqs]
+
+
+def flow_analytic(problem: PDProblem, fitted: dict) -> dict:
+    return problem.analytic(fitted)

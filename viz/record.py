@@ -46,7 +46,7 @@ class Recorder:
     def _at(self, t: float | None, timeline: str):
         if t is None:
             self.stream.disable_timeline(timeline) if hasattr(self.stream, "disable_timeline") else None
-        elif timeline == "generation":
+        elif timeline in ("generation", "resolution"):
             self.stream.set_time(timeline, sequence=int(t))
         else:
             self.stream.set_time(timeline, duration=float(t))

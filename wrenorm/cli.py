@@ -62,6 +62,26 @@ def build_parser() -> argparse.ArgumentParser:
             _task_module(task).add_arguments(tp)
         except ModuleNotFoundError:
             tp.set_defaults(_missing=True)
+    flow = sub.add_parser("flow", help="effective parameters as functions of resolution, with uncertainty")
+    flow_sub = flow.add_subparsers(dest="task", required=True)
+    for task in TASKS:
+        fp = flow_sub.add_parser(task, help=f"resolution flow of the {task} system")
+        fp.add_argument("--resolutions", type=float, nargs="+", default=None,
+                        help="pd: f_sim [Hz]; rope: segment counts; swimmer: time steps [s]")
+        fp.add_argument("--out", type=Path, default=None)
+        fp.add_argument("--seed", type=_positive_int, default=0)
+        fp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+        fp.add_argument("--force", action="store_true")
+        fp.add_argument("--quiet", action="store_true")
+        fp.add_argument("--no-record", action="store_true")
+        fp.add_argument("--restarts", type=int, default=4, help="seeded CMA-ES searches side by side")
+        fp.add_argument("--generations", type=int, default=None)
+        try:
+            mod = _task_module(task)
+            if hasattr(mod, "add_flow_arguments"):
+                mod.add_flow_arguments(fp)
+        except ModuleNotFoundError:
+            pass
     view = sub.add_parser("view", help="open a run's recording in the Rerun viewer")
     view.add_argument("run", type=Path)
     ref = sub.add_parser("reference", help="generate a reference")
@@ -112,6 +132,29 @@ def _print_summary(result: dict, out: Path) -> None:
     print(f"\nresult: {out / 'result.json'}" + (f"   view: python -m wrenorm view {out}" if (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd")) else ""))
 
 
+def cmd_flow(args) -> int:
+    from .fit import prepare_out
+    from .flow import run_flow
+
+    device = _device(args.device)
+    mod = _task_module(args.task)
+    if not hasattr(mod, "flow_problems"):
+        raise InputError("flow", args.task, "this system has no resolution flow yet")
+    if args.restarts < 2:
+        raise InputError("--restarts", "restarts", "need at least 2 searches for a spread")
+    problems = mod.flow_problems(args, device)
+    out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=False, force=args.force)
+    flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet,
+                    generations=args.generations or getattr(mod, "FLOW_GENERATIONS", 60),
+                    analytic=getattr(mod, "flow_analytic", None), record=not args.no_record)
+    for pt in flow["points"]:
+        line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
+                         if not p["frozen"])
+        print(f"{pt['resolution']}: {line}" + (f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""))
+    print(f"\nflow: {out / 'flow.json'}  plot: {out / 'flow.png'}")
+    return 0
+
+
 def cmd_view(args) -> int:
     run = args.run
     rrd = run / "recording.rrd" if run.is_dir() else run
@@ -134,6 +177,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "fit":
             return cmd_fit(args)
+        if args.command == "flow":
+            return cmd_flow(args)
         if args.command == "view":
             return cmd_view(args)
         if args.command == "reference":

@@ -178,3 +178,57 @@ def gradient(
         if it % 10 == 0 or it == iterations - 1:
             _progress(f"[{problem.task}] grad it {it + 1:4d}/{iterations}  loss {loss:.4e}", quiet)
     return SearchResult("gradient", best[1], best[0], history, evaluations, 0, "iterations")
+
+
+def cmaes_restarts(
+    problem: Problem,
+    seeds: list[int],
+    popsize: int = 16,
+    generations: int = 60,
+    sigma0: float = 0.2,
+    start: np.ndarray | None = None,
+    quiet: bool = False,
+) -> list[SearchResult]:
+    """Independent seeded CMA-ES searches side by side: every generation, all their populations
+    are evaluated in ONE batched call. The spread of their optima is an honest uncertainty for
+    parameters the observable barely constrains (where a Jacobian-based std can mislead)."""
+    import cma
+
+    space = problem.space
+    nfree = len(space.free)
+    x0 = np.clip(space.to_unit(space.measured if start is None else start), 1e-6, 1 - 1e-6)
+    pad = nfree == 1
+    ess = []
+    for s in seeds:
+        np.random.seed(s)
+        ess.append(cma.CMAEvolutionStrategy(np.append(x0, 0.5) if pad else x0, sigma0, {
+            "seed": s + 1, "bounds": [0.0, 1.0], "maxiter": generations, "popsize": popsize,
+            "tolfun": 1e-12, "tolx": 1e-10, "verbose": -9}))
+    results = [SearchResult("cmaes", space.measured.copy(), np.inf) for _ in seeds]
+    t0 = time.perf_counter()
+    for gen in range(generations):
+        active = [i for i, es in enumerate(ess) if not es.stop()]
+        if not active:
+            break
+        asked = {i: np.asarray(ess[i].ask()) for i in active}
+        units = np.concatenate([asked[i] for i in active])
+        loss, _ = mean_loss(problem, space.from_unit(units[:, :nfree]), problem.train)
+        start_row = 0
+        for i in active:
+            n = len(asked[i])
+            li = loss[start_row:start_row + n]
+            vals = space.from_unit(asked[i][:, :nfree])
+            start_row += n
+            failed = ~np.isfinite(li)
+            results[i].evaluations += n
+            results[i].blowups += int(failed.sum())
+            if failed.all():
+                continue
+            ess[i].tell(list(asked[i]), list(np.where(failed, _BLOWUP_LOSS, li)))
+            j = int(np.argmin(li))
+            if li[j] < results[i].best_loss:
+                results[i].best_loss, results[i].best_values = float(li[j]), vals[j].copy()
+            results[i].history.append({"generation": gen, "best": float(li[j])})
+        _progress(f"[{problem.task}] {len(active)} searches, gen {gen + 1:3d}/{generations}  best "
+                  f"{min(r.best_loss for r in results):.4e}  {time.perf_counter() - t0:6.1f}s", quiet)
+    return results

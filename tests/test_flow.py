@@ -1,0 +1,53 @@
+"""Resolution flow and identifiability."""
+import json
+
+import numpy as np
+import pytest
+
+from wrenorm.cli import main
+from wrenorm.params import Parameter, ParameterSpace
+from wrenorm.tasks.pd import PDProblem
+from wrenorm.uncertainty import uncertainty
+
+
+def test_pd_flow_follows_kd_plus_dt_kp(tmp_path):
+    out = tmp_path / "flow"
+    assert main(["flow", "pd", "--integrator", "explicit", "--resolutions", "100", "200", "400",
+                 "--out", str(out), "--quiet", "--restarts", "2", "--generations", "70"]) == 0
+    flow = json.loads((out / "flow.json").read_text())
+    assert (out / "flow.png").stat().st_size > 10_000
+    delays = []
+    for pt in flow["points"]:
+        dt = pt["resolution"]["dt"]
+        kd = pt["parameters"]["K_D"]
+        assert kd["fitted"] == pytest.approx(0.5 + dt * 20.0, rel=0.01)  # K_D + dt K_P
+        assert kd["std_restarts"] is not None and kd["std_restarts"] < 0.01
+        delays.append((kd["fitted"] - 0.5) / 20.0)
+    # the delay is proportional to 1/f_sim
+    assert delays[0] / delays[1] == pytest.approx(2.0, rel=0.05)
+    assert delays[1] / delays[2] == pytest.approx(2.0, rel=0.05)
+
+
+class WithIdleParameter(PDProblem):
+    """PD plus a parameter the observable ignores."""
+
+    def __init__(self):
+        super().__init__(100.0)
+        self.space = ParameterSpace(self.space.parameters + [Parameter("idle", 1.0, 0.1, 10.0, "log")])
+
+    def errors(self, values, conditions):
+        return super().errors(values[:, :5], conditions)
+
+    def residuals(self, values, conditions):
+        return super().residuals(values[:, :5], conditions)
+
+
+def test_parameter_without_effect_is_flagged_undetermined():
+    p = WithIdleParameter()
+    fitted = p.space.measured.copy()
+    fitted[[0, 2]] = [0.05275, 0.5014]
+    u = uncertainty(p, fitted)
+    assert "idle" in u["undetermined"]
+    assert "J" not in u["undetermined"] and "K_D" not in u["undetermined"]
+    assert "idle" in u["warning"]
+    assert u["std"]["J"] < 1e-3

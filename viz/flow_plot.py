@@ -1,0 +1,68 @@
+"""The signature picture: each effective parameter against resolution, beside its measured
+value (and the analytic prediction where one exists)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.viz.plots import _figure, save_figure
+
+
+def _axis(flow):
+    res = [p["resolution"] for p in flow["points"]]
+    key = next(k for k, v in res[0].items() if isinstance(v, (int, float)))
+    return key, np.array([r[key] for r in res], float)
+
+
+def plot_flow(path: Path, flow: dict) -> None:
+    plt = _figure()
+    key, x = _axis(flow)
+    names = [n for n, p in flow["points"][0]["parameters"].items() if not p["frozen"]]
+    fig, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        ps = [pt["parameters"][name] for pt in flow["points"]]
+        y = np.array([p["fitted"] for p in ps])
+        err = np.array([p["std_restarts"] or 0.0 for p in ps])
+        ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="fitted")
+        ax.axhline(ps[0]["measured"], color="k", ls=":", label="measured")
+        pred = [pt.get("analytic", {}).get(f"{name}_sim_first_order") for pt in flow["points"]]
+        if all(v is not None for v in pred):
+            ax.plot(x, pred, "--", label="analytic (1st order)")
+        ax.set_xscale("log")
+        from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks(x)
+        ax.set_xlabel(key)
+        ax.set_title(name)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{flow['task']}: effective parameters against resolution")
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def record_flow(path: Path, flow: dict) -> None:
+    from wrenorm.viz.record import Recorder, rerun_available
+
+    if not rerun_available():
+        return
+    key, x = _axis(flow)
+    rec = Recorder(path, recording_id=f"flow-{flow['task']}")
+    try:
+        # timeline "resolution" counts the fitted resolutions in order; its value is logged beside
+        for i, (pt, xv) in enumerate(zip(flow["points"], x)):
+            rec.log_scalar(f"flow/{key}", i, xv, timeline="resolution")
+            for name, p in pt["parameters"].items():
+                if p["frozen"]:
+                    continue
+                rec.log_scalar(f"flow/{name}/fitted", i, p["fitted"], timeline="resolution")
+                rec.log_scalar(f"flow/{name}/measured", i, p["measured"], timeline="resolution")
+                a = pt.get("analytic", {}).get(f"{name}_sim_first_order")
+                if a is not None:
+                    rec.log_scalar(f"flow/{name}/analytic", i, a, timeline="resolution")
+        rec.close()
+    except BaseException:
+        rec.abort()
+        raise
