@@ -338,6 +338,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--K-D", dest="K_D", type=float, default=MEASURED["K_D"], help="real derivative gain [N m s/rad]")
     p.add_argument("--reference", default=None, metavar="FILE.csv",
                    help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
+    p.add_argument("--arm", action="store_true",
+                   help="two-link arm with M(q) and gain matrices: fit the joint-space inertia correction and K_D^sim")
     p.add_argument("--generations", type=int, default=60)
     p.add_argument("--popsize", type=int, default=24)
     p.add_argument("--polish", type=int, default=0, help="gradient (Warp tape + Adam) iterations after CMA-ES")
@@ -347,6 +349,12 @@ def build_problems(args, device: str) -> list[PDProblem]:
     _check_positive({"J": args.J, "K_P": args.K_P, "K_D": args.K_D})
     for f in args.f_sim:
         _check_positive({"f_sim": f})
+    if args.arm:
+        from wrenorm.tasks.pd_arm import ArmProblem
+
+        if args.reference or args.integrator != "semi-implicit":
+            raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
+        return [ArmProblem(f, device) for f in args.f_sim]
     log = load_log(args.reference) if args.reference else None
     return [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
 
