@@ -1,0 +1,159 @@
+"""Coarse rope kernel: collision geometry, analytic motions, peer implementations, culling."""
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from wrenorm.kernels import rope
+from wrenorm.kernels import rope_baselines as rb
+
+
+def _params(batch, **kw):
+    base = dict(node_mass=0.02, lead_mass=0.02, bend_k=1e-12, bend_b=0.0, drag_lin=0.0, drag_quad=0.0, radius=0.005)
+    base.update(kw)
+    return rope.ChainParams.uniform(batch, **base)
+
+
+@wp.kernel
+def _closest(p: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = rope.seg_closest(p[4 * i], p[4 * i + 1], p[4 * i + 2], p[4 * i + 3])
+
+
+def test_segment_distance_crossing_parallel_and_against_sampling():
+    cases = np.array([
+        [[-1, 0, 0], [1, 0, 0], [0.5, -1, 0.3], [0.5, 1, 0.3]],   # crossing at x=0.5, 0.3 apart
+        [[0, 0, 0], [1, 0, 0], [0.2, 0.4, 0], [1.7, 0.4, 0]],     # parallel, overlapping, 0.4 apart
+        [[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]],             # collinear, end to end
+        [[0, 0, 0], [0, 0, 0], [1, -1, 2], [1, 1, 2]],            # degenerate first segment
+    ], np.float32)
+    out = wp.zeros(len(cases), dtype=wp.vec3)
+    wp.launch(_closest, dim=len(cases), inputs=[wp.array(cases.reshape(-1, 3), dtype=wp.vec3)], outputs=[out])
+    got = out.numpy()
+    assert got[0] == pytest.approx([0.3, 0.75, 0.5], abs=1e-6)
+    assert got[1][0] == pytest.approx(0.4, abs=1e-6)
+    assert got[2][0] == pytest.approx(1.0, abs=1e-6) and got[2][1:] == pytest.approx([1.0, 0.0])
+    assert got[3] == pytest.approx([math.sqrt(5.0), 0.0, 0.5], abs=1e-6)
+    # random segments against dense sampling of both segments
+    rng = np.random.default_rng(0)
+    segs = rng.normal(size=(64, 4, 3)).astype(np.float32)
+    out = wp.zeros(64, dtype=wp.vec3)
+    wp.launch(_closest, dim=64, inputs=[wp.array(segs.reshape(-1, 3), dtype=wp.vec3)], outputs=[out])
+    u = np.linspace(0, 1, 401)
+    for s, g in zip(segs, out.numpy()):
+        a = s[0] + u[:, None] * (s[1] - s[0])
+        b = s[2] + u[:, None] * (s[3] - s[2])
+        brute = np.linalg.norm(a[:, None] - b[None], axis=-1).min()
+        assert g[0] <= brute + 1e-6 and g[0] >= brute - 5e-3
+        d, _, _ = rb.seg_closest(rb._Np(), *[x[None] for x in s])
+        assert d[0] == pytest.approx(g[0], abs=1e-5)
+
+
+def _sweep_case(n_frames=200, dt=0.005, omega=2.0, link=0.1, radius=0.005):
+    """Nodes 1-4 at rest as a square hook; the hand (node 0) swings on a circle of radius `link`
+    about node 1 so link 0 keeps its length and segment 0 sweeps toward node 4.
+    gap(t) = link cos(omega t) - 2 r exactly."""
+    t = np.arange(n_frames + 1) * dt
+    phi = np.pi - omega * t
+    hand = np.stack([link * np.cos(phi), link * np.sin(phi), 0 * t], 1)[None].astype(np.float32)
+    pos0 = np.array([hand[0, 0], [0, 0, 0], [link, 0, 0], [link, link, 0], [0, link, 0]], np.float32)
+    return hand, pos0, np.zeros_like(pos0)
+
+
+@pytest.mark.parametrize("cull", [True, False])
+def test_interpolated_hit_time_of_a_known_approach_and_adjacent_excluded(cull):
+    link, r, omega, dt = 0.1, 0.005, 2.0, 0.005
+    hand, pos0, vel0 = _sweep_case(dt=dt, omega=omega, link=link, radius=r)
+    sim = rope.RopeSim(5, link, dt, gravity=(0, 0, 0), cull=cull)
+    res = sim.rollout(pos0, vel0, hand, [0], _params(1, radius=r), 199)
+    t_star = math.acos(2 * r / link) / omega
+    assert res.status[0] == 1
+    # adjacent segments 0/1 touch at node 1 from the start; they must not count
+    assert res.hit_frame[0] == math.ceil(t_star / dt)
+    assert res.hit_time[0] == pytest.approx(t_star, abs=2e-5)  # frame times are 5e-3 apart
+    assert res.s_b[0] == pytest.approx(1.0, abs=1e-5)
+    # contact place is taken at the first touching frame k (the reference detector's convention)
+    assert res.s_a[0] == pytest.approx((1 - math.sin(omega * res.hit_frame[0] * dt)) / 4, abs=2e-5)
+    assert res.crit_pos[0, 2:] == pytest.approx(pos0[2:], abs=1e-4)  # the hook did not move
+
+
+def test_whole_chain_free_fall_follows_g_t2_over_2():
+    n, link, dt, steps = 8, 0.1, 0.005, 100
+    g = 9.81
+    k = np.arange(steps + 1)
+    z_disc = -g * dt * dt * k * (k + 1) / 2  # semi-implicit Euler free fall of the hand
+    hand = np.zeros((1, steps + 1, 3), np.float32)
+    hand[0, :, 2] = 2.0 + z_disc
+    p0, v0 = rope.hanging_state(hand[0, 0], n, link)
+    res = rope.RopeSim(n, link, dt).rollout(p0, v0, hand, [0], _params(1, bend_k=0.05, drag_quad=0.0), steps)
+    t = steps * dt
+    com0, com = p0[1:, 2].mean(), res.final_pos[0, 1:, 2].mean()
+    assert com - com0 == pytest.approx(-0.5 * g * t * t, abs=0.5 * g * t * dt + 1e-4)
+    assert com - com0 == pytest.approx(z_disc[-1], abs=1e-4)
+    assert np.linalg.norm(np.diff(res.final_pos[0], axis=0), axis=1) == pytest.approx(link, rel=1e-3)
+
+
+def test_stiff_hanging_chain_swings_with_the_rigid_pendulum_period():
+    n, link, dt, steps = 5, 0.1, 0.002, 1500
+    hand = np.tile(np.array([0, 0, 1.0], np.float32), (1, steps + 1, 1))
+    th = np.radians(5.0)
+    p0 = np.array([[link * i * math.sin(th), 0, 1.0 - link * i * math.cos(th)] for i in range(n)], np.float32)
+    res = rope.RopeSim(n, link, dt, iterations=8).rollout(
+        p0, np.zeros_like(p0), hand, [0], _params(1, bend_k=50.0, radius=0.001), steps, trajectory_every=1)
+    x = res.trajectory[:, 0, -1, 0]
+    up = np.flatnonzero((x[:-1] < 0) & (x[1:] >= 0))
+    frac = x[up] / (x[up] - x[up + 1])
+    period = np.diff((up + frac) * dt).mean()
+    analytic = 2 * math.pi * math.sqrt(sum(i * i for i in range(1, n)) * link / (sum(range(1, n)) * 9.81))
+    assert period == pytest.approx(analytic, rel=0.02)
+    lengths = np.linalg.norm(np.diff(res.trajectory[:, 0], axis=1), axis=-1)
+    assert np.abs(lengths / link - 1).max() < 2e-3
+
+
+def _swing(B=16, n=12, steps=160, seed=0):
+    dt, link = 0.005, 1.1 / (n - 1)
+    paths = rope.swing_paths(4, steps, dt, seed)
+    pidx = np.arange(B) % 4
+    rng = np.random.default_rng(seed)
+    params = rope.ChainParams(node_mass=np.full(B, 0.02), lead_mass=rng.uniform(0.02, 0.1, B),
+                              bend_k=rng.uniform(0.002, 0.05, B), bend_b=rng.uniform(1e-5, 1e-3, B),
+                              drag_lin=rng.uniform(0, 0.05, B), drag_quad=np.full(B, 0.02),
+                              radius=rng.uniform(0.005, 0.03, B))
+    p0, v0 = rope.hanging_state(paths[0, 0], n, link)
+    pos0 = np.broadcast_to(p0, (B, n, 3)) + (paths[pidx, 0] - paths[0, 0])[:, None, :]
+    return pos0, v0, paths, pidx, params, n, link, dt, steps
+
+
+def test_numpy_and_torch_baselines_match_the_warp_kernel():
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing()
+    w = rope.RopeSim(n, link, dt, min_sep=3).rollout(pos0, v0, paths, pidx, params, steps)
+    assert (w.status == 1).sum() >= 3  # some chains hit inside the horizon
+    npy = rb.rollout("numpy", pos0, v0, paths, pidx, params, n, link, dt, steps=steps, min_sep=3)
+    assert np.array_equal(npy.status, w.status) and np.array_equal(npy.hit_frame, w.hit_frame)
+    hit = w.status == 1
+    assert npy.hit_time[hit] == pytest.approx(w.hit_time[hit], abs=1e-5)
+    assert npy.s_a[hit] == pytest.approx(w.s_a[hit], abs=1e-3)
+    assert np.abs(npy.crit_pos - w.crit_pos).max() < 1e-4
+    assert np.abs(npy.clearance - w.clearance).max() < 1e-4
+    short = rope.RopeSim(n, link, dt).rollout(pos0, v0, paths, pidx, params, 30)
+    th = rb.rollout("torch", pos0, v0, paths, pidx, params, n, link, dt, steps=30)
+    assert np.abs(th.final_pos - short.final_pos).max() < 1e-5
+    assert np.abs(th.final_vel - short.final_vel).max() < 1e-3
+
+
+def test_culling_equals_all_pairs():
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=256, n=16, steps=240, seed=0)
+    a = rope.RopeSim(n, link, dt, cull=True).rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)
+    b = rope.RopeSim(n, link, dt, cull=False).rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)
+    assert (a.status == 1).sum() > 20
+    for f in ("status", "hit_frame", "hit_alpha", "crit_pos", "crit_vel", "clearance", "final_pos"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+
+
+def test_blow_up_is_flagged_not_raised():
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=4, steps=20)
+    bad = rope.ChainParams(**{f: getattr(params, f) for f in rope.ChainParams.FIELDS})
+    bad.node_mass[:] = np.nan
+    res = rope.RopeSim(n, link, dt).rollout(pos0, v0, paths, pidx, bad, steps)
+    assert np.all(res.status == 2)

@@ -1,0 +1,98 @@
+"""Rope task: known-truth recovery with CMA-ES, penalties, input errors."""
+import cma
+import numpy as np
+import pytest
+
+from wrenorm.errors import InputError
+from wrenorm.tasks import rope as task
+from wrenorm.tasks.rope_paths import builtin_hand_paths
+from wrenorm.tasks.rope_reference import RopeReference, first_self_collision
+
+SEG, DT = 10, 0.005
+LENGTH, MASS, RADIUS, EI = 1.1, 0.2, 0.005, 3e-3
+
+
+def synthetic_reference(path_name, values, horizon=1.2):
+    """A reference made by the coarse chain itself with hidden parameter values."""
+    path = builtin_hand_paths()[path_name]
+    steps = int(round(horizon / DT))
+    t = np.arange(steps + 1) * DT
+    hand = path.positions(t)
+    n = SEG + 1
+    pos0 = hand[0] - np.outer(np.linspace(0, LENGTH, n), [0, 0, 1])
+    ref0 = RopeReference(t, np.repeat(pos0[None], steps + 1, 0), hand, LENGTH, MASS, RADIUS, EI,
+                         np.linspace(0, 1, n), "synthetic")
+    probe = task.RopeProblem([_with_hit(ref0)], segments=SEG, dt=DT)
+    res = probe.simulate(values[None], probe.train, trajectory_every=1)
+    return RopeReference(t, res.trajectory[:, 0].astype(np.float64), hand, LENGTH, MASS, RADIUS, EI,
+                         np.linspace(0, 1, n), "synthetic")
+
+
+def _with_hit(ref):
+    """A placeholder reference whose last frame touches itself, only to build a probe problem."""
+    m = ref.markers.copy()
+    m[-1] = m[-1, ::-1] * 0 + np.linspace([0, 0, 0], [0.1, 0, 0], m.shape[1]) + ref.hand[-1]
+    m[-1, -1] = m[-1, 0]
+    return RopeReference(ref.time, m, ref.hand, ref.length, ref.mass, ref.radius, ref.bend_stiffness,
+                         ref.marker_arclength, "probe")
+
+
+@pytest.fixture(scope="module")
+def problem_and_truth():
+    seed_problem = task.RopeProblem([_with_hit(synthetic_placeholder())], segments=SEG, dt=DT)
+    space = seed_problem.space
+    truth = space.measured.copy()
+    truth[space.index("lead_fraction")] *= 2.0
+    truth[space.index("bend_stiffness")] *= 2.5
+    refs = [synthetic_reference(p, truth) for p in ("flick", "flick_fast")]
+    for r in refs:
+        assert first_self_collision(r) is not None
+    return task.RopeProblem(refs, segments=SEG, dt=DT, names=["flick", "flick_fast"]), truth
+
+
+def synthetic_placeholder():
+    t = np.arange(241) * DT
+    hand = builtin_hand_paths()["flick"].positions(t)
+    pos0 = hand[0] - np.outer(np.linspace(0, LENGTH, SEG + 1), [0, 0, 1])
+    return RopeReference(t, np.repeat(pos0[None], len(t), 0), hand, LENGTH, MASS, RADIUS, EI,
+                         np.linspace(0, 1, SEG + 1), "placeholder")
+
+
+def test_truth_has_zero_error_and_measured_does_not(problem_and_truth):
+    prob, truth = problem_and_truth
+    err = prob.errors(np.stack([truth, prob.space.measured]), prob.train)
+    assert np.all(err[0] < 1e-3)
+    assert np.all(err[1] > 0.05)
+
+
+def test_cmaes_recovers_hidden_parameters(problem_and_truth):
+    prob, truth = problem_and_truth
+    free = {"lead_fraction", "bend_stiffness"}
+    space = prob.space.with_changes(**{n: {"frozen": True} for n in prob.space.names if n not in free})
+    prob.space = space
+    es = cma.CMAEvolutionStrategy(space.to_unit(space.measured), 0.2,
+                                  {"seed": 3, "popsize": 10, "bounds": [0, 1], "verbose": -9, "maxiter": 60})
+    while not es.stop():
+        x = np.array(es.ask())
+        es.tell(list(x), list(prob.errors(space.from_unit(x), prob.train).mean(1)))
+    best = space.from_unit(es.result.xbest)
+    for name in free:
+        i = space.index(name)
+        assert best[i] == pytest.approx(truth[i], rel=0.05), name
+    assert es.result.fbest < 0.01
+
+
+def test_no_hit_is_finite_penalty_and_report_fields(problem_and_truth):
+    prob, truth = problem_and_truth
+    short = [task.Condition(c.name, task.RopeCase(**{**c.data.__dict__, "steps": 20})) for c in prob.train]
+    err = prob.errors(truth[None], short)
+    assert np.all(np.isfinite(err)) and np.all(err >= task.NO_HIT)
+    rep = prob.report(truth, prob.space.measured)
+    row = rep["critical_points"]["flick"]
+    assert row["fitted"]["hit_time"] == pytest.approx(row["reference"]["time"], abs=1e-3)
+    assert row["measured"]["status"] in ("hit", "no_hit")
+
+
+def test_bad_resolution_is_input_error():
+    with pytest.raises(InputError):
+        task.RopeProblem([synthetic_placeholder()], segments=1)
