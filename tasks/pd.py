@@ -312,6 +312,12 @@ class PDProblem(Problem):
                 rec.log_series(f"measured/{split}/{c.name}/q", t, traj[0, j])
                 rec.log_series(f"fitted/{split}/{c.name}/q", t, traj[1, j])
                 rec.log_series(f"command/{split}/{c.name}/q_d", t[:-1], c.data["q_d"][: len(t) - 1])
+                # the residual is what differs; overlaid trajectories hide it at this scale
+                rec.log_series(f"measured/residual/{split}/{c.name}", t, traj[0, j] - c.data["q_ref"][: len(t)])
+                rec.log_series(f"fitted/residual/{split}/{c.name}", t, traj[1, j] - c.data["q_ref"][: len(t)])
+                rec.add_view(f"{split}: {c.name} q", [f"/{who}/{split}/{c.name}/**" for who in ("reference", "measured", "fitted")])
+                rec.add_view(f"{split}: {c.name} q - q_ref", [f"/{who}/residual/{split}/{c.name}" for who in ("measured", "fitted")])
+        rec.add_view("summary", ["/summary"], "text")
         del conds
 
 

@@ -146,3 +146,6 @@ class ArmProblem(Problem):
                     rec.log_series(f"reference/{split}/{c.name}/q{k+1}", t, q_ref[j, :, k])
                     rec.log_series(f"measured/{split}/{c.name}/q{k+1}", t, tr[0, j, :, k])
                     rec.log_series(f"fitted/{split}/{c.name}/q{k+1}", t, tr[1, j, :, k])
+                    rec.add_view(f"{split}: {c.name} q{k+1}",
+                                 [f"/{who}/{split}/{c.name}/q{k+1}" for who in ("reference", "measured", "fitted")])
+        rec.add_view("summary", ["/summary"], "text")

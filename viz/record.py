@@ -41,6 +41,24 @@ class Recorder:
         self._tmp = self.path.with_name(self.path.name + ".partial")
         self.stream = rr.RecordingStream(application_id, recording_id=recording_id)
         self.stream.save(str(self._tmp))
+        self._views: list[tuple[str, str, list[str]]] = []
+
+    # --- layout ----------------------------------------------------------------
+    def add_view(self, name: str, contents: list[str], kind: str = "timeseries") -> None:
+        """Declare a view (kind: timeseries | spatial3d | spatial2d | text) so that related entities
+        (reference, measured, fitted of one condition) share one plot instead of the viewer's
+        automatic one-entity-per-plot layout."""
+        self._views.append((kind, name, contents))
+
+    def _send_blueprint(self) -> None:
+        if not self._views:
+            return
+        import rerun.blueprint as rrb
+
+        make = {"timeseries": rrb.TimeSeriesView, "spatial3d": rrb.Spatial3DView,
+                "spatial2d": rrb.Spatial2DView, "text": rrb.TextDocumentView}
+        views = [make[kind](name=name, origin="/", contents=contents) for kind, name, contents in self._views]
+        self.stream.send_blueprint(rrb.Blueprint(rrb.Grid(*views), collapse_panels=True))
 
     # --- time ----------------------------------------------------------------
     def _at(self, t: float | None, timeline: str):
@@ -88,6 +106,7 @@ class Recorder:
         self.stream.log(path, self._rr.TextDocument(text, media_type="text/markdown"), static=True)
 
     def close(self) -> Path:
+        self._send_blueprint()
         self.stream.flush()
         self.stream.disconnect() if hasattr(self.stream, "disconnect") else None
         os.replace(self._tmp, self.path)
