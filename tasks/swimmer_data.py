@@ -1,0 +1,258 @@
+"""Real robotic-fish marker tracks (fishsim format) -> per-rate tail kinematics and speed.
+
+Formats (Michelis et al., srl-ethz/fishsim, MIT licence):
+  markers_fX_YZ.csv         18 columns, pixel x, y of 9 markers per video frame (60 fps);
+                            metres from the 0.142 m distance between the two head markers.
+  rotatedMarkers_fX_YZ.csv  2 columns, metres, 9 rows per frame, rotated into the head frame
+                            with the head's progress added back; used only when no pixel file
+                            for that label exists (its head markers still give the head track).
+Label X.YZ (motor rate in Hz) comes from the file name.
+
+Forward speed (real and simulated alike): least-squares straight line through the head centre
+(mean of markers 0 and 1) over the track, direction = principal axis of the positions, oriented
+along the mean heading (marker 1 -> marker 0); speed = slope of a linear regression of the
+position projected on that axis against time.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.errors import InputError
+
+FPS = 60.0
+HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
+N_MARKERS = 9
+MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest rates
+_NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
+BUILTIN = "fishsim_kinematics.npz"
+
+
+@dataclass
+class Rate:
+    """One recorded motor rate: world-frame marker tracks in metres and what we derive from them."""
+    label: float
+    markers: np.ndarray          # (frames, 9, 2) metres, world frame
+    source: str = ""
+    fps: float = FPS
+    tail_freq: float = 0.0       # Hz, tail-beat frequency
+    speed: float = 0.0           # m/s, measured forward speed
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f"f{self.label:.2f}"
+
+
+# --- loading ---------------------------------------------------------------------------------
+
+def _label_of(path: Path) -> tuple[str, float] | None:
+    m = _NAME.match(path.name)
+    if not m:
+        return None
+    return m.group(1), float(f"{m.group(2)}.{m.group(3)}")
+
+
+def _read_csv(path: Path, columns: int) -> np.ndarray:
+    try:
+        data = np.loadtxt(path, delimiter=",", ndmin=2)
+    except ValueError as exc:
+        raise InputError(str(path), "contents", f"not a numeric CSV ({exc})") from None
+    if data.shape[1] != columns:
+        raise InputError(str(path), "columns", f"expected {columns} columns, found {data.shape[1]}")
+    bad = ~np.isfinite(data)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise InputError(str(path), f"row {row + 1} column {col + 1}", "value is NaN or infinite")
+    return data
+
+
+def read_pixel_markers(path: Path) -> np.ndarray:
+    """markers_*.csv -> (frames, 9, 2) metres (scale from the head-marker distance)."""
+    data = _read_csv(path, 2 * N_MARKERS)
+    if len(data) < MIN_FRAMES:
+        raise InputError(str(path), "rows", f"{len(data)} frames, need at least {MIN_FRAMES}")
+    markers = data.reshape(-1, N_MARKERS, 2)
+    head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
+    if not head_px > 0:
+        raise InputError(str(path), "markers 0 and 1", "head markers coincide, no pixel scale")
+    return markers * (HEAD_MARKER_DISTANCE / head_px)
+
+
+def read_rotated_markers(path: Path) -> np.ndarray:
+    """rotatedMarkers_*.csv -> (frames, 9, 2) metres."""
+    data = _read_csv(path, 2)
+    if len(data) % N_MARKERS:
+        raise InputError(str(path), "rows", f"{len(data)} rows is not a multiple of {N_MARKERS} markers")
+    markers = data.reshape(-1, N_MARKERS, 2)
+    if len(markers) < MIN_FRAMES:
+        raise InputError(str(path), "rows", f"{len(markers)} frames, need at least {MIN_FRAMES}")
+    return markers
+
+
+def load_dir(path) -> list[Rate]:
+    """Every markers_f*.csv (else rotatedMarkers_f*.csv) in `path`, sorted by label."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(str(path), "--data", "directory not found")
+    found: dict[float, tuple[str, Path]] = {}
+    for f in sorted(path.iterdir()):
+        got = _label_of(f)
+        if got is None:
+            continue
+        kind, label = got
+        if label not in found or kind == "markers":
+            found[label] = (kind, f)
+    if not found:
+        raise InputError(str(path), "--data", "no markers_f*.csv or rotatedMarkers_f*.csv files")
+    rates = []
+    for label in sorted(found):
+        kind, f = found[label]
+        markers = read_pixel_markers(f) if kind == "markers" else read_rotated_markers(f)
+        rates.append(analyse(Rate(label=label, markers=markers, source=f.name)))
+    return rates
+
+
+def parse_labels(text: str, rates: list[Rate], source: str = "--train") -> list[float]:
+    labels = []
+    for item in str(text).split(","):
+        item = item.strip()
+        try:
+            value = float(item)
+        except ValueError:
+            raise InputError(source, item or "(empty)", "not a number") from None
+        match = [r.label for r in rates if abs(r.label - value) < 1e-6]
+        if not match:
+            raise InputError(source, item, f"no data for this rate; available: {[f'{r.label:.2f}' for r in rates]}")
+        labels.append(match[0])
+    if len(set(labels)) != len(labels):
+        raise InputError(source, text, "repeated rate")
+    if len(labels) == len(rates):
+        raise InputError(source, text, "every rate is a training rate; leave at least one for validation")
+    return labels
+
+
+# --- analysis --------------------------------------------------------------------------------
+
+def head_frame(markers: np.ndarray) -> np.ndarray:
+    """World markers -> head frame: origin marker 0, x along marker 0 -> marker 1 (towards the tail)."""
+    e = markers[:, 1] - markers[:, 0]
+    e = e / np.linalg.norm(e, axis=1, keepdims=True)
+    rel = markers - markers[:, :1]
+    x = rel[..., 0] * e[:, None, 0] + rel[..., 1] * e[:, None, 1]
+    y = -rel[..., 0] * e[:, None, 1] + rel[..., 1] * e[:, None, 0]
+    return np.stack([x, y], axis=-1)
+
+
+def line_speed(t: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> float:
+    """Slope of the straight-line fit of pos (N,2) along its principal axis, oriented by heading."""
+    p = pos - pos.mean(axis=0)
+    cov = p.T @ p / len(p)
+    ang = 0.5 * np.arctan2(2 * cov[0, 1], cov[0, 0] - cov[1, 1])
+    d = np.array([np.cos(ang), np.sin(ang)])
+    if d @ heading.sum(axis=0) < 0:
+        d = -d
+    s = p @ d
+    tc = t - t.mean()
+    return float(tc @ s / (tc @ tc))
+
+
+def measured_speed(markers: np.ndarray, fps: float = FPS) -> float:
+    t = np.arange(len(markers)) / fps
+    head = 0.5 * (markers[:, 0] + markers[:, 1])
+    return line_speed(t, head, markers[:, 0] - markers[:, 1])
+
+
+def tail_frequency(signal: np.ndarray, fps: float = FPS) -> float:
+    """Dominant frequency of a lateral signal: FFT peak refined by a least-squares sinusoid scan."""
+    x = signal - signal.mean()
+    n = len(x)
+    spec = np.abs(np.fft.rfft(x * np.hanning(n)))
+    freqs = np.fft.rfftfreq(n, 1.0 / fps)
+    spec[freqs < 0.1] = 0.0
+    f0 = freqs[np.argmax(spec)]
+    t = np.arange(n) / fps
+    grid = np.linspace(max(0.05, f0 - 1.5 / (n / fps)), f0 + 1.5 / (n / fps), 601)
+    power = []
+    for f in grid:
+        basis = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones(n)], axis=1)
+        coef, *_ = np.linalg.lstsq(basis, x, rcond=None)
+        power.append(coef[0] ** 2 + coef[1] ** 2)
+    return float(grid[int(np.argmax(power))])
+
+
+def tail_markers(local: np.ndarray, min_gap: float = 0.005) -> list[int]:
+    """Tail markers (2..8) that track distinct points: mean x increasing by >= min_gap.
+
+    Some videos lose tail markers onto one point (label 2.25: markers 4-7 coincide); those
+    would pin the wave fit to one spot several times over.
+    """
+    keep = [2]
+    mean_x = local[:, :, 0].mean(axis=0)
+    for i in range(3, N_MARKERS):
+        if mean_x[i] - mean_x[keep[-1]] >= min_gap:
+            keep.append(i)
+    return keep
+
+
+def analyse(rate: Rate) -> Rate:
+    """Fill tail_freq, speed and the head-frame tail markers (meta) of a rate."""
+    local = head_frame(rate.markers)
+    keep = tail_markers(local)
+    if len(keep) < 3:
+        raise InputError(rate.source or rate.name, "tail markers", "fewer than 3 distinct tail markers")
+    rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
+    rate.speed = measured_speed(rate.markers, rate.fps)
+    rate.meta = {"local": local, "tail_markers": keep}
+    return rate
+
+
+# --- built-in data -----------------------------------------------------------------------------
+
+def _data_dir() -> Path:
+    from wrenorm import data
+    return Path(data.__file__).parent
+
+
+def load_builtin() -> list[Rate]:
+    """The five recorded rates shipped in wrenorm/data (metres, world frame)."""
+    path = _data_dir() / BUILTIN
+    with np.load(path, allow_pickle=False) as z:
+        labels = z["labels"]
+        rates = []
+        for lab in labels:
+            key = f"{lab:.2f}"
+            rates.append(analyse(Rate(label=float(lab), markers=z[f"markers_{key}"].astype(np.float64),
+                                      source=f"{BUILTIN}:{key}", fps=float(z["fps"]))))
+    return rates
+
+
+def write_builtin(src_dir, out_path=None) -> Path:
+    """Regenerate wrenorm/data/fishsim_kinematics.npz from a folder of fishsim CSVs.
+
+    Stores each rate's marker tracks in metres (float32) plus the derived tail-beat frequency and
+    speed for reference; the task re-derives everything from the tracks when it loads them.
+    """
+    rates = load_dir(src_dir)
+    out_path = Path(out_path) if out_path else _data_dir() / BUILTIN
+    arrays = {"labels": np.array([r.label for r in rates]), "fps": np.array(FPS),
+              "tail_freq": np.array([r.tail_freq for r in rates]),
+              "speed": np.array([r.speed for r in rates]),
+              "provenance": np.array(
+                  "Marker tracks of the tendon-driven robotic fish, Michelis, Obayashi, Hughes, Katzschmann, "
+                  "'Simple Models, Real Swimming' (arXiv 2602.23283), repository srl-ethz/fishsim, MIT licence "
+                  "(LICENSE_fishsim). Converted from markers_f*.csv pixels to metres with the 0.142 m head-marker "
+                  "distance by wrenorm.tasks.swimmer_data.write_builtin.")}
+    for r in rates:
+        arrays[f"markers_{r.label:.2f}"] = r.markers.astype(np.float32)
+    np.savez_compressed(out_path, **arrays)
+    return out_path
+
+
+if __name__ == "__main__":
+    import sys
+
+    print(write_builtin(sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/fishsim/markers"))

@@ -1,0 +1,174 @@
+"""Robotic-fish data: extraction from the real tracks, the built-in copy, and loader errors."""
+import argparse
+
+import numpy as np
+import pytest
+
+from wrenorm.errors import InputError
+from wrenorm.tasks import swimmer, swimmer_body, swimmer_data as sd
+
+
+@pytest.fixture(scope="module")
+def rates():
+    return sd.load_builtin()
+
+
+def test_speeds_positive_and_increasing(rates):
+    labels = [r.label for r in rates]
+    speeds = [r.speed for r in rates]
+    assert labels == sorted(labels) and len(labels) == 5
+    assert all(s > 0 for s in speeds)
+    assert all(b > a for a, b in zip(speeds, speeds[1:]))
+    # published: about 0.02 m/s at label 0.50 and 0.22 m/s at label 2.25
+    assert 0.01 < speeds[0] < 0.04 and 0.19 < speeds[-1] < 0.25
+
+
+def test_tail_beat_frequency_is_three_quarters_of_label(rates):
+    for r in rates:
+        assert abs(r.tail_freq / r.label - 0.75) < 0.03, (r.label, r.tail_freq)
+
+
+def test_tail_frequency_recovers_a_known_sinusoid():
+    t = np.arange(600) / sd.FPS
+    rng = np.random.default_rng(0)
+    sig = 0.05 * np.sin(2 * np.pi * 1.234 * t + 0.4) + 0.01 * np.sin(2 * np.pi * 2.468 * t) + 0.002 * rng.normal(size=t.size)
+    assert abs(sd.tail_frequency(sig) - 1.234) < 0.005
+
+
+def test_line_speed_of_a_straight_swim_with_wiggle():
+    t = np.arange(400) / 60.0
+    d = np.array([np.cos(0.7), np.sin(0.7)])
+    pos = 0.13 * t[:, None] * d + 0.01 * np.sin(2 * np.pi * 1.3 * t)[:, None] * np.array([-d[1], d[0]])
+    assert abs(sd.line_speed(t, pos, np.tile(d, (len(t), 1))) - 0.13) < 1e-3
+    # heading opposite to the motion: the fish swims backwards
+    assert sd.line_speed(t, pos, np.tile(-d, (len(t), 1))) < 0
+
+
+def test_gait_reproduces_the_tail_tip_amplitude(rates):
+    """The wave fit swings the fin tip as far as the markers do; the rigid chain laid on it
+    (robot link lengths, shorter than the video's tail) somewhat less, never more."""
+    for r in rates:
+        real = r.meta["local"][:, 8, 1]
+        real_amp = 0.5 * (np.percentile(real, 97) - np.percentile(real, 3))
+        amps = {}
+        for mode in ("wave", "chain"):
+            g = swimmer_body.gait(r, mode)
+            t = np.arange(256) / (256 * g["freq"])
+            tip = swimmer_body.tail_points(g, t)[:, -1, 1]
+            amps[mode] = 0.5 * (tip.max() - tip.min())
+        assert abs(amps["wave"] - real_amp) < 0.2 * real_amp, (r.label, amps, real_amp)
+        assert 0.65 * amps["wave"] < amps["chain"] < amps["wave"], (r.label, amps)
+
+
+def test_chain_kinematics_derivatives_match_finite_differences(rates):
+    """Tabulated part velocities and accelerations are the time derivatives of the positions."""
+    for mode in ("chain", "wave"):
+        g = swimmer_body.gait(rates[2], mode)
+        h = 1e-4
+        t = np.array([0.1, 0.37, 0.8]) / g["freq"]
+        tab = [swimmer_body.part_table(g, t + d) for d in (-h, 0.0, h)]
+        psi = [np.arctan2(x[..., 3], x[..., 2]) for x in tab]
+        mid = tab[1]
+        np.testing.assert_allclose((tab[2][..., 0:2] - tab[0][..., 0:2]) / (2 * h), mid[..., 4:6], atol=2e-5)
+        np.testing.assert_allclose((tab[2][..., 4:6] - tab[0][..., 4:6]) / (2 * h), mid[..., 7:9], atol=2e-3)
+        np.testing.assert_allclose((psi[2] - psi[0]) / (2 * h), mid[..., 6], atol=2e-5)
+        np.testing.assert_allclose((tab[2][..., 6] - tab[0][..., 6]) / (2 * h), mid[..., 9], atol=2e-3)
+        # rigid links: consecutive joints keep their distance
+        if mode == "chain":
+            pts = swimmer_body.tail_points(g, t)
+            lengths = np.linalg.norm(np.diff(pts, axis=1), axis=-1)
+            np.testing.assert_allclose(lengths, np.broadcast_to([lk[0] for lk in swimmer_body.LINKS], lengths.shape),
+                                       rtol=1e-9)
+
+
+def _write_pixels(folder, rate, scale=950.0, name=None):
+    px = rate.markers.reshape(len(rate.markers), -1) * scale
+    path = folder / (name or f"markers_f{rate.label:.2f}".replace(".", "_") + ".csv")
+    np.savetxt(path, px, delimiter=",")
+    return path
+
+
+def test_csv_folder_round_trip(tmp_path, rates):
+    """Pixel CSVs at another scale load back to the same metres, speeds and frequencies."""
+    for r in rates[:3]:
+        _write_pixels(tmp_path, r)
+    # a rotated-only label is used when no pixel file exists
+    rot = sd.head_frame(rates[3].markers)
+    np.savetxt(tmp_path / "rotatedMarkers_f1_75.csv", rot.reshape(-1, 2), delimiter=",")
+    (tmp_path / "notes.txt").write_text("ignored")
+    got = sd.load_dir(tmp_path)
+    assert [g.label for g in got] == [0.5, 1.0, 1.25, 1.75]
+    for g, r in zip(got[:3], rates[:3]):
+        assert abs(g.speed - r.speed) < 1e-6 and abs(g.tail_freq - r.tail_freq) < 1e-9
+    assert abs(got[3].tail_freq - rates[3].tail_freq) < 0.02
+
+
+def test_build_problem_from_folder_and_train_labels(tmp_path, rates):
+    for r in rates:
+        _write_pixels(tmp_path, r)
+    args = argparse.Namespace(data=tmp_path, train="1.00, 2.25", dt=0.004, virtual_mass=False)
+    prob = swimmer.build_problem(args, "cpu")
+    assert [c.name for c in prob.train] == ["f1.00", "f2.25"]
+    assert [c.name for c in prob.held_out] == ["f0.50", "f1.25", "f1.75"]
+
+
+@pytest.mark.parametrize("train,problem", [
+    ("1.00,abc", "not a number"), ("1.00,3.00", "no data for this rate"), ("1.00,1.00", "repeated"),
+    ("0.5,1,1.25,1.75,2.25", "leave at least one")])
+def test_bad_train_labels(rates, train, problem):
+    with pytest.raises(InputError, match=problem):
+        sd.parse_labels(train, rates)
+
+
+def test_loader_errors_name_file_field_problem(tmp_path, rates):
+    with pytest.raises(InputError, match="directory not found"):
+        sd.load_dir(tmp_path / "missing")
+    with pytest.raises(InputError, match="no markers_f"):
+        sd.load_dir(tmp_path)
+
+    good = rates[1].markers.reshape(len(rates[1].markers), -1) * 900.0
+    bad = tmp_path / "cols"
+    bad.mkdir()
+    np.savetxt(bad / "markers_f1_00.csv", good[:, :16], delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(bad)
+    assert "markers_f1_00.csv" in str(e.value) and e.value.field == "columns" and "16" in e.value.problem
+
+    nan = tmp_path / "nan"
+    nan.mkdir()
+    g = good.copy()
+    g[10, 3] = np.nan
+    np.savetxt(nan / "markers_f1_00.csv", g, delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(nan)
+    assert "markers_f1_00.csv" in str(e.value) and e.value.field == "row 11 column 4" and "NaN" in e.value.problem
+
+    short = tmp_path / "short"
+    short.mkdir()
+    np.savetxt(short / "markers_f1_00.csv", good[:50], delimiter=",")
+    with pytest.raises(InputError, match="50 frames"):
+        sd.load_dir(short)
+
+    text = tmp_path / "text"
+    text.mkdir()
+    (text / "markers_f1_00.csv").write_text("a,b,c\n")
+    with pytest.raises(InputError, match="not a numeric CSV"):
+        sd.load_dir(text)
+
+    rot = tmp_path / "rot"
+    rot.mkdir()
+    np.savetxt(rot / "rotatedMarkers_f1_00.csv", np.zeros((9 * 200 + 4, 2)), delimiter=",")
+    with pytest.raises(InputError, match="not a multiple of 9"):
+        sd.load_dir(rot)
+
+
+def test_builtin_file_regenerates_from_csvs(tmp_path, rates):
+    for r in rates:
+        _write_pixels(tmp_path, r, scale=1000.0)
+    out = sd.write_builtin(tmp_path, tmp_path / "copy.npz")
+    with np.load(out) as z:
+        assert list(z["labels"]) == [r.label for r in rates]
+        np.testing.assert_allclose(z["speed"], [r.speed for r in rates], atol=1e-6)
+        assert "srl-ethz/fishsim" in str(z["provenance"])
+    lic = sd._data_dir() / "LICENSE_fishsim"
+    assert "MIT" in lic.read_text() or "Permission is hereby granted" in lic.read_text()

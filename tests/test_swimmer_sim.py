@@ -1,0 +1,134 @@
+"""Swimmer simulation: conservation checks, step-size convergence and a known-truth fit."""
+import argparse
+
+import cma
+import numpy as np
+import pytest
+
+from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
+
+PUBLISHED = np.array([0.4, 7.79, 2.81, 3.84, 0.27])
+
+
+@pytest.fixture(scope="module")
+def rates():
+    return sd.load_builtin()
+
+
+def test_no_fluid_no_gait_no_motion(rates):
+    g = sb.gait(rates[1])
+    g["a"] = np.zeros_like(g["a"])
+    g["b"] = np.zeros_like(g["b"])
+    sim = sb.build_batch([rates[1]], rho=0.0, mu=0.0, gaits=[g], warm_seconds=1.0, meas_seconds=2.0,
+                         max_warm_seconds=None)
+    speed = sim.run(PUBLISHED[None])
+    assert abs(speed[0, 0]) < 1e-12
+    assert np.all(sim.last_state[0, 0, :6] == 0.0)
+
+
+def _com_drift(rate, dt):
+    g = sb.gait(rate)
+    prt = sb.parts()
+    m = prt["inert"][:, 0]
+    sim = sb.build_batch([rate], dt=dt, rho=0.0, mu=0.0, warm_seconds=0.0, meas_seconds=4.0,
+                         max_warm_seconds=None, gaits=[g])
+    stride = 10
+    _, traj, _ = sim.run(PUBLISHED[None], rec_stride=stride, rec_frames=int(sim.steps[0]) // stride)
+    period = 1.0 / g["freq"]
+    n = int(np.ceil(period / dt))
+    tab = sb.part_table(g, np.arange(n) * (period / n), prt)
+    com = []
+    for X, Y, th, k in traj[0, 0]:
+        loc = (m[:, None] * tab[int(k), :, :2]).sum(0) / m.sum()
+        c, s = np.cos(th), np.sin(th)
+        com.append([X + c * loc[0] - s * loc[1], Y + s * loc[0] + c * loc[1]])
+    com = np.array(com)
+    return np.abs(com - com[0]).max(), np.abs(traj[0, 0, :, :2]).max()
+
+
+def test_no_fluid_centre_of_mass_stays_put(rates):
+    """Without water the tail only shakes the head: momentum stays zero, the centre of mass fixed
+    (to the integrator's first order)."""
+    coarse, excursion = _com_drift(rates[1], 0.004)
+    fine, _ = _com_drift(rates[1], 0.001)
+    assert excursion > 0.003          # the head does move
+    assert coarse < 1e-3 and fine < 0.4 * coarse
+
+
+def test_symmetric_gait_swims_straight(rates):
+    """Odd harmonics only (psi(t + T/2) = -psi(t)): no net turning once cruising."""
+    gaits = []
+    for r in rates[1:4]:
+        g = sb.gait(r)
+        g["a"][:, 1::2] = 0.0
+        g["b"][:, 1::2] = 0.0
+        gaits.append(g)
+    sim = sb.build_batch(rates[1:4], gaits=gaits, warm_seconds=2.0, meas_seconds=6.0, max_warm_seconds=None)
+    _, traj, _ = sim.run(PUBLISHED[None], rec_stride=1, rec_frames=int(sim.steps.max()))
+    for j, g in enumerate(gaits):
+        per = int(np.ceil(1.0 / g["freq"] / 0.004))
+        th = traj[0, j, :sim.steps[j], 2]
+        beats = np.array([th[i * per:(i + 1) * per].mean() for i in range(len(th) // per)])
+        drift = np.diff(beats)[len(beats) // 2:]
+        assert np.abs(drift).max() < 5e-4, drift
+    # the measured gait's even harmonic does turn the fish: the check above is not vacuous
+    g = sb.gait(rates[1])
+    sim = sb.build_batch([rates[1]], gaits=[g], warm_seconds=2.0, meas_seconds=6.0, max_warm_seconds=None)
+    _, traj, _ = sim.run(PUBLISHED[None], rec_stride=1, rec_frames=int(sim.steps.max()))
+    per = int(np.ceil(1.0 / g["freq"] / 0.004))
+    th = traj[0, 0, :sim.steps[0], 2]
+    beats = np.array([th[i * per:(i + 1) * per].mean() for i in range(len(th) // per)])
+    assert np.abs(np.diff(beats)[len(beats) // 2:]).mean() > 2e-3
+
+
+def test_speed_converges_in_dt(rates):
+    coef = np.array([PUBLISHED, [0.5, 0.25, 1.5, 1.0, 1.0]])
+    fine = sb.build_batch(rates, dt=0.001).run(coef)
+    default = sb.build_batch(rates, dt=0.004).run(coef)
+    assert np.all(fine[0] > 0)
+    np.testing.assert_allclose(default, fine, atol=1.5e-3)
+
+
+def test_warm_up_reaches_cruising_speed(rates):
+    """The settled warm-up gives the speed a much longer fixed warm-up gives, also for a low-drag
+    candidate that creeps up to speed for many beats."""
+    coef = np.array([PUBLISHED, [0.01, 1.6, 0.4, 0.5, 9.0]])
+    adaptive = sb.build_batch(rates[:3]).run(coef)
+    long = sb.build_batch(rates[:3], warm_seconds=30.0, max_warm_seconds=None).run(coef)
+    short = sb.build_batch(rates[:3], warm_seconds=2.0, max_warm_seconds=None).run(coef)
+    np.testing.assert_allclose(adaptive, long, atol=1e-3)
+    assert np.abs(short - long).max() > 5e-3
+
+
+def test_errors_are_inf_for_broken_candidates(rates):
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75])
+    vals = np.array([PUBLISHED, [np.nan, 1, 1, 1, 1]])
+    err = prob.errors(vals, prob.train)
+    assert err.shape == (2, 2) and np.all(np.isfinite(err[0])) and np.all(np.isinf(err[1]))
+
+
+def test_known_truth_speeds_recovered_by_cma(rates):
+    """Speeds simulated with hidden coefficients are matched by a short CMA-ES from the published ones."""
+    hidden = np.array([0.8, 3.0, 1.2, 1.5, 0.6])
+    prob = swimmer.SwimmerProblem(rates, [0.5, 1.0, 1.75, 2.25], dt=0.008)
+    truth = prob.speeds(hidden[None], prob.train + prob.held_out)[0]
+    for c, v in zip(prob.train + prob.held_out, truth):
+        c.meta["speed"] = float(v)
+    sp = prob.space
+    start = prob.errors(sp.measured[None], prob.train).mean()
+    # the speed landscape has a second basin against the slender-drag and Magnus upper bounds;
+    # two short seeded runs, best kept, is the restart strategy a real fit would use as well
+    best, best_loss = None, np.inf
+    for seed in (4, 5):
+        es = cma.CMAEvolutionStrategy(sp.to_unit(sp.measured), 0.25,
+                                      {"seed": seed, "popsize": 32, "bounds": [0, 1], "verbose": -9})
+        for _ in range(60):
+            x = np.array(es.ask())
+            es.tell(list(x), list(prob.errors(sp.from_unit(x), prob.train).mean(1)))
+        if es.result.fbest < best_loss:
+            best, best_loss = sp.from_unit(es.result.xbest), es.result.fbest
+    assert start > 5e-3
+    # four speeds do not pin five coefficients (the fit lands elsewhere on the set of exact fits),
+    # so the test asks for the speeds, trained and held out, not the coefficients
+    assert prob.errors(best[None], prob.train).max() < 1.5e-3
+    assert prob.errors(best[None], prob.held_out).max() < 4e-3
