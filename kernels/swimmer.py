@@ -14,6 +14,9 @@ force is cheap to include: with `virtual_mass=1` each part also gets -m_A (dv/dt
 that is linear in the head's unknown acceleration goes into the 3x3 mass matrix. With
 `virtual_mass=0` the model is MuJoCo's as published (added mass acts only through velocities).
 
+Drag is integrated linearly implicitly (the drag factors of each part enter the 3x3 matrix),
+which keeps large coefficients stable at the default step.
+
 Equations (head frame, origin at the front head marker, x towards the tail, so the fish swims
 towards -x): unknowns (du/dt, dv/dt, dw/dt) of the head's frame velocity (u, v, w). Part e sits at
 p_e with angle psi_e relative to the head (tabulated per condition, candidate-independent):
@@ -41,6 +44,7 @@ MINVAL = 1e-15  # mjMINVAL
 
 
 geo9 = wp.types.vector(length=9, dtype=wp.float32)
+wrench5 = wp.types.vector(length=5, dtype=wp.float32)
 
 
 @wp.func
@@ -71,7 +75,9 @@ def fluid_geometry(r0: float, r1: float, r2: float):
 def fluid_planar(a: float, b: float, w: float, g: geo9,
                  c_blunt: float, c_slender: float, c_ang: float, c_kutta: float, c_magnus: float,
                  rho: float, mu: float, ma0: float, ma1: float):
-    """MuJoCo ellipsoid fluid force (fx, fy) and torque tz in the part frame, planar motion.
+    """MuJoCo ellipsoid fluid force (fx, fy) and torque tz in the part frame, planar motion,
+    plus the linear and angular drag factors (force = -drag_lin v - ..., torque = -drag_ang w + ...)
+    that the integrator treats implicitly.
 
     (a, b): linear velocity of the ellipsoid centre, w: angular velocity about z, all local;
     g = fluid_geometry(semi-axes); ma0, ma1: virtual masses along local x, y times the density.
@@ -100,7 +106,7 @@ def fluid_planar(a: float, b: float, w: float, g: geo9,
     fx = -(mag + circ) * b - drag_lin * a + ma1 * b * w
     fy = (mag + circ) * a - drag_lin * b - ma0 * a * w
     tz = -drag_ang * w + (ma0 - ma1) * a * b
-    return wp.vec3(fx, fy, tz)
+    return wrench5(fx, fy, tz, drag_lin, drag_ang)
 
 
 @wp.kernel
@@ -113,8 +119,9 @@ def fluid_planar_kernel(vel: wp.array(dtype=wp.vec3), semi: wp.array(dtype=wp.ve
     r = semi[i]
     m = amass[i]
     g = fluid_geometry(r[0], r[1], r[2])
-    out[i] = fluid_planar(v[0], v[1], v[2], g, coef[i, 0], coef[i, 1], coef[i, 2],
+    f = fluid_planar(v[0], v[1], v[2], g, coef[i, 0], coef[i, 1], coef[i, 2],
                           coef[i, 3], coef[i, 4], rho, mu, m[0], m[1])
+    out[i] = wp.vec3(f[0], f[1], f[2])
 
 
 @wp.kernel
@@ -299,6 +306,8 @@ def swim_kernel(offset: int, n_cond: int,
             fx = float(0.0)
             fy = float(0.0)
             tz = float(0.0)
+            dlin = float(0.0)
+            dang = float(0.0)
             if ax[0] > 0.0:
                 la = cp * vx + sp * vy
                 lb = -sp * vx + cp * vy
@@ -309,6 +318,8 @@ def swim_kernel(offset: int, n_cond: int,
                 fx = cp * lfx - sp * lfy
                 fy = sp * lfx + cp * lfy
                 tz = fl[2]
+                dlin = fl[3]
+                dang = fl[4]
             # effective translational mass of the part in the head frame
             mm = mj[0]
             e00 = mm + m0 * cp * cp + m1 * sp * sp
@@ -328,6 +339,12 @@ def swim_kernel(offset: int, n_cond: int,
             a02 += mrx
             a12 += mry
             a22 += rx * mrx + ry * mry + j_e
+            # linearly implicit drag: (A + dt C) dV = dt F(V), C from v_e = V + w r_e + pd_e
+            a00 += dt * dlin
+            a11 += dt * dlin
+            a02 += dt * dlin * rx
+            a12 += dt * dlin * ry
+            a22 += dt * (dlin * (rx * rx + ry * ry) + dang)
             r0 += fx - mkx
             r1 += fy - mky
             r2 += px * fy - py * fx + tz - (rx * mkx + ry * mky) - j_e * psidd
