@@ -61,9 +61,9 @@ def test_tape_gradient_matches_central_differences():
 
 
 def test_cmaes_and_gradient_search_agree():
-    p, fit, r = _fit(200.0, generations=100)
+    p, fit, r = _fit(100.0, generations=100)
     start = p.space.measured
-    g = search.gradient(p, start, iterations=400, lr=0.02, quiet=True)
+    g = search.gradient(p, start, iterations=250, lr=0.03, quiet=True)
     gfit = p.space.as_dict(g.best_values)
     for name in ("J", "K_D"):
         assert gfit[name] == pytest.approx(fit[name], rel=0.01), name
