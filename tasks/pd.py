@@ -139,7 +139,7 @@ def load_log(path: str | Path) -> MeasuredLog:
     try:
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError) as e:
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(src, "file", f"cannot be read as CSV text ({e.__class__.__name__})") from None
     if not rows:
         raise InputError(src, "header", "file is empty")
