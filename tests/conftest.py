@@ -5,4 +5,4 @@ os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.expanduser("~"), "
 
 import warp as wp  # noqa: E402
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_ERROR

@@ -1,4 +1,5 @@
-"""Command line: `python -m wrenorm fit pd|rope|swimmer`, `view`, `reference rope`, `bench`.
+"""Command line: `python -m wrenorm fit pd|rope|swimmer`, `view`, `reference rope`, `bench`,
+`correct rope`, `sensitivity rope`.
 
 Every user mistake (bad file, bad option value) ends with one line naming the file or option,
 the field and the problem, and exit code 2 — never a traceback.
@@ -91,6 +92,16 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module("wrenorm.tasks.rope_reference").add_reference_arguments(rope_ref)
     except ModuleNotFoundError:
         pass
+    for command, module, text in (("correct", "wrenorm.tasks.rope_correct_run", "correct a command over real trials"),
+                                  ("sensitivity", "wrenorm.tasks.rope_sensitivity",
+                                   "how many command / parameter directions move the observed state")):
+        cp = sub.add_parser(command, help=text)
+        cp_sub = cp.add_subparsers(dest="system", required=True)
+        try:
+            mod = importlib.import_module(module)
+            mod.add_arguments(cp_sub.add_parser(mod.SYSTEM, help=f"{command} for the {mod.SYSTEM} system"))
+        except ModuleNotFoundError:
+            pass
     bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
     try:
         importlib.import_module("wrenorm.bench").add_arguments(bench)
@@ -172,6 +183,10 @@ def cmd_view(args) -> int:
 
 
 def main(argv=None) -> int:
+    import warp as wp
+
+    # before any task module initialises Warp: no banner or missing-driver notice in users' output
+    wp.config.log_level = wp.LOG_ERROR
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -183,6 +198,10 @@ def main(argv=None) -> int:
             return cmd_view(args)
         if args.command == "reference":
             return importlib.import_module("wrenorm.tasks.rope_reference").run_reference(args)
+        if args.command == "correct":
+            return importlib.import_module("wrenorm.tasks.rope_correct_run").run(args)
+        if args.command == "sensitivity":
+            return importlib.import_module("wrenorm.tasks.rope_sensitivity").run(args)
         if args.command == "bench":
             return importlib.import_module("wrenorm.bench").run(args)
     except InputError as e:
