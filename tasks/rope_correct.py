@@ -1,0 +1,343 @@
+"""Task-level iterative learning on the rope (the flying knot's correction loop).
+
+Each trial runs the command on the "real" rope (any callable `real(hand_path) -> RopeReference`;
+by default the fine newton rope), measures the critical state Z at its first self-collision, and
+updates the command u by a regularised trust-region step through the COARSE model's sensitivity
+F = dZ/du (weighted units of tasks/rope_critical):
+
+    du = argmin |F du + e|^2 + lam |du|^2   s.t.  lo <= u + du <= hi,  |du|_inf <= radius
+
+(scipy lsq_linear on the stacked system), then shortened until the hand's speed and
+acceleration limits hold. A trial that does not improve the best error is rejected: the next
+step starts again from the best command with half the radius (a real trial is the expensive
+thing, so the loop never walks on from a worse command). lam = reg * mean(diag F^T F).
+
+Why finite differences and not Warp's tape for F: Z is sampled at an EVENT (the first frame a
+gap turns negative). Its derivative needs the implicit term dt*/du = -(dg/du)/(dg/dt) and is
+undefined where the first-hitting segment pair switches; a tape through the stepping sees
+neither (and the forward kernel is built without backward). A central difference with a step
+of a fraction of a unit of u (mm, cm/s, 1 % time) measures the secant of the event map, which
+is what the correction needs, and costs one batched rollout: all 2 dim(u) perturbed commands
+(plus the centre) are chains of ONE launch, as fast as a single chain on this CPU.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.errors import InputError
+from wrenorm.problem import Condition
+from wrenorm.tasks import rope_critical as crit
+from wrenorm.tasks.rope_command import CommandSpace
+
+FD_STEP = 0.1  # units of u: 5 mm, 5 cm/s, 1 % of a segment's time
+DEFAULT_TOLERANCE = 0.05  # total error (rope.py units): ~2 % of the length in shape, 2 % in time
+DEFAULT_RADIUS = 1.0  # initial trust radius in units of u
+DEFAULT_REG = 1e-2
+
+
+# ------------------------------------------------------------------------------ coarse model
+class CoarseModel:
+    """The coarse chain (a RopeProblem at its resolution) with fixed parameter values, as a map
+    from commands to critical states; many commands per rollout."""
+
+    def __init__(self, problem, values, space: CommandSpace, label: str = "measured"):
+        self.problem = problem
+        self.values = np.asarray(values, dtype=np.float64).reshape(-1)
+        self.space = space
+        self.label = label
+        self.case = problem.train[0].data  # horizon and start state (the rope hangs still at the start point)
+
+    def hands(self, U: np.ndarray) -> list[Condition]:
+        cs = self.case
+        t0 = float(cs.ref.time[0])
+        return [Condition(f"u{i}", replace(cs, hand=self.space.hand_samples(u, t0, self.problem.dt, cs.steps)))
+                for i, u in enumerate(np.atleast_2d(U))]
+
+    def rollout(self, U: np.ndarray, trajectory_every: int | None = None):
+        return self.problem.simulate(self.values[None], self.hands(U), trajectory_every=trajectory_every)
+
+    def states(self, U: np.ndarray) -> crit.CriticalStates:
+        res = self.rollout(U)
+        return crit.from_rollout(res, self.problem.n, float(self.case.ref.time[0]))
+
+    def sensitivity(self, u: np.ndarray, goal: crit.Goal, h: float = FD_STEP) -> tuple[np.ndarray, dict]:
+        """F = de/du (goal.dim, dim) by central differences, all perturbations in one rollout.
+
+        A perturbed chain that misses the collision falls back to the one-sided difference of
+        the other side; if both miss, the column is 0 (that direction is not trusted).
+        """
+        u = np.asarray(u, dtype=np.float64)
+        n = u.shape[0]
+        E = np.eye(n) * h
+        U = np.concatenate([u[None], u + E, u - E])
+        t = time.perf_counter()
+        e = goal.residual(self.states(U))
+        wall = time.perf_counter() - t
+        hit = np.all(np.isfinite(e), axis=1)
+        F = np.zeros((e.shape[1], n))
+        kinds = []
+        for i in range(n):
+            p, m = 1 + i, 1 + n + i
+            if hit[p] and hit[m]:
+                F[:, i] = (e[p] - e[m]) / (2 * h)
+                kinds.append("central")
+            elif hit[p] and hit[0]:
+                F[:, i] = (e[p] - e[0]) / h
+                kinds.append("forward")
+            elif hit[m] and hit[0]:
+                F[:, i] = (e[0] - e[m]) / h
+                kinds.append("backward")
+            else:
+                kinds.append("none")
+        return F, {"rollouts": int(U.shape[0]), "wall_s": wall, "centre_hit": bool(hit[0]), "columns": kinds,
+                   "e_centre": e[0]}
+
+
+# ------------------------------------------------------------------------------ real systems
+class NewtonRope:
+    """The fine newton rope (tasks/rope_newton) as the real system; repeated commands are cached."""
+
+    def __init__(self, variant: str = "default", segments: int = 64, duration: float = 1.5, device: str = "cpu"):
+        from wrenorm.tasks.rope_newton import get_variant
+
+        get_variant(variant)
+        self.variant, self.segments, self.duration, self.device = variant, int(segments), float(duration), device
+        self.runs, self.wall_s = 0, 0.0
+        self._cache = {}
+
+    def __call__(self, path):
+        from wrenorm.tasks.rope_reference import generate_reference
+
+        key = (path.control_points.tobytes(), path.durations.tobytes())
+        if key not in self._cache:
+            t = time.perf_counter()
+            self._cache[key] = generate_reference(path, segments=self.segments, variant=self.variant,
+                                                  duration=self.duration, device=self.device)
+            self.wall_s += time.perf_counter() - t
+            self.runs += 1
+        return self._cache[key]
+
+
+class CoarseRope:
+    """A coarse chain with its own parameters posing as the real rope (a system whose correct
+    answer is known: used by tests and for quick runs). Returns the full trajectory as a
+    RopeReference so it is measured exactly like the fine rope."""
+
+    def __init__(self, problem, values, duration: float | None = None):
+        self.problem, self.values = problem, np.asarray(values, dtype=np.float64)
+        self.runs, self.wall_s = 0, 0.0
+        self.duration = duration
+
+    def __call__(self, path):
+        from wrenorm.tasks.rope_reference import RopeReference
+
+        t = time.perf_counter()
+        pb, cs = self.problem, self.problem.train[0].data
+        t0 = float(cs.ref.time[0])
+        steps = cs.steps if self.duration is None else int(round(self.duration / pb.dt))
+        hand = path.positions(t0 + pb.dt * np.arange(steps + 1))
+        res = pb.sim.rollout(cs.pos0[None], cs.vel0[None], hand[None], np.zeros(1, np.int32),
+                             pb.chain_params(self.values), steps, t0=t0, stop_at_hit=False, trajectory_every=1)
+        self.runs += 1
+        self.wall_s += time.perf_counter() - t
+        return RopeReference(time=res.trajectory_times, markers=res.trajectory[:, 0].astype(np.float64),
+                             hand=hand[:len(res.trajectory_times)], length=pb.length, mass=pb.mass,
+                             radius=float(self.values[pb.space.index("radius")]), bend_stiffness=None,
+                             marker_arclength=np.linspace(0.0, 1.0, pb.n), source="coarse chain")
+
+
+# ------------------------------------------------------------------------------ the update
+def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space: CommandSpace, radius: float,
+            reg: float = DEFAULT_REG) -> np.ndarray:
+    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius."""
+    from scipy.optimize import lsq_linear
+
+    n = u.shape[0]
+    scale = float(np.mean(np.sum(F * F, axis=0)))
+    lam = reg * (scale if scale > 0 else 1.0)
+    A = np.concatenate([F, np.sqrt(lam) * np.eye(n)])
+    b = np.concatenate([-e, np.zeros(n)])
+    lo = np.maximum(space.lower - u, -radius)
+    hi = np.minimum(space.upper - u, radius)
+    hi = np.maximum(hi, lo + 1e-12)  # lsq_linear needs lo < hi
+    return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
+
+
+@dataclass
+class Trial:
+    index: int
+    u: np.ndarray
+    terms: dict
+    hit: bool
+    accepted: bool
+    radius: float
+    state: crit.CriticalStates
+    wall_s: float
+    predicted_total: float | None = None
+    step_scale: float | None = None
+    sensitivity: dict = field(default_factory=dict)
+
+    @property
+    def total(self) -> float:
+        return float(self.terms["total"][0])
+
+
+def correct(real, model: CoarseModel, goal: crit.Goal, u0: np.ndarray, max_trials: int = 10,
+            tolerance: float = DEFAULT_TOLERANCE, radius: float = DEFAULT_RADIUS, reg: float = DEFAULT_REG,
+            fd_step: float = FD_STEP, secant: bool = False, progress=None) -> dict:
+    """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
+
+    secant: add to the model's F a correction learned from the real trials (Broyden rank-one
+    updates, as in model-plus-learned-error ILC); off, every step uses the coarse F alone."""
+    space = model.space
+    if max_trials < 1:
+        raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
+    problems = space.violations(u0)
+    if problems:
+        raise InputError("command", "start", "; ".join(problems))
+    u = np.asarray(u0, dtype=np.float64).copy()
+    trials: list[Trial] = []
+    best: Trial | None = None
+    predicted, scale_used, F_last = None, None, None
+    D = np.zeros((goal.dim, space.dim))  # learned correction of the model's sensitivity (secant=True)
+    for k in range(max_trials):
+        t = time.perf_counter()
+        st = crit.from_reference(real(space.decode(u)))
+        terms = {key: np.asarray(v, dtype=np.float64) for key, v in goal.terms(st).items()}
+        accepted = best is None or float(terms["total"][0]) < best.total
+        trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, radius, st, time.perf_counter() - t,
+                      predicted, scale_used)
+        trials.append(trial)
+        if best is not None and secant:
+            # Broyden: make the correction term reproduce the change this trial really made
+            du_real = u - best.u
+            de_real = goal.residual(st)[0] - goal.residual(best.state)[0]
+            if np.all(np.isfinite(de_real)) and du_real @ du_real > 0:
+                D += np.outer(de_real - (F_used @ du_real), du_real) / (du_real @ du_real)
+        if accepted:
+            if best is not None:
+                radius = min(2.0 * radius, space.bound)
+            best = trial
+        else:
+            # the step that failed may have been shorter than the radius: halve what was tried
+            radius = 0.5 * min(radius, float(np.abs(u - best.u).max()))
+        if progress:
+            progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
+                     f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
+                     f"  real {trial.wall_s:.1f} s")
+        if best.total <= tolerance or k == max_trials - 1:
+            break
+        e_best = goal.residual(best.state)[0]
+        F, info = model.sensitivity(best.u, goal, fd_step)
+        # Where the coarse chain misses the collision it has no critical state to differentiate;
+        # the last trusted sensitivity (same task, nearby command) is the best guess there.
+        valid = info["centre_hit"] and info["columns"].count("none") <= len(info["columns"]) // 2
+        if valid:
+            F_last = F
+        elif F_last is not None:
+            F = F_last
+        info["reused_previous"] = not valid and F_last is not None
+        F_used = F + D
+        du = qp_step(F_used, e_best, best.u, space, radius, reg)
+        u, scale_used = space.limit_step(best.u, du)
+        predicted = float(np.linalg.norm(F_used @ (u - best.u) + e_best))
+        trials[-1].sensitivity = {"fd_rollouts": info["rollouts"], "fd_wall_s": info["wall_s"],
+                                  "coarse_hits_at_centre": info["centre_hit"],
+                                  "reused_previous_sensitivity": info["reused_previous"],
+                                  "columns_not_central": [space.names[i] for i, c in enumerate(info["columns"])
+                                                          if c != "central"],
+                                  "singular_values": np.linalg.svd(F, compute_uv=False).tolist()}
+        if scale_used == 0.0:
+            if progress:
+                progress("  no feasible step inside the hand limits; stopping")
+            break
+    success = best.total <= tolerance
+    return {
+        "success": bool(success),
+        "trials_used": len(trials),
+        "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
+        "best_error": best.total,
+        "best_trial": best.index + 1,
+        "best_u": best.u,
+        "trials": trials,
+    }
+
+
+def trial_rows(trials: list[Trial], space: CommandSpace) -> list[dict]:
+    rows = []
+    for t in trials:
+        rows.append({
+            "trial": t.index + 1, "error": t.total, "accepted": t.accepted, "self_collision": t.hit,
+            "terms": {k: float(v[0]) for k, v in t.terms.items()},
+            "critical_time": float(t.state.time[0]) if t.hit else None,
+            "contact_arclength": t.state.s[0].tolist() if t.hit else None,
+            "command_u": t.u.tolist(),
+            "hand_peak_speed": space.decode(t.u).max_speed(),
+            "hand_peak_acceleration": space.decode(t.u).max_acceleration(),
+            "trust_radius": t.radius, "step_scale": t.step_scale,
+            "predicted_residual_norm": t.predicted_total,
+            "next_step": t.sensitivity or None, "wall_s": t.wall_s,
+        })
+    return rows
+
+
+# ------------------------------------------------------------------------------ parameters
+def parameters_from_file(path, problem) -> np.ndarray:
+    """Fitted values from a `wrenorm fit rope` result.json, in the problem's parameter order."""
+    import json
+
+    src = str(path)
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(src, "file", "does not exist or is not a file")
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(src, "file", f"is not readable JSON: {e}") from None
+    if not isinstance(data, dict):
+        raise InputError(src, "file", "top level must be an object")
+    runs = data.get("runs") if isinstance(data.get("runs"), list) else [data]
+    match = [r for r in runs if isinstance(r, dict) and r.get("task", "rope") == "rope"
+             and (r.get("resolution") or {}).get("segments", problem.segments) == problem.segments]
+    if not match:
+        raise InputError(src, "resolution", f"no rope fit at {problem.segments} segments in this file")
+    params = match[0].get("parameters")
+    if not isinstance(params, dict):
+        raise InputError(src, "parameters", "missing or not an object")
+    values = problem.space.measured.copy()
+    for i, prm in enumerate(problem.space.parameters):
+        if prm.frozen:
+            continue
+        entry = params.get(prm.name)
+        v = entry.get("fitted") if isinstance(entry, dict) else None
+        if not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise InputError(src, f"parameters.{prm.name}.fitted", "missing or not a finite number")
+        if not prm.lower <= v <= prm.upper:
+            raise InputError(src, f"parameters.{prm.name}.fitted", f"{v:g} outside [{prm.lower:g}, {prm.upper:g}]")
+        values[i] = float(v)
+    return values
+
+
+def fit_parameters(variant: str, segments: int, dt: float, seed: int, generations: int, device: str = "cpu",
+                   progress=None) -> tuple[np.ndarray, dict]:
+    """Renormalised parameters: a short CMA-ES fit of RopeProblem to the variant's built-in fit
+    paths (the fine rope's reference throws, cached; these are experiments, reported as such)."""
+    from wrenorm.search import cmaes
+    from wrenorm.tasks.rope import RopeProblem
+    from wrenorm.tasks.rope_paths import FIT_PATHS
+    from wrenorm.tasks.rope_reference import builtin_references
+
+    refs = builtin_references("fit", variant, progress=progress)
+    problem = RopeProblem(refs, segments=segments, dt=dt, device=device, names=list(FIT_PATHS))
+    t = time.perf_counter()
+    res = cmaes(problem, seed=seed, generations=generations, quiet=True)
+    losses = problem.errors(np.stack([problem.space.measured, res.best_values]), problem.train).mean(1)
+    info = {"source": f"CMA-ES fit to {', '.join(FIT_PATHS)} ({variant} rope)", "generations": len(res.history),
+            "evaluations": res.evaluations, "loss_measured": float(losses[0]), "loss_fitted": float(losses[1]),
+            "wall_s": time.perf_counter() - t, "reference_throws": len(refs),
+            "values": problem.space.as_dict(res.best_values)}
+    return res.best_values, info

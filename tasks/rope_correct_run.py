@@ -1,0 +1,214 @@
+"""`python -m wrenorm correct rope`: the correction loop end to end, with measured and with
+renormalised (fitted) coarse-model parameters, writing correct.json, correct.png and a Rerun
+recording (per trial: the real rope at its critical frame against the goal)."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.errors import InputError
+
+SYSTEM = "rope"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from wrenorm.tasks.rope_correct import DEFAULT_RADIUS, DEFAULT_REG, DEFAULT_TOLERANCE, FD_STEP
+
+    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
+    p.add_argument("--variant", default="default", help="real rope material: default|stiff|soft|heavy")
+    p.add_argument("--real", choices=["newton", "coarse"], default="newton",
+                   help="the real system: the fine newton rope, or a coarse chain with the FITTED parameters "
+                        "(a quick stand-in whose answer is known)")
+    p.add_argument("--goal", default="flick_high", help="built-in hand path whose real critical state is the goal")
+    p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
+    p.add_argument("--perturb", type=float, default=0.0,
+                   help="add a seeded random command offset of this size (units of u) to the start")
+    p.add_argument("--params", nargs="+", default=["measured", "fitted"], metavar="measured|fitted|FILE",
+                   help="coarse-model parameters to steer with; each gets its own correction run")
+    p.add_argument("--max-trials", type=int, default=10)
+    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
+    p.add_argument("--radius", type=float, default=DEFAULT_RADIUS, help="initial trust radius (units of u)")
+    p.add_argument("--reg", type=float, default=DEFAULT_REG, help="Tikhonov weight relative to mean diag(F^T F)")
+    p.add_argument("--fd-step", type=float, default=FD_STEP, help="finite-difference step (units of u)")
+    p.add_argument("--secant", action="store_true",
+                   help="also learn a rank-one correction of F from the real trials (Broyden); off: coarse F only")
+    p.add_argument("--segments", type=int, default=10, help="links of the coarse chain")
+    p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
+    p.add_argument("--fine-segments", type=int, default=64, help="segments of the fine newton rope")
+    p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
+
+
+def _goal_reference(name: str, variant: str, progress):
+    from wrenorm.tasks.rope_reference import builtin_reference_path, generate_reference, load_reference
+
+    p = builtin_reference_path(name, variant)
+    if p.exists():
+        return load_reference(p)
+    progress(f"generating the goal: {variant} rope under {name} into {p}")
+    return generate_reference(name, p, variant=variant)
+
+
+def run(args) -> int:
+    from wrenorm.fit import prepare_out
+    from wrenorm.results import versions, write_json
+    from wrenorm.tasks import rope_critical as crit
+    from wrenorm.tasks.rope import RopeProblem
+    from wrenorm.tasks.rope_command import CommandSpace
+    from wrenorm.tasks.rope_correct import (CoarseModel, CoarseRope, NewtonRope, correct, fit_parameters,
+                                            parameters_from_file, trial_rows)
+    from wrenorm.tasks.rope_newton import get_variant
+    from wrenorm.tasks.rope_paths import get_hand_path
+
+    def progress(msg):
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    from wrenorm.cli import _device
+
+    get_variant(args.variant)
+    args.device = _device(args.device)
+    if not 1 <= args.max_trials <= 100:
+        raise InputError("--max-trials", "max_trials", f"{args.max_trials} is outside [1, 100]")
+    if not args.tolerance > 0:
+        raise InputError("--tolerance", "tolerance", f"must be > 0, got {args.tolerance}")
+    if not (args.radius > 0 and args.fd_step > 0 and args.reg >= 0):
+        raise InputError("--radius/--fd-step/--reg", "value", "radius and fd-step must be > 0, reg >= 0")
+    if args.seed < 0:
+        raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
+    for label in args.params:
+        if label not in ("measured", "fitted") and not Path(label).is_file():
+            raise InputError(label, "--params", "is neither 'measured', 'fitted' nor an existing result.json")
+    start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
+    space = CommandSpace(start_path)
+    out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
+                      resume=False, force=args.force)
+    t_all = time.perf_counter()
+
+    goal_ref = _goal_reference(args.goal, args.variant, progress)
+    problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
+    fitted, fit_info = None, None
+    if "fitted" in args.params or args.real == "coarse":
+        progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's fit throws")
+        fitted, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
+                                          args.device, progress)
+    if args.real == "newton":
+        horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
+        real = NewtonRope(args.variant, args.fine_segments, horizon, args.device)
+        real_doc = f"newton rope, variant {args.variant}, {args.fine_segments} segments, {horizon:.2f} s per trial"
+    else:
+        real = CoarseRope(problem, fitted)
+        goal_ref = real(goal_path)
+        real_doc = f"coarse chain with the fitted {args.variant} parameters (stand-in for the real rope)"
+    goal = crit.Goal.from_reference(goal_ref)
+
+    u0 = np.zeros(space.dim)
+    if args.perturb > 0:
+        u0 = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
+        u0, _ = space.limit_step(np.zeros(space.dim), u0)
+    try:
+        u_goal = space.encode(goal_path).tolist()
+    except InputError:
+        u_goal = None
+
+    runs = {}
+    for label in args.params:
+        if label == "measured":
+            values = problem.space.measured
+        elif label == "fitted":
+            values = fitted
+        else:
+            values = parameters_from_file(label, problem)
+        model = CoarseModel(problem, values, space, label)
+        progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
+                 f"{args.variant} rope)")
+        res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
+                      radius=args.radius, reg=args.reg, fd_step=args.fd_step, secant=args.secant,
+                      progress=progress)
+        runs[label] = res
+        runs[label]["parameters"] = problem.space.as_dict(values)
+
+    result = {
+        "schema": "wrenorm.correct/1", "system": SYSTEM, "variant": args.variant, "real_system": real_doc,
+        "goal": {"path": args.goal, "critical_time": float(goal.state.time[0]), "contact_arclength":
+                 goal.state.s[0].tolist(), "command_u_of_goal_path": u_goal},
+        "start": {"path": args.start, "perturb": args.perturb, "command_u": u0.tolist()},
+        "command": {"names": space.names, "scales": space.scales.tolist(), "bound": space.bound,
+                    "max_speed": space.max_speed, "max_acceleration": space.max_acceleration,
+                    "meaning": "u = waypoint offsets / scale (positions m, velocities m/s) and log duration ratios"},
+        "tolerance": args.tolerance, "max_trials": args.max_trials,
+        "error_meaning": "rope.py's weighted critical-state error to the goal: shape/length + 0.1 velocity/speed + "
+                         "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
+        "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
+        "settings": {"radius": args.radius, "reg": args.reg, "fd_step": args.fd_step, "seed": args.seed,
+                     "secant": args.secant},
+        "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
+                 for label, r in runs.items()},
+        "real_runs": real.runs, "real_wall_s": real.wall_s,
+        "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
+    }
+    write_json(out / "correct.json", result)
+    _plot(out / "correct.png", runs, args)
+    if not args.no_record:
+        _record(out / "recording.rrd", runs, goal, args)
+    for label, r in runs.items():
+        verdict = f"reached in {r['trials_to_tolerance']} trials" if r["success"] else \
+            f"not reached in {r['trials_used']} trials (best {r['best_error']:.4f})"
+        errs = " ".join(f"{t.total:.3f}" for t in r["trials"])
+        print(f"{label:>9}: {verdict}; errors {errs}")
+    print(f"\nresult: {out / 'correct.json'}  plot: {out / 'correct.png'}")
+    return 0
+
+
+def _plot(path: Path, runs: dict, args) -> None:
+    from wrenorm.viz.plots import _figure, save_figure
+
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for label, r in runs.items():
+        tr = r["trials"]
+        ax.semilogy([t.index + 1 for t in tr], [t.total for t in tr], "o-", label=f"{label} parameters")
+        rej = [t for t in tr if not t.accepted]
+        ax.semilogy([t.index + 1 for t in rej], [t.total for t in rej], "x", color="k")
+    ax.axhline(args.tolerance, color="k", lw=0.7, ls="--", label="tolerance")
+    ax.set_xlabel("real trial")
+    ax.set_ylabel("critical-state error to goal")
+    ax.set_title(f"rope command correction ({args.variant} rope, goal {args.goal}); x = rejected")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def _record(path: Path, runs: dict, goal, args) -> None:
+    from wrenorm.viz.record import Recorder, rerun_available
+
+    if not rerun_available():
+        return
+    import rerun as rr
+
+    rec = Recorder(path, application_id="wrenorm-correct")
+    s = rec.stream
+    try:
+        s.log("goal/critical", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)], colors=[(230, 230, 230)]),
+              static=True)
+        colors = {"measured": (230, 120, 40), "fitted": (40, 160, 230)}
+        for label, r in runs.items():
+            name = Path(label).stem if label not in colors else label
+            for t in r["trials"]:
+                s.set_time("trial", sequence=t.index + 1)
+                s.log(f"{name}/error", rr.Scalars(t.total))
+                if t.hit:
+                    s.log(f"{name}/real_critical", rr.LineStrips3D([t.state.pos[0].astype(np.float32)],
+                                                                   colors=[colors.get(label, (120, 200, 80))]))
+        rec.close()
+    except BaseException:
+        rec.abort()
+        raise

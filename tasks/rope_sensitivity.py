@@ -1,0 +1,398 @@
+"""`python -m wrenorm sensitivity rope`: how many independent command changes (and parameter
+changes) can move the rope's critical state above the noise, and what that implies for the
+number of real trials (and identification experiments).
+
+Sensitivities are central differences of the weighted critical-state residual e (tasks/
+rope_critical; |e| is the correction's objective), all perturbations in one batched rollout:
+  command     F_u = de/du at u = 0 of the command space around --path (units of u)
+  parameters  F_p = de/dx per condition, x = the free parameters' normalised [0, 1] coordinates
+Noise, projected on each left singular vector U_i (n_i = sqrt(U_i^T C U_i)), is the sum of
+  model roughness  e(u + d) - e(u) - F d over tiny random command offsets d (size --noise-size):
+                   what the event map does that no linear map can (float32 rounding amplified by
+                   the whip, contact-pair switches); it is the floor any FD sensitivity sees;
+  measurement      marker noise --marker-noise (m, per coordinate; velocities are frame
+                   differences, so sqrt(2) sigma / frame time), collision time --time-noise (s),
+                   contact place sigma / length;
+  real repeats     optional: --real-repeats newton runs at tiny command offsets (spread of e).
+A direction "stands above the noise" when the change one step can make along it beats the noise:
+sigma_i * step >= snr * n_i, with step = --command-step units of u (the correction's initial
+trust radius) and --param-step of a normalised parameter range (0.1 = a tenth of its log range).
+Implications: a correction that learned the local map from real trials alone needs r + 1 trials
+(one base trial and one per resolvable direction); a model that supplies F can need fewer, only
+as far as its F is right. For parameters: the fewest built-in throws whose stacked sensitivity
+resolves as many parameter directions as all throws together.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.errors import InputError
+
+SYSTEM = "rope"
+FRAME_TIME = 1.0 / 250.0  # s, the reference's (motion capture's) frame time
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/sensitivity-rope-<time>)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--force", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--no-record", action="store_true")
+    p.add_argument("--variant", default="default", help="rope material of the references: default|stiff|soft|heavy")
+    p.add_argument("--path", default="flick", help="built-in hand path around which the command is varied")
+    p.add_argument("--params", default="measured", metavar="measured|fitted|FILE", help="coarse-model parameters")
+    p.add_argument("--segments", type=int, default=10)
+    p.add_argument("--dt", type=float, default=0.005)
+    p.add_argument("--fd-step", type=float, default=0.1, help="command FD step (units of u)")
+    p.add_argument("--param-fd-step", type=float, default=0.01, help="parameter FD step (normalised coordinates)")
+    p.add_argument("--noise-samples", type=int, default=32)
+    p.add_argument("--noise-size", type=float, default=1e-3, help="tiny command offsets (units of u)")
+    p.add_argument("--marker-noise", type=float, default=0.003, help="marker position noise (m)")
+    p.add_argument("--time-noise", type=float, default=0.002, help="collision time noise (s)")
+    p.add_argument("--real-repeats", type=int, default=0, help="newton runs at tiny offsets to measure repeat spread")
+    p.add_argument("--command-step", type=float, default=1.0)
+    p.add_argument("--param-step", type=float, default=0.1)
+    p.add_argument("--snr", type=float, default=3.0)
+    p.add_argument("--fit-generations", type=int, default=30)
+
+
+# ------------------------------------------------------------------------------ building blocks
+def central_jacobian(f, x: np.ndarray, h: float, lo: np.ndarray | None = None, hi: np.ndarray | None = None):
+    """de/dx of a batched map f (B, n) -> (B, m) in ONE call; one-sided where x +- h leaves [lo, hi]
+    or where one side has no state (NaN). Returns (J (m, n), e(x) (m,), kinds)."""
+    x = np.asarray(x, dtype=np.float64)
+    n = x.shape[0]
+    lo = np.full(n, -np.inf) if lo is None else lo
+    hi = np.full(n, np.inf) if hi is None else hi
+    E = np.eye(n) * h
+    X = np.concatenate([x[None], np.minimum(x + E, hi), np.maximum(x - E, lo)])
+    e = f(X)
+    ok = np.all(np.isfinite(e), axis=1)
+    J = np.zeros((e.shape[1], n))
+    kinds = []
+    for i in range(n):
+        p, m = 1 + i, 1 + n + i
+        dp, dm = X[p, i] - x[i], x[i] - X[m, i]
+        if ok[p] and ok[m] and dp > 0 and dm > 0:
+            J[:, i] = (e[p] - e[m]) / (dp + dm)
+            kinds.append("central")
+        elif ok[p] and ok[0] and dp > 0:
+            J[:, i] = (e[p] - e[0]) / dp
+            kinds.append("forward")
+        elif ok[m] and ok[0] and dm > 0:
+            J[:, i] = (e[0] - e[m]) / dm
+            kinds.append("backward")
+        else:
+            kinds.append("none")
+    return J, e[0], kinds
+
+
+def measurement_covariance(goal, marker_noise: float, time_noise: float, frame_time: float = FRAME_TIME):
+    """Diagonal covariance of e from marker and timing noise (documented model, see module doc)."""
+    from wrenorm.tasks.rope import SAMPLES
+
+    K, w = SAMPLES, goal.weights
+    sig_v = np.sqrt(2.0) * marker_noise / frame_time
+    var = np.concatenate([
+        np.full(3 * K, (w["shape"] * marker_noise / (goal.length * np.sqrt(K))) ** 2),
+        np.full(3 * K, (w["velocity"] * sig_v / (goal.speed * np.sqrt(K))) ** 2),
+        [(w["time"] * time_noise / goal.state.time[0]) ** 2],
+        np.full(2, (0.5 * w["place"] * marker_noise / goal.length) ** 2),
+    ])
+    return np.diag(var)
+
+
+def resolvable(sv: np.ndarray, U: np.ndarray, cov: np.ndarray, step: float, snr: float):
+    """Per singular direction: noise n_i = sqrt(U_i^T C U_i), and whether sigma_i step >= snr n_i."""
+    noise = np.sqrt(np.maximum(np.einsum("mi,mk,ki->i", U, cov, U), 0.0))
+    return noise, sv * step >= snr * noise
+
+
+def fewest_experiments(blocks: list[np.ndarray], covs: list[np.ndarray], step: float, snr: float):
+    """Smallest subset of conditions whose stacked sensitivity resolves as many directions as all."""
+    def count(idx):
+        J = np.concatenate([blocks[i] for i in idx])
+        C = np.zeros((J.shape[0], J.shape[0]))
+        o = 0
+        for i in idx:
+            m = blocks[i].shape[0]
+            C[o:o + m, o:o + m] = covs[i]
+            o += m
+        Uf, sv, _ = np.linalg.svd(J, full_matrices=False)
+        return int(resolvable(sv, Uf, C, step, snr)[1].sum())
+
+    full = count(range(len(blocks)))
+    if full == 0:
+        return 0, []
+    for k in range(1, len(blocks) + 1):
+        for idx in itertools.combinations(range(len(blocks)), k):
+            if count(idx) >= full:
+                return full, list(idx)
+    return full, list(range(len(blocks)))
+
+
+# ------------------------------------------------------------------------------ analysis
+def command_analysis(model, goal, fd_step: float, noise_samples: int, noise_size: float, seed: int,
+                     marker_noise: float, time_noise: float, step: float, snr: float, extra_cov=None) -> dict:
+    space = model.space
+    u0 = np.zeros(space.dim)
+    f = lambda U: goal.residual(model.states(U))  # noqa: E731
+    t = time.perf_counter()
+    F, e0, kinds = central_jacobian(f, u0, fd_step, space.lower, space.upper)
+    fd_wall = time.perf_counter() - t
+    if not np.all(np.isfinite(e0)):
+        raise InputError("--path", "path", "the coarse chain never hits itself under this command; "
+                                           "no critical state to differentiate (try --params fitted or another path)")
+    d = np.random.default_rng(seed).normal(size=(noise_samples, space.dim)) * noise_size
+    eb = f(np.concatenate([u0[None], d]))
+    rough = eb[1:] - eb[0] - d @ F.T
+    rough = rough[np.all(np.isfinite(rough), axis=1)]
+    cov_model = np.cov(rough.T) if len(rough) > 1 else np.zeros((F.shape[0], F.shape[0]))
+    cov_meas = measurement_covariance(goal, marker_noise, time_noise)
+    cov = cov_model + cov_meas + (0 if extra_cov is None else extra_cov)
+    Uf, sv, Vt = np.linalg.svd(F, full_matrices=False)
+    noise, ok = resolvable(sv, Uf, cov, step, snr)
+    n_model = np.sqrt(np.maximum(np.einsum("mi,mk,ki->i", Uf, cov_model, Uf), 0))
+    n_meas = np.sqrt(np.einsum("mi,mk,ki->i", Uf, cov_meas, Uf))
+    r = int(ok.sum())
+    return {
+        "F": F, "e0": e0, "singular_values": sv, "right_vectors": Vt, "left_vectors": Uf,
+        "noise": noise, "noise_model": n_model, "noise_measurement": n_meas, "above_noise": ok,
+        "count_above_noise": r, "dim": space.dim, "names": space.names, "fd_kinds": kinds,
+        "fd_rollouts": 2 * space.dim + 1, "fd_wall_s": fd_wall, "roughness_samples": int(len(rough)),
+        "min_trials_model_free": r + 1,
+    }
+
+
+def parameter_analysis(problem, values, goals, names, h: float, step: float, snr: float,
+                       marker_noise: float, time_noise: float) -> dict:
+    from wrenorm.tasks import rope_critical as crit
+
+    sp = problem.space
+    # only throws the coarse chain completes with a collision have a critical state to differentiate
+    res0 = problem.simulate(np.asarray(values, np.float64)[None], problem.train)
+    hits = res0.status == 1
+    conds = [c for c, h in zip(problem.train, hits) if h]
+    names_all = names
+    goals, names = [g for g, h in zip(goals, hits) if h], [n for n, h in zip(names, hits) if h]
+    C = len(conds)
+    if C == 0:
+        return {"names": sp.free_names, "per_condition": {n: {"coarse_hits": False} for n in names_all},
+                "conditions_used": [], "fd_kinds": []}
+
+    def f(X):
+        res = problem.simulate(sp.from_unit(X), conds)  # frozen parameters keep their measured values
+        st = crit.from_rollout(res, problem.n, float(conds[0].data.ref.time[0]))
+        B = len(X)
+        out = []
+        for c in range(C):
+            rows = np.arange(B) * C + c
+            sub = crit.CriticalStates(st.pos[rows], st.vel[rows], st.time[rows], st.s[rows], st.hit[rows],
+                                      st.clearance[rows])
+            out.append(goals[c].residual(sub))
+        return np.concatenate(out, axis=1)
+
+    x_free = sp.to_unit(values)
+    J, e0, kinds = central_jacobian(f, x_free, h, np.zeros(len(x_free)), np.ones(len(x_free)))
+    m = goals[0].dim
+    blocks, covs = [], []
+    per = {n: {"coarse_hits": False} for n in names_all}
+    for c in range(C):
+        Jc = J[c * m:(c + 1) * m]
+        hit = bool(np.all(np.isfinite(e0[c * m:(c + 1) * m])))
+        cov = measurement_covariance(goals[c], marker_noise, time_noise)
+        Uf, sv, Vt = np.linalg.svd(Jc, full_matrices=False)
+        noise, ok = resolvable(sv, Uf, cov, step, snr)
+        per[names[c]] = {"coarse_hits": hit, "singular_values": sv, "noise": noise,
+                         "right_vectors": np.round(Vt, 4), "count_above_noise_alone": int(ok.sum()) if hit else 0}
+        if hit:
+            blocks.append(Jc)
+            covs.append(cov)
+    used = [n for n in names if per[n]["coarse_hits"]]
+    out = {"names": sp.free_names, "per_condition": per, "conditions_used": used,
+           "fd_kinds": kinds}
+    if blocks:
+        J_all = np.concatenate(blocks)
+        Uf, sv, Vt = np.linalg.svd(J_all, full_matrices=False)
+        C_all = np.zeros((J_all.shape[0],) * 2)
+        o = 0
+        for cv in covs:
+            C_all[o:o + m, o:o + m] = cv
+            o += m
+        noise, ok = resolvable(sv, Uf, C_all, step, snr)
+        full, idx = fewest_experiments(blocks, covs, step, snr)
+        out.update({"stacked_singular_values": sv, "stacked_noise": noise, "stacked_right_vectors": Vt,
+                    "count_above_noise": int(ok.sum()), "min_experiments": len(idx),
+                    "min_experiment_set": [used[i] for i in idx]})
+    return out
+
+
+# ------------------------------------------------------------------------------ CLI
+def run(args) -> int:
+    from wrenorm.cli import _device
+    from wrenorm.fit import prepare_out
+    from wrenorm.results import versions, write_json
+    from wrenorm.tasks import rope_critical as crit
+    from wrenorm.tasks.rope import RopeProblem
+    from wrenorm.tasks.rope_command import CommandSpace
+    from wrenorm.tasks.rope_correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
+    from wrenorm.tasks.rope_correct_run import _goal_reference
+    from wrenorm.tasks.rope_newton import get_variant
+    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
+
+    def progress(msg):
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    get_variant(args.variant)
+    device = _device(args.device)
+    path = get_hand_path(args.path, "--path")
+    for name, v, lo in (("--fd-step", args.fd_step, 0), ("--param-fd-step", args.param_fd_step, 0),
+                        ("--noise-size", args.noise_size, 0), ("--command-step", args.command_step, 0),
+                        ("--param-step", args.param_step, 0), ("--snr", args.snr, 0)):
+        if not v > lo:
+            raise InputError(name, name[2:].replace("-", "_"), f"must be > 0, got {v}")
+    if args.noise_samples < 2 or args.real_repeats < 0 or args.marker_noise < 0 or args.time_noise < 0:
+        raise InputError("--noise-samples/--real-repeats/--marker-noise/--time-noise", "value",
+                         "need >= 2 noise samples and non-negative repeats and noise levels")
+    out = prepare_out(args.out or Path("runs") / f"sensitivity-rope-{time.strftime('%Y%m%d-%H%M%S')}",
+                      resume=False, force=args.force)
+    t_all = time.perf_counter()
+    ref = _goal_reference(args.path, args.variant, progress)
+    problem = RopeProblem([ref], segments=args.segments, dt=args.dt, device=device, names=[args.path])
+    fit_info = None
+    if args.params == "measured":
+        values = problem.space.measured
+    elif args.params == "fitted":
+        values, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
+                                          device, progress)
+    else:
+        values = parameters_from_file(args.params, problem)
+    space = CommandSpace(path)
+    goal = crit.Goal.from_reference(ref)
+    model = CoarseModel(problem, values, space, args.params)
+
+    extra_cov, real_info = None, None
+    if args.real_repeats:
+        progress(f"measuring repeat spread: {args.real_repeats} newton runs at tiny command offsets")
+        real = NewtonRope(args.variant, duration=min(float(ref.time[-1]), float(goal.state.time[0]) + 0.3),
+                          device=device)
+        rng = np.random.default_rng(args.seed + 1)
+        es = np.stack([goal.residual(crit.from_reference(real(space.decode(rng.normal(size=space.dim) * args.noise_size))))[0]
+                       for _ in range(args.real_repeats)])
+        es = es[np.all(np.isfinite(es), axis=1)]
+        if len(es) >= 2:
+            extra_cov = np.cov(es.T)
+        real_info = {"runs": real.runs, "wall_s": real.wall_s, "hits": int(len(es)),
+                     "spread_norm": float(np.sqrt(np.trace(extra_cov))) if extra_cov is not None else None}
+    progress("command sensitivity")
+    cmd = command_analysis(model, goal, args.fd_step, args.noise_samples, args.noise_size, args.seed,
+                           args.marker_noise, args.time_noise, args.command_step, args.snr, extra_cov)
+    progress("parameter sensitivity over the built-in throws")
+    names = list(FIT_PATHS) + list(HELD_OUT_PATHS)
+    refs = [_goal_reference(n, args.variant, progress) for n in names]
+    pproblem = RopeProblem(refs, segments=args.segments, dt=args.dt, device=device, names=names)
+    par = parameter_analysis(pproblem, values, [crit.Goal.from_reference(r) for r in refs], names,
+                             args.param_fd_step, args.param_step, args.snr, args.marker_noise, args.time_noise)
+
+    top = [{"singular_value": float(cmd["singular_values"][i]), "noise": float(cmd["noise"][i]),
+            "direction": dict(zip(space.names, np.round(cmd["right_vectors"][i], 4).tolist()))}
+           for i in range(space.dim)]
+    result = {
+        "schema": "wrenorm.sensitivity/1", "system": SYSTEM, "variant": args.variant, "path": args.path,
+        "params": args.params, "parameter_values": problem.space.as_dict(values), "fit": fit_info,
+        "meaning": __doc__,
+        "noise_model": {"marker_noise_m": args.marker_noise, "time_noise_s": args.time_noise,
+                        "frame_time_s": FRAME_TIME, "tiny_command_offsets": args.noise_size,
+                        "samples": args.noise_samples, "real_repeats": real_info,
+                        "snr": args.snr, "command_step": args.command_step, "param_step": args.param_step},
+        "command": {
+            "names": space.names, "singular_values": cmd["singular_values"], "noise": cmd["noise"],
+            "noise_model_roughness": cmd["noise_model"], "noise_measurement": cmd["noise_measurement"],
+            "above_noise": cmd["above_noise"], "count_above_noise": cmd["count_above_noise"], "dim": space.dim,
+            "min_trials_model_free": cmd["min_trials_model_free"], "directions": top,
+            "fd": {"rollouts_in_one_batch": cmd["fd_rollouts"], "wall_s": cmd["fd_wall_s"], "kinds": cmd["fd_kinds"]},
+        },
+        "parameters": {k: v for k, v in par.items() if k != "stacked_right_vectors"},
+        "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
+    }
+    write_json(out / "sensitivity.json", result)
+    _plot(out / "sensitivity.png", cmd, par, args)
+    if not args.no_record:
+        _record(out / "recording.rrd", model, cmd, par, goal, args)
+    print(f"command: {cmd['count_above_noise']} of {space.dim} directions above the noise "
+          f"(singular values {np.array2string(cmd['singular_values'], precision=3)}); "
+          f"model-free correction needs >= {cmd['min_trials_model_free']} trials")
+    if "count_above_noise" in par:
+        print(f"parameters: {par['count_above_noise']} of {len(par['names'])} directions above the noise over "
+              f"{len(par['conditions_used'])} throws; {par['min_experiments']} throws suffice "
+              f"({', '.join(par['min_experiment_set'])})")
+    print(f"\nresult: {out / 'sensitivity.json'}  plot: {out / 'sensitivity.png'}")
+    return 0
+
+
+def _plot(path: Path, cmd: dict, par: dict, args) -> None:
+    from wrenorm.viz.plots import _figure, save_figure
+
+    plt = _figure()
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.8))
+    i = np.arange(1, len(cmd["singular_values"]) + 1)
+    a0.semilogy(i, cmd["singular_values"], "o-", label="singular value of de/du")
+    a0.semilogy(i, args.snr * cmd["noise"] / args.command_step, "k--", label=f"{args.snr:g} x noise / step")
+    a0.set_xlabel("command direction")
+    a0.set_title(f"command ({cmd['count_above_noise']} of {len(i)} above noise)")
+    a0.legend(fontsize=8)
+    for name, row in par["per_condition"].items():
+        if row["coarse_hits"]:
+            a1.semilogy(np.arange(1, len(row["singular_values"]) + 1), row["singular_values"], ".-", alpha=0.6,
+                        label=name)
+    if "stacked_singular_values" in par:
+        j = np.arange(1, len(par["stacked_singular_values"]) + 1)
+        a1.semilogy(j, par["stacked_singular_values"], "ko-", label="all throws")
+        a1.semilogy(j, args.snr * par["stacked_noise"] / args.param_step, "k--", label="noise floor")
+    a1.set_xlabel("parameter direction")
+    a1.set_title(f"parameters ({par.get('count_above_noise', 0)} of {len(par['names'])} above noise)")
+    a1.legend(fontsize=7)
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def _record(path: Path, model, cmd: dict, par: dict, goal, args) -> None:
+    """Singular values, and the coarse rope at its critical point moved along the top directions."""
+    from wrenorm.viz.record import Recorder, rerun_available
+
+    if not rerun_available():
+        return
+    import rerun as rr
+
+    rec = Recorder(path, application_id="wrenorm-sensitivity")
+    s = rec.stream
+    try:
+        for i, (sv, nz) in enumerate(zip(cmd["singular_values"], cmd["noise"])):
+            s.set_time("direction", sequence=i + 1)
+            s.log("command/singular_value", rr.Scalars(float(sv)))
+            s.log("command/noise_floor", rr.Scalars(float(args.snr * nz / args.command_step)))
+        for i, sv in enumerate(par.get("stacked_singular_values", [])):
+            s.set_time("direction", sequence=i + 1)
+            s.log("parameters/singular_value", rr.Scalars(float(sv)))
+        top = min(3, cmd["dim"])
+        V = cmd["right_vectors"][:top]
+        U = np.concatenate([np.zeros((1, cmd["dim"])), args.command_step * V, -args.command_step * V])
+        st = model.states(np.clip(U, model.space.lower, model.space.upper))
+        s.log("goal/critical", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)]), static=True)
+        for k in range(top):
+            s.set_time("direction", sequence=k + 1)
+            strips = [st.pos[j].astype(np.float32) for j in (0, 1 + k, 1 + top + k) if st.hit[j]]
+            s.log("command/critical_along_direction", rr.LineStrips3D(
+                strips, colors=[(200, 200, 200), (40, 160, 230), (230, 120, 40)][:len(strips)]))
+        rec.close()
+    except BaseException:
+        rec.abort()
+        raise

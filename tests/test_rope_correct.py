@@ -1,0 +1,163 @@
+"""Command correction and sensitivity on the coarse rope (fast: the coarse chain plays the real rope)."""
+import json
+
+import numpy as np
+import pytest
+
+from wrenorm.errors import InputError
+from wrenorm.tasks import rope_critical as crit
+from wrenorm.tasks.rope import RopeProblem
+from wrenorm.tasks.rope_command import CommandSpace
+from wrenorm.tasks.rope_correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
+from wrenorm.tasks.rope_paths import HandPath, builtin_hand_paths
+from wrenorm.tasks.rope_reference import builtin_reference_path, load_reference
+from wrenorm.tasks.rope_sensitivity import central_jacobian, resolvable
+
+PATHS = builtin_hand_paths()
+
+
+@pytest.fixture(scope="module")
+def problem():
+    ref = load_reference(builtin_reference_path("flick", "default"))
+    return RopeProblem([ref], segments=10, dt=0.005)
+
+
+def shifted(problem):
+    v = problem.space.measured.copy()
+    v[problem.space.index("bend_stiffness")] *= 2.0
+    v[problem.space.index("drag_quad")] *= 0.5
+    return v
+
+
+# ------------------------------------------------------------------------------ command
+def test_command_roundtrip_and_limits():
+    space = CommandSpace(PATHS["flick"])
+    u = space.encode(PATHS["flick_high"])
+    assert np.allclose(space.decode(u).control_points, PATHS["flick_high"].control_points, atol=1e-12)
+    assert np.allclose(space.encode(space.decode(0.7 * u)), 0.7 * u, atol=1e-12)
+    # a step far outside the hand's limits is shortened until they hold
+    big = np.zeros(space.dim)
+    big[space.names.index("v1.x")] = 50.0
+    new, s = space.limit_step(np.zeros(space.dim), big)
+    assert 0.0 < s < 1.0 or np.all(np.abs(new) <= space.bound)
+    assert space.feasible(new)
+    assert space.decode(new).max_speed() <= space.max_speed + 1e-9
+    with pytest.raises(InputError):
+        # a kink at the middle waypoint: incoming velocity along x, outgoing along z
+        CommandSpace(HandPath(np.array([[0, 0, 1.6], [0, 0, 1.6], [0.1, 0, 1.7], [0.2, 0, 1.7],
+                                        [0.2, 0, 1.9], [0.3, 0, 1.9], [0.3, 0, 1.9]]), np.array([0.3, 0.3])))
+
+
+def test_qp_step_respects_trust_region_and_solves_linear_case():
+    space = CommandSpace(PATHS["flick"])
+    rng = np.random.default_rng(1)
+    F = rng.normal(size=(20, space.dim))
+    du_true = rng.uniform(-0.3, 0.3, space.dim)
+    e = -F @ du_true
+    du = qp_step(F, e, np.zeros(space.dim), space, radius=1.0, reg=1e-8)
+    assert np.allclose(du, du_true, atol=1e-4)
+    du = qp_step(F, 10 * e, np.zeros(space.dim), space, radius=0.5, reg=1e-8)
+    assert np.abs(du).max() <= 0.5 + 1e-9
+
+
+# ------------------------------------------------------------------------------ correction
+def test_correction_converges_on_a_system_with_known_answer(problem):
+    """The coarse chain with shifted parameters is the 'real' rope; the goal is its own critical
+    state under another throw, so the goal is reachable and the loop must get there."""
+    space = CommandSpace(PATHS["flick"])
+    truth = shifted(problem)
+    real = CoarseRope(problem, truth)
+    goal = crit.Goal.from_reference(real(PATHS["flick_fast"]))
+    start = goal.terms(crit.from_reference(real(PATHS["flick"])))["total"][0]
+    assert start > 0.3  # the start is far from the goal
+    exact = correct(real, CoarseModel(problem, truth, space), goal, np.zeros(space.dim), max_trials=8)
+    assert exact["success"] and exact["trials_to_tolerance"] <= 5
+    wrong = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                    max_trials=10)
+    assert wrong["success"]
+    # the model with the system's own parameters needs no more trials than the mismatched one
+    assert exact["trials_to_tolerance"] <= wrong["trials_to_tolerance"]
+    accepted = [t.total for t in wrong["trials"] if t.accepted]
+    assert all(b < a for a, b in zip(accepted, accepted[1:]))
+    for t in wrong["trials"]:
+        assert space.feasible(t.u)
+
+
+# ------------------------------------------------------------------------------ sensitivity
+def test_batched_sensitivity_matches_separate_runs(problem):
+    space = CommandSpace(PATHS["flick"])
+    goal = crit.Goal.from_reference(problem.train[0].data.ref)
+    model = CoarseModel(problem, problem.space.measured, space)
+    h = 0.05
+    F, info = model.sensitivity(np.zeros(space.dim), goal, h)
+    assert info["rollouts"] == 2 * space.dim + 1 and info["centre_hit"]
+    # one column from two separate single-chain rollouts: a chain's result must not depend on its batch
+    i = space.names.index("p1.z")
+    e = [goal.residual(model.states(s * h * np.eye(space.dim)[i][None]))[0] for s in (1, -1)]
+    assert np.allclose((e[0] - e[1]) / (2 * h), F[:, i], rtol=1e-5, atol=1e-7)
+    # a random direction: the columns must combine into the directional difference. Positions and
+    # the collision time are smooth in the command; the frame-interval velocity and the contact's
+    # arc-length (closest segment pair) jump at this scale, so only the smooth blocks are held to it.
+    rng = np.random.default_rng(0)
+    smooth = np.r_[goal.blocks["position"], goal.blocks["time"]]
+    for _ in range(3):
+        v = rng.normal(size=space.dim)
+        v /= np.linalg.norm(v)
+        ep, em = (goal.residual(model.states(s * h * v[None]))[0] for s in (1, -1))
+        d = ((ep - em) / (2 * h))[smooth]
+        assert np.linalg.norm((F @ v)[smooth] - d) < 0.1 * np.linalg.norm(d)
+
+
+def test_dead_command_direction_gives_zero_singular_values(problem):
+    """A hand motion after the rope has hit itself cannot change the critical state."""
+    base = PATHS["flick"]
+    times = np.concatenate([[0.0], np.cumsum(base.durations)])
+    from wrenorm.tasks.rope_command import waypoints
+
+    _, p, v = waypoints(base)
+    late = HandPath.through(np.append(times, [1.2, 1.45]), np.vstack([p, p[-1], p[-1] + [0.1, 0.0, 0.1]]),
+                            np.vstack([v, np.zeros((2, 3))]))
+    space = CommandSpace(late)
+    goal = crit.Goal.from_reference(problem.train[0].data.ref)
+    model = CoarseModel(problem, problem.space.measured, space)
+    F, info = model.sensitivity(np.zeros(space.dim), goal, 0.1)
+    assert info["centre_hit"]
+    t_hit = float(model.states(np.zeros((1, space.dim))).time[0])
+    assert t_hit < 1.2  # the last motion starts after the collision
+    dead = [space.names.index(n) for n in ("p5.x", "p5.z", "log_T5")]
+    assert np.abs(F[:, dead]).max() == 0.0
+    sv = np.linalg.svd(F, compute_uv=False)
+    assert sv[0] > 0.05 and np.all(sv[-3:] <= 1e-9 * sv[0])
+    Uf = np.linalg.svd(F, full_matrices=False)[0]
+    _, ok = resolvable(sv, Uf, np.eye(F.shape[0]) * 1e-8, step=1.0, snr=3.0)
+    assert ok.sum() <= space.dim - 3 and ok[0]
+
+
+def test_central_jacobian_on_a_known_map():
+    A = np.array([[1.0, 2.0, 0.0], [0.0, -1.0, 0.0]])
+    f = lambda X: X @ A.T + 0.5 * X[:, :1] ** 2  # noqa: E731
+    J, e0, kinds = central_jacobian(f, np.array([0.0, 0.3, 1.0]), 1e-3, np.zeros(3), np.ones(3))
+    assert kinds == ["forward", "central", "backward"]
+    assert np.allclose(J, A + np.array([[0.0005, 0, 0], [0.0005, 0, 0]]), atol=1e-6)
+
+
+def test_parameters_file_errors(problem, tmp_path):
+    bad = tmp_path / "result.json"
+    bad.write_text(json.dumps({"task": "rope", "resolution": {"segments": 10}, "parameters": {}}))
+    with pytest.raises(InputError, match="bend_stiffness|lead_fraction"):
+        parameters_from_file(bad, problem)
+    good = {p.name: {"fitted": p.measured * 1.1 if p.measured else 0.0} for p in problem.space.parameters}
+    bad.write_text(json.dumps({"runs": [{"task": "rope", "resolution": {"segments": 10}, "parameters": good}]}))
+    v = parameters_from_file(bad, problem)
+    assert np.isclose(v[problem.space.index("bend_stiffness")], 1.1 * problem.space["bend_stiffness"].measured)
+    with pytest.raises(InputError, match="not readable JSON"):
+        (tmp_path / "x.json").write_text("{")
+        parameters_from_file(tmp_path / "x.json", problem)
+
+
+def test_cli_bad_input_exits_2(tmp_path, capsys):
+    from wrenorm.cli import main
+
+    assert main(["correct", "rope", "--variant", "rubber", "--out", str(tmp_path / "o")]) == 2
+    assert "variant" in capsys.readouterr().err
+    assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
