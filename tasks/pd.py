@@ -348,7 +348,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="two-link arm with M(q) and gain matrices: fit the joint-space inertia correction and K_D^sim")
     p.add_argument("--generations", type=int, default=60)
     p.add_argument("--popsize", type=int, default=24)
-    p.add_argument("--polish", type=int, default=0, help="gradient (Warp tape + Adam) iterations after CMA-ES")
+    p.add_argument("--polish", type=int, default=20, help="L-BFGS evaluations on Warp-tape gradients after CMA-ES (0: none)")
 
 
 def build_problems(args, device: str) -> list[PDProblem]:

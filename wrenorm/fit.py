@@ -92,13 +92,16 @@ def run_fit(
         checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
     )
     methods = ["cmaes"]
+    polish_report = None
     fitted, history = res.best_values, {"cmaes": res.history}
     if polish and problem.differentiable:
-        g = searches.gradient(problem, fitted, iterations=polish, quiet=quiet)
+        g = searches.polish(problem, fitted, iterations=polish, quiet=quiet)
         history["gradient"] = g.history
-        methods.append("gradient")
-        if g.best_loss < res.best_loss:
+        methods.append("lbfgs")
+        improved = g.best_loss < res.best_loss
+        if improved:
             fitted = g.best_values
+        polish_report = {"iterations": polish, "loss_before": res.best_loss, "loss_after": g.best_loss, "kept": improved}
     losses, _ = searches.mean_loss(problem, np.stack([measured, fitted]), problem.train)
     unc = uncertainty(problem, fitted)
     params = {}
@@ -130,6 +133,7 @@ def run_fit(
             "stop": res.stop,
             "popsize": popsize,
             "sigma0": sigma0,
+            "gradient_polish": polish_report,
         },
         "seed": seed,
         "device": problem.device,
