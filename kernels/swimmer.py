@@ -14,22 +14,29 @@ force is cheap to include: with `virtual_mass=1` each part also gets -m_A (dv/dt
 that is linear in the head's unknown acceleration goes into the 3x3 mass matrix. With
 `virtual_mass=0` the model is MuJoCo's as published (added mass acts only through velocities).
 
-Drag is integrated linearly implicitly (the drag factors of each part enter the 3x3 matrix),
-which keeps large coefficients stable at the default step.
+Time stepping: the forces depend on the head's velocity and the tail's phase only, never on the
+head's pose, so the velocity equation M(t) dV/dt = F(V, t) is integrated on its own with ROS2 (a
+second-order Rosenbrock W-method, two force evaluations per step) whose W is the parts' drag
+factors: drag is linearly implicit and large drag coefficients stay stable; the pose follows with
+the trapezoid rule. scheme=1 keeps the first-order linearly implicit Euler of the first version.
 
 Equations (head frame, origin at the front head marker, x towards the tail, so the fish swims
 towards -x): unknowns (du/dt, dv/dt, dw/dt) of the head's frame velocity (u, v, w). Part e sits at
 p_e with angle psi_e relative to the head (tabulated per condition, candidate-independent):
     a_e = (du, dv) + dw (-p_y, p_x) + k_e,   k_e = (-w v, w u) - w^2 p + 2 w (-pd_y, pd_x) + pdd
     sum_e M_e a_e = sum_e F_e,    sum_e [p_e x M_e a_e + J_e (dw + psidd_e)] = sum_e [p_e x F_e + tau_e]
-with M_e = m_e I + R_e diag(m_A) R_e^T. Semi-implicit Euler (velocities first, then pose).
+with M_e = m_e I + R_e diag(m_A) R_e^T. Everything candidate-independent (M, and the inertial
+force as a polynomial in the head's velocity) is summed over parts once per tail-phase sample on
+the host (reduce_table); the kernel visits only the fluid parts.
 
 One thread simulates one (candidate, condition) pair over its whole run, state in registers, and
-accumulates a least-squares line fit of the head position (the speed measurement) on the fly.
+accumulates a least-squares line fit of the head position (the speed measurement) and the first
+harmonic of the yaw rate (the head's yaw oscillation) on the fly.
 """
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -132,19 +139,99 @@ def fluid_geometry_kernel(semi: wp.array(dtype=wp.vec3), out: wp.array(dtype=geo
         out[i] = fluid_geometry(r[0], r[1], r[2])
 
 
+vec15 = wp.types.vector(length=15, dtype=wp.float32)
+INERTIAL = 17  # per sample: 15 candidate-independent sums over all parts (reduce_table), cos, sin of the beat phase
+FLUID_ROW = 7  # per fluid part per sample: px, py, cos psi, sin psi, pdx, pdy, psid
+
+
+@wp.func
+def fish_rhs(tab: wp.array2d(dtype=float), row: int, n_fluid: int, u: float, v: float, w: float,
+             geo: wp.array(dtype=geo9), amass: wp.array(dtype=wp.vec3),
+             cb: float, cs: float, ca: float, ck: float, cm: float, rho: float, mu: float, vm: float):
+    """Mass matrix M (6 entries, symmetric), drag factor matrix C (6) and force F (3) of the head's
+    equation M dV/dt = F(V, t) at table row `row`, for head velocity V = (u, v, w).
+
+    The inertial part is linear in (1, w, w^2, w u, w v) with per-sample coefficients summed over
+    parts on the host; only the fluid parts are visited here."""
+    m00 = tab[row, 0]
+    m01 = tab[row, 1]
+    m11 = tab[row, 2]
+    m02 = tab[row, 3]
+    m12 = tab[row, 4]
+    m22 = tab[row, 5]
+    w2 = w * w
+    # minus sum_e M_e k_e: the inertial forces of the prescribed tail motion in the moving frame
+    f0 = -(m00 * (-w * v) + m01 * (w * u) - w2 * tab[row, 6] + 2.0 * w * tab[row, 9] + tab[row, 12])
+    f1 = -(m01 * (-w * v) + m11 * (w * u) - w2 * tab[row, 7] + 2.0 * w * tab[row, 10] + tab[row, 13])
+    f2 = -(m02 * (-w * v) + m12 * (w * u) - w2 * tab[row, 8] + 2.0 * w * tab[row, 11] + tab[row, 14])
+    c00 = float(0.0)
+    c02 = float(0.0)
+    c12 = float(0.0)
+    c22 = float(0.0)
+    for e in range(n_fluid):
+        o = INERTIAL + FLUID_ROW * e
+        px = tab[row, o]
+        py = tab[row, o + 1]
+        cp = tab[row, o + 2]
+        sp = tab[row, o + 3]
+        vx = u - w * py + tab[row, o + 4]
+        vy = v + w * px + tab[row, o + 5]
+        we = w + tab[row, o + 6]
+        la = cp * vx + sp * vy
+        lb = -sp * vx + cp * vy
+        am = amass[e]
+        fl = fluid_planar(la, lb, we, geo[e], cb, cs, ca, ck, cm, rho, mu, am[0], am[1])
+        # the velocity part of -m_A (dv/dt)_body: + m_A (w x v)
+        lfx = fl[0] - am[0] * vm * we * lb
+        lfy = fl[1] + am[1] * vm * we * la
+        fx = cp * lfx - sp * lfy
+        fy = sp * lfx + cp * lfy
+        f0 += fx
+        f1 += fy
+        f2 += px * fy - py * fx + fl[2]
+        d = fl[3]
+        # linear drag acts on v_e = V + w r_e + pd_e, r_e = (-py, px)
+        c00 += d
+        c02 -= d * py
+        c12 += d * px
+        c22 += d * (px * px + py * py) + fl[4]
+    return vec15(m00, m01, m11, m02, m12, m22, c00, 0.0, c00, c02, c12, c22, f0, f1, f2)
+
+
+@wp.func
+def solve_sym3(a00: float, a01: float, a11: float, a02: float, a12: float, a22: float,
+               r0: float, r1: float, r2: float):
+    """Cramer on a symmetric 3x3."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    inv = 1.0 / (a00 * c00 + a01 * c01 + a02 * c02)
+    return wp.vec3((c00 * r0 + c01 * r1 + c02 * r2) * inv, (c01 * r0 + c11 * r1 + c12 * r2) * inv,
+                   (c02 * r0 + c12 * r1 + c22 * r2) * inv)
+
+
+# L-stable ROS2 (Verwer et al. 1999): second order for any approximation W of the Jacobian, here the
+# drag factors only; gamma = 1 + 1/sqrt(2)
+ROS2_GAMMA = 1.7071067811865475
+
+
 @wp.kernel
 def swim_kernel(offset: int, n_cond: int,
                 coef: wp.array2d(dtype=float),        # (B, 5)
-                table: wp.array3d(dtype=float),       # (samples, parts, ROW)
-                semi: wp.array(dtype=wp.vec3),        # (parts,) zero: no fluid
-                geo: wp.array(dtype=geo9),            # (parts,) fluid_geometry(semi)
-                amass: wp.array(dtype=wp.vec3),       # (parts,) rho * (m_A x, m_A y, I_A z)
-                inert: wp.array(dtype=wp.vec2),       # (parts,) mass, yaw inertia about the part centre
+                tab: wp.array2d(dtype=float),         # (samples, INERTIAL + FLUID_ROW * fluid parts)
+                n_fluid: int,
+                geo: wp.array(dtype=geo9),            # (fluid parts,) fluid_geometry(semi)
+                amass: wp.array(dtype=wp.vec3),       # (fluid parts,) rho * (m_A x, m_A y, I_A z)
+                v0: wp.array(dtype=wp.vec3),          # (conditions,) zero-momentum start velocity
                 tab_off: wp.array(dtype=int), n_per: wp.array(dtype=int), dt_c: wp.array(dtype=float),
                 n_warm: wp.array(dtype=int), n_meas: wp.array(dtype=int), max_warm: wp.array(dtype=int),
                 settle_abs: float, settle_rel: float, ref_x: float, rho: float, mu: float, virtual_mass: int,
+                scheme: int,
                 rec_stride: int, traj: wp.array3d(dtype=float),   # (n, frames, 4): X, Y, theta, sample
-                speed: wp.array(dtype=float), state: wp.array2d(dtype=float)):
+                speed: wp.array(dtype=float), yaw: wp.array(dtype=float), state: wp.array2d(dtype=float)):
     tid = wp.tid() + offset
     b = tid / n_cond
     c = tid - b * n_cond
@@ -158,15 +245,16 @@ def swim_kernel(offset: int, n_cond: int,
     dt = dt_c[c]
     nw = n_warm[c]
     nm = n_meas[c]
-    n_parts = semi.shape[0]
     vm = float(virtual_mass)
+    gam = float(ROS2_GAMMA)
 
     X = float(0.0)
     Y = float(0.0)
     th = float(0.0)
-    u = float(0.0)
-    v = float(0.0)
-    w = float(0.0)
+    vel0 = v0[c]
+    u = vel0[0]
+    v = vel0[1]
+    w = vel0[2]
 
     # least-squares sums for the speed (float64: thousands of samples)
     s_n = wp.float64(0.0)
@@ -181,58 +269,9 @@ def swim_kernel(offset: int, n_cond: int,
     s_xy = wp.float64(0.0)
     s_c = wp.float64(0.0)
     s_s = wp.float64(0.0)
-
-    # start with zero linear and angular momentum (fluid's virtual momentum included): the head
-    # moves so that the tail's prescribed velocity at t=0 does not launch the whole fish
-    b00 = float(0.0)
-    b01 = float(0.0)
-    b02 = float(0.0)
-    b11 = float(0.0)
-    b12 = float(0.0)
-    b22 = float(0.0)
-    q0 = float(0.0)
-    q1 = float(0.0)
-    q2 = float(0.0)
-    for e in range(n_parts):
-        px = table[off, e, 0]
-        py = table[off, e, 1]
-        cp = table[off, e, 2]
-        sp = table[off, e, 3]
-        pdx = table[off, e, 4]
-        pdy = table[off, e, 5]
-        am = amass[e]
-        mj = inert[e]
-        m0 = am[0] * vm
-        m1 = am[1] * vm
-        j_e = mj[1] + am[2] * vm
-        e00 = mj[0] + m0 * cp * cp + m1 * sp * sp
-        e11 = mj[0] + m0 * sp * sp + m1 * cp * cp
-        e01 = (m0 - m1) * cp * sp
-        rx = -py
-        ry = px
-        mrx = e00 * rx + e01 * ry
-        mry = e01 * rx + e11 * ry
-        b00 += e00
-        b01 += e01
-        b11 += e11
-        b02 += mrx
-        b12 += mry
-        b22 += rx * mrx + ry * mry + j_e
-        gx = e00 * pdx + e01 * pdy
-        gy = e01 * pdx + e11 * pdy
-        q0 -= gx
-        q1 -= gy
-        q2 -= rx * gx + ry * gy + j_e * table[off, e, 6]
-    d00 = b11 * b22 - b12 * b12
-    d01 = b02 * b12 - b01 * b22
-    d02 = b01 * b12 - b02 * b11
-    d11 = b00 * b22 - b02 * b02
-    d12 = b01 * b02 - b00 * b12
-    d22 = b00 * b11 - b01 * b01
-    det0 = b00 * d00 + b01 * d01 + b02 * d02
-    u = (d00 * q0 + d01 * q1 + d02 * q2) / det0
-    v = (d01 * q0 + d11 * q1 + d12 * q2) / det0
-    w = (d02 * q0 + d12 * q1 + d22 * q2) / det0
+    # first harmonic of the yaw rate at the beat frequency (the head's yaw oscillation)
+    s_wc = float(0.0)
+    s_ws = float(0.0)
 
     # warm-up: whole beats until the beat-averaged surge settles (at least nw steps, at most
     # max_warm); quadratic drag makes slow candidates creep up to cruising speed for many beats
@@ -244,10 +283,11 @@ def swim_kernel(offset: int, n_cond: int,
     beat_u = float(0.0)
     prev_u = float(1.0e9)
     while meas_start < 0 or step < meas_start + nm:
-        row = off + k
         ct = wp.cos(th)
         st = wp.sin(th)
         if meas_start >= 0:
+            s_wc += w * tab[off + k, 15]
+            s_ws += w * tab[off + k, 16]
             hx = wp.float64(X + ct * ref_x)
             hy = wp.float64(Y + st * ref_x)
             tt = wp.float64(float(step - meas_start) * dt)
@@ -272,101 +312,51 @@ def swim_kernel(offset: int, n_cond: int,
                     traj[tid, rec_i, 3] = float(k)
                     rec_i += 1
 
-        # 3x3 symmetric system A [du, dv, dw] = r
-        a00 = float(0.0)
-        a01 = float(0.0)
-        a02 = float(0.0)
-        a11 = float(0.0)
-        a12 = float(0.0)
-        a22 = float(0.0)
-        r0 = float(0.0)
-        r1 = float(0.0)
-        r2 = float(0.0)
-        for e in range(n_parts):
-            px = table[row, e, 0]
-            py = table[row, e, 1]
-            cp = table[row, e, 2]
-            sp = table[row, e, 3]
-            pdx = table[row, e, 4]
-            pdy = table[row, e, 5]
-            psid = table[row, e, 6]
-            pddx = table[row, e, 7]
-            pddy = table[row, e, 8]
-            psidd = table[row, e, 9]
-            ax = semi[e]
-            am = amass[e]
-            mj = inert[e]
-            m0 = am[0] * vm
-            m1 = am[1] * vm
-            j_e = mj[1] + am[2] * vm
-
-            vx = u - w * py + pdx
-            vy = v + w * px + pdy
-            we = w + psid
-            fx = float(0.0)
-            fy = float(0.0)
-            tz = float(0.0)
-            dlin = float(0.0)
-            dang = float(0.0)
-            if ax[0] > 0.0:
-                la = cp * vx + sp * vy
-                lb = -sp * vx + cp * vy
-                fl = fluid_planar(la, lb, we, geo[e], cb, cs, ca, ck, cm, rho, mu, am[0], am[1])
-                # the velocity part of -m_A (dv/dt)_body: + m_A (w x v)
-                lfx = fl[0] - m0 * we * lb
-                lfy = fl[1] + m1 * we * la
-                fx = cp * lfx - sp * lfy
-                fy = sp * lfx + cp * lfy
-                tz = fl[2]
-                dlin = fl[3]
-                dang = fl[4]
-            # effective translational mass of the part in the head frame
-            mm = mj[0]
-            e00 = mm + m0 * cp * cp + m1 * sp * sp
-            e11 = mm + m0 * sp * sp + m1 * cp * cp
-            e01 = (m0 - m1) * cp * sp
-            kx = -w * v - w * w * px - 2.0 * w * pdy + pddx
-            ky = w * u - w * w * py + 2.0 * w * pdx + pddy
-            mkx = e00 * kx + e01 * ky
-            mky = e01 * kx + e11 * ky
-            rx = -py
-            ry = px
-            mrx = e00 * rx + e01 * ry
-            mry = e01 * rx + e11 * ry
-            a00 += e00
-            a01 += e01
-            a11 += e11
-            a02 += mrx
-            a12 += mry
-            a22 += rx * mrx + ry * mry + j_e
-            # linearly implicit drag: (A + dt C) dV = dt F(V), C from v_e = V + w r_e + pd_e
-            a00 += dt * dlin
-            a11 += dt * dlin
-            a02 += dt * dlin * rx
-            a12 += dt * dlin * ry
-            a22 += dt * (dlin * (rx * rx + ry * ry) + dang)
-            r0 += fx - mkx
-            r1 += fy - mky
-            r2 += px * fy - py * fx + tz - (rx * mkx + ry * mky) - j_e * psidd
-
-        # Cramer on the symmetric 3x3
-        c00 = a11 * a22 - a12 * a12
-        c01 = a02 * a12 - a01 * a22
-        c02 = a01 * a12 - a02 * a11
-        det = a00 * c00 + a01 * c01 + a02 * c02
-        c11 = a00 * a22 - a02 * a02
-        c12 = a01 * a02 - a00 * a12
-        c22 = a00 * a11 - a01 * a01
-        du = (c00 * r0 + c01 * r1 + c02 * r2) / det
-        dv = (c01 * r0 + c11 * r1 + c12 * r2) / det
-        dw = (c02 * r0 + c12 * r1 + c22 * r2) / det
-
-        u += dt * du
-        v += dt * dv
-        w += dt * dw
-        X += dt * (ct * u - st * v)
-        Y += dt * (st * u + ct * v)
-        th += dt * w
+        s1 = fish_rhs(tab, off + k, n_fluid, u, v, w, geo, amass, cb, cs, ca, ck, cm, rho, mu, vm)
+        if scheme == 1:
+            # linearly implicit Euler: (M + dt C) dV = dt F(V); pose with the new velocity
+            dv = solve_sym3(s1[0] + dt * s1[6], s1[1], s1[2] + dt * s1[8], s1[3] + dt * s1[9],
+                            s1[4] + dt * s1[10], s1[5] + dt * s1[11], s1[12], s1[13], s1[14])
+            u += dt * dv[0]
+            v += dt * dv[1]
+            w += dt * dv[2]
+            X += dt * (ct * u - st * v)
+            Y += dt * (st * u + ct * v)
+            th += dt * w
+        else:
+            # ROS2 on (V, pose): (M + g dt C) k1 = F(V_n, t_n); V' = V_n + dt k1;
+            # (M + g dt C) k2 = M (M_{n+1}^-1 F(V', t_{n+1}) - 2 k1); V_{n+1} = V_n + dt (3 k1 + k2) / 2
+            g00 = s1[0] + gam * dt * s1[6]
+            g11 = s1[2] + gam * dt * s1[8]
+            g02 = s1[3] + gam * dt * s1[9]
+            g12 = s1[4] + gam * dt * s1[10]
+            g22 = s1[5] + gam * dt * s1[11]
+            k1 = solve_sym3(g00, s1[1], g11, g02, g12, g22, s1[12], s1[13], s1[14])
+            u2 = u + dt * k1[0]
+            v2 = v + dt * k1[1]
+            w2 = w + dt * k1[2]
+            k_next = k + 1
+            if k_next >= per:
+                k_next = 0
+            s2 = fish_rhs(tab, off + k_next, n_fluid, u2, v2, w2, geo, amass, cb, cs, ca, ck, cm, rho, mu, vm)
+            a2 = solve_sym3(s2[0], s2[1], s2[2], s2[3], s2[4], s2[5], s2[12], s2[13], s2[14])
+            e0 = a2[0] - 2.0 * k1[0]
+            e1 = a2[1] - 2.0 * k1[1]
+            e2 = a2[2] - 2.0 * k1[2]
+            k2 = solve_sym3(g00, s1[1], g11, g02, g12, g22,
+                            s1[0] * e0 + s1[1] * e1 + s1[3] * e2,
+                            s1[1] * e0 + s1[2] * e1 + s1[4] * e2,
+                            s1[3] * e0 + s1[4] * e1 + s1[5] * e2)
+            # the pose has no implicit part: the scheme reduces to the trapezoid (Heun) there
+            th2 = th + dt * w
+            c2 = wp.cos(th2)
+            sn2 = wp.sin(th2)
+            X += 0.5 * dt * (ct * u - st * v + c2 * u2 - sn2 * v2)
+            Y += 0.5 * dt * (st * u + ct * v + sn2 * u2 + c2 * v2)
+            th += 0.5 * dt * (w + w2)
+            u += dt * (1.5 * k1[0] + 0.5 * k2[0])
+            v += dt * (1.5 * k1[1] + 0.5 * k2[1])
+            w += dt * (1.5 * k1[2] + 0.5 * k2[2])
         k += 1
         step += 1
         if meas_start < 0:
@@ -396,6 +386,7 @@ def swim_kernel(offset: int, n_cond: int,
         dx = -dx
         dy = -dy
     speed[tid] = float((dx * ctx + dy * cty) / ctt)
+    yaw[tid] = 2.0 * wp.sqrt(s_wc * s_wc + s_ws * s_ws) / (float(nm) * 2.0 * 3.14159265358979 / (float(per) * dt))
     state[tid, 0] = X
     state[tid, 1] = Y
     state[tid, 2] = th
@@ -456,21 +447,88 @@ def fluid_wrench_local(vel, semi, coef, amass, rho: float, mu: float, device: st
     return out.numpy()
 
 
+def reduce_table(table: np.ndarray, tab_off, n_per, parts: dict, rho: float, virtual_mass: bool):
+    """Per-part kinematics (samples, parts, ROW) -> the kernel's table (samples, INERTIAL +
+    FLUID_ROW * fluid parts), plus the zero-momentum start velocity of each condition.
+
+    Everything that does not depend on a candidate's coefficients or the head's velocity is summed
+    here once, in float64: with M_e = m_e I + R_e diag(m_A) R_e^T and r_e = (-p_y, p_x),
+      M = [sum M_e, sum M_e r_e; ., sum r_e.M_e r_e + J_e]      (entries 0-5)
+      P = sum [M_e p_e; r_e.M_e p_e]                            (6-8, times -w^2)
+      Q = sum [M_e (-pd_y, pd_x); r_e.M_e (-pd_y, pd_x)]        (9-11, times 2 w)
+      S = sum [M_e pdd_e; r_e.M_e pdd_e + J_e psidd_e]          (12-14)
+    """
+    t = np.asarray(table, np.float64)
+    semi = np.asarray(parts["semi"], np.float64)
+    am = np.asarray(parts["amass"], np.float64) * rho
+    inert = np.asarray(parts["inert"], np.float64)
+    vm = 1.0 if virtual_mass else 0.0
+    px, py, cp, sp, pdx, pdy, psid, pddx, pddy, psidd = (t[..., i] for i in range(ROW))
+    m, m0, m1 = inert[:, 0], am[:, 0] * vm, am[:, 1] * vm
+    je = inert[:, 1] + am[:, 2] * vm
+    e00 = m + m0 * cp * cp + m1 * sp * sp
+    e11 = m + m0 * sp * sp + m1 * cp * cp
+    e01 = (m0 - m1) * cp * sp
+    rx, ry = -py, px
+
+    def apply(x, y):
+        mx, my = e00 * x + e01 * y, e01 * x + e11 * y
+        return mx.sum(1), my.sum(1), (rx * mx + ry * my).sum(1)
+
+    b0, b1, b2 = apply(rx, ry)
+    cols = [e00.sum(1), e01.sum(1), e11.sum(1), b0, b1, b2 + je.sum()]
+    cols += list(apply(px, py)) + list(apply(-pdy, pdx))
+    s0, s1, s2 = apply(pddx, pddy)
+    cols += [s0, s1, s2 + (je * psidd).sum(1)]
+    phase = np.concatenate([2.0 * np.pi * np.arange(n) / n for n in n_per])
+    cols += [np.cos(phase), np.sin(phase)]
+    fluid = semi[:, 0] > 0
+    kin = np.stack([px, py, cp, sp, pdx, pdy, psid], axis=-1)[:, fluid]      # (samples, fluid, 7)
+    out = np.concatenate([np.stack(cols, axis=1), kin.reshape(len(t), -1)], axis=1)
+    # start with zero linear and angular momentum (fluid's virtual momentum included): the head
+    # moves so that the tail's prescribed velocity at t=0 does not launch the whole fish
+    v0 = []
+    for o in tab_off:
+        g0, g1, g2 = (x[o] for x in apply(pdx, pdy))
+        g2 = g2 + (je * psid[o]).sum()
+        M = np.array([[out[o, 0], out[o, 1], out[o, 3]], [out[o, 1], out[o, 2], out[o, 4]],
+                      [out[o, 3], out[o, 4], out[o, 5]]])
+        v0.append(np.linalg.solve(M, -np.array([g0, g1, g2])))
+    return out, np.array(v0), fluid
+
+
 class SwimBatch:
-    """Device-resident inputs for one set of conditions; `run(coef)` -> speeds (B, C)."""
+    """Device-resident inputs for one set of conditions; `run(coef)` -> speeds (B, C).
+
+    scheme 2 (default): ROS2, second order; scheme 1: linearly implicit Euler, first order."""
 
     def __init__(self, table: np.ndarray, tab_off, n_per, dt, n_warm, n_meas, parts: dict,
                  ref_x: float, rho: float = 1000.0, mu: float = 0.0013, virtual_mass: bool = True,
-                 max_warm=None, settle_abs: float = 2e-4, settle_rel: float = 2e-3, device: str = "cpu"):
+                 max_warm=None, settle_abs: float = 2e-4, settle_rel: float = 2e-3, device: str = "cpu",
+                 scheme: int = 2):
+        if scheme not in (1, 2):
+            raise ValueError(f"scheme must be 1 or 2, got {scheme}")
         self.device = device
+        self.scheme = int(scheme)
         self.n_cond = len(n_per)
         self.ref_x, self.rho, self.mu, self.virtual_mass = float(ref_x), float(rho), float(mu), int(bool(virtual_mass))
         d = device
-        self.table = wp.array(np.ascontiguousarray(table, np.float32), dtype=float, device=d)
-        self.semi = wp.array(np.asarray(parts["semi"], np.float32), dtype=wp.vec3, device=d)
-        self.geo = wp.zeros(len(parts["semi"]), dtype=geo9, device=d)
-        wp.launch(fluid_geometry_kernel, dim=len(parts["semi"]), inputs=[self.semi, self.geo], device=d)
-        self.amass = wp.array(np.asarray(parts["amass"], np.float32) * rho, dtype=wp.vec3, device=d)
+        reduced, v0, fluid = reduce_table(table, tab_off, n_per, parts, self.rho, bool(virtual_mass))
+        self.n_fluid = int(fluid.sum())
+        self.tab = wp.array(np.ascontiguousarray(reduced, np.float32), dtype=float, device=d)
+        self.v0 = wp.array(np.asarray(v0, np.float32), dtype=wp.vec3, device=d)
+        semi = np.asarray(parts["semi"], np.float32)
+        amass = np.asarray(parts["amass"], np.float32) * rho
+        self.geo = wp.zeros(self.n_fluid, dtype=geo9, device=d)
+        wp.launch(fluid_geometry_kernel, dim=self.n_fluid, device=d,
+                  inputs=[wp.array(semi[fluid], dtype=wp.vec3, device=d), self.geo])
+        self.amass = wp.array(amass[fluid], dtype=wp.vec3, device=d)
+        # per-part inputs of the direct reference kernel (kernels/swimmer_direct.py)
+        self.part_table = wp.array(np.ascontiguousarray(table, np.float32), dtype=float, device=d)
+        self.semi = wp.array(semi, dtype=wp.vec3, device=d)
+        self.geo_all = wp.zeros(len(semi), dtype=geo9, device=d)
+        wp.launch(fluid_geometry_kernel, dim=len(semi), inputs=[self.semi, self.geo_all], device=d)
+        self.amass_all = wp.array(amass, dtype=wp.vec3, device=d)
         self.inert = wp.array(np.asarray(parts["inert"], np.float32), dtype=wp.vec2, device=d)
         self.tab_off = wp.array(np.asarray(tab_off, np.int32), dtype=int, device=d)
         self.n_per = wp.array(np.asarray(n_per, np.int32), dtype=int, device=d)
@@ -489,41 +547,56 @@ class SwimBatch:
         d = self.device
         coef_wp = wp.array(coef, dtype=float, device=d)
         speed = wp.zeros(n, dtype=float, device=d)
+        yaw = wp.zeros(n, dtype=float, device=d)
         state = wp.zeros((n, 7), dtype=float, device=d)
         traj = wp.zeros((n if rec_stride > 0 else 1, max(rec_frames, 1), 4), dtype=float, device=d)
 
         def launch(offset, count):
             wp.launch(swim_kernel, dim=count, device=d, inputs=[
-                offset, self.n_cond, coef_wp, self.table, self.semi, self.geo, self.amass, self.inert,
+                offset, self.n_cond, coef_wp, self.tab, self.n_fluid, self.geo, self.amass, self.v0,
                 self.tab_off, self.n_per, self.dt, self.n_warm, self.n_meas, self.max_warm,
-                self.settle_abs, self.settle_rel, self.ref_x, self.rho, self.mu, self.virtual_mass, int(rec_stride), traj, speed, state])
+                self.settle_abs, self.settle_rel, self.ref_x, self.rho, self.mu, self.virtual_mass, self.scheme,
+                int(rec_stride), traj, speed, yaw, state])
 
         launch_sliced(launch, n, d)
         shape = (coef.shape[0], self.n_cond)
         out = speed.numpy().reshape(shape).astype(np.float64)
+        # amplitude [rad] of the head's yaw oscillation at the beat frequency, per run
+        self.last_yaw = yaw.numpy().reshape(shape).astype(np.float64)
         self.last_state = state.numpy().reshape(shape + (7,))
         if rec_stride > 0:
             return out, traj.numpy().reshape(shape + traj.shape[1:]), self.last_state
         return out
 
 
-def benchmark(batch: int = 2048, seconds: float = 2.0, device: str = "cpu") -> dict:
-    """Fish-seconds simulated per wall second for the robot fish at label 1.00 (built-in data)."""
+def benchmark(batch: int = 2048, seconds: float = 2.0, device: str = "cpu", dt: float | None = None,
+              scheme: int = 2) -> dict:
+    """Fish-seconds simulated per wall second for the robot fish at label 1.00 (built-in data), at
+    the task's default step unless `dt` is given. Also per CPU second of this process (the
+    machine may be shared: wall time then undercounts what the kernel can do)."""
+    import resource
+
     from wrenorm.tasks import swimmer_body, swimmer_data
 
     rates = swimmer_data.load_builtin()
     rate = min(rates, key=lambda r: abs(r.label - 1.0))
-    sim = swimmer_body.build_batch([rate], device=device, warm_seconds=0.0, meas_seconds=seconds,
-                                   max_warm_seconds=None)
+    dt = swimmer_body.DEFAULT_DT if dt is None else dt
+    sim = swimmer_body.build_batch([rate], device=device, dt=dt, warm_seconds=0.0, meas_seconds=seconds,
+                                   max_warm_seconds=None, scheme=scheme)
     coef = np.tile(np.array([0.4, 7.79, 2.81, 3.84, 0.27]), (batch, 1))
     sim.run(coef[:2])  # compile and warm caches outside the timing
     if not str(device).startswith("cpu"):
         wp.synchronize_device(device)
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     sim.run(coef)
     wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     steps = int(sim.steps[0])
     fish_seconds = batch * float(sim.sim_seconds[0])
-    return {"batch": batch, "sim_seconds": float(sim.sim_seconds[0]), "steps": steps, "wall_s": wall,
+    return {"batch": batch, "sim_seconds": float(sim.sim_seconds[0]), "steps": steps, "dt": float(sim.sim_seconds[0] / steps),
+            "scheme": "ros2" if scheme == 2 else "implicit-euler", "wall_s": wall, "cpu_s": cpu,
             "fish_seconds_per_s": fish_seconds / wall, "fish_steps_per_s": batch * steps / wall,
-            "device": str(device)}
+            "fish_seconds_per_cpu_s": fish_seconds / cpu if cpu > 0 else None,
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "device": str(device)}

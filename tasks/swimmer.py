@@ -74,21 +74,30 @@ def fit_ebt(moments: list, speeds: list) -> tuple[float, float]:
 class SwimmerProblem(Problem):
     task = "swimmer"
 
-    def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = 0.004,
+    def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = body.DEFAULT_DT,
                  warm_seconds: float = 2.0, meas_seconds: float = 3.0, virtual_mass: bool = False,
-                 gait_mode: str = "chain", source: str = "built-in"):
+                 gait_mode: str = "chain", source: str = "built-in", yaw_weight: float = 0.0, scheme: int = 2,
+                 restarts: int = 0):
         self.device = device
         self.space = parameter_space()
         self.tolerance = TOLERANCE
         self.dt, self.warm_seconds, self.meas_seconds, self.virtual_mass = dt, warm_seconds, meas_seconds, virtual_mass
+        self.yaw_weight, self.scheme, self.restarts = float(yaw_weight), int(scheme), int(restarts)
+        self.restart_generations = 100
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
-                           "virtual_mass": bool(virtual_mass), "gait": gait_mode}
+                           "virtual_mass": bool(virtual_mass), "gait": gait_mode,
+                           "integrator": "ros2" if scheme == 2 else "implicit-euler"}
         self.error_doc = ("|v_sim - v_real| in m/s: forward cruising speed, slope of a straight-line fit of the "
                           "head position along the swimming direction against time")
+        if self.yaw_weight > 0:
+            self.error_doc = (f"sqrt(dv^2 + ({self.yaw_weight:g} m/s/rad * dyaw)^2): dv the forward cruising speed "
+                              "error [m/s] (slope of a straight-line fit of the head position), dyaw the error [rad] "
+                              "in the amplitude of the head's yaw oscillation at the tail-beat frequency")
         self.source = source
         self.rates = {r.name: r for r in rates}
         self.gaits = {r.name: body.gait(r, gait_mode) for r in rates}
-        conds = [Condition(r.name, data=r, meta={"label": r.label, "speed": r.speed, "tail_freq": r.tail_freq})
+        conds = [Condition(r.name, data=r, meta={"label": r.label, "speed": r.speed, "tail_freq": r.tail_freq,
+                                                  "yaw_amp": r.yaw_amp})
                  for r in rates]
         self.train = [c for c in conds if c.meta["label"] in train_labels]
         self.held_out = [c for c in conds if c.meta["label"] not in train_labels]
@@ -100,17 +109,35 @@ class SwimmerProblem(Problem):
             self._batches[key] = body.build_batch(
                 [self.rates[n] for n in key], device=self.device, dt=self.dt, warm_seconds=self.warm_seconds,
                 meas_seconds=self.meas_seconds, virtual_mass=self.virtual_mass,
-                gaits=[self.gaits[n] for n in key])
+                gaits=[self.gaits[n] for n in key], scheme=self.scheme)
         return self._batches[key]
 
-    def speeds(self, values: np.ndarray, conditions) -> np.ndarray:
+    def simulate(self, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
+        """Cruising speeds [m/s] and head yaw amplitudes [rad], each (B, C)."""
         values = np.atleast_2d(np.asarray(values, dtype=np.float64))
-        return self.batch(conditions).run(values)
+        sim = self.batch(conditions)
+        speed = sim.run(values)
+        return speed, sim.last_yaw
+
+    def speeds(self, values: np.ndarray, conditions) -> np.ndarray:
+        return self.simulate(values, conditions)[0]
+
+    def residuals(self, values, conditions):
+        """Signed residuals (B, R): v_sim - v_real per condition [m/s], then, with a yaw weight,
+        yaw_weight * (yaw_sim - yaw_real) per condition (speed-equivalent m/s)."""
+        speed, yaw = self.simulate(values, conditions)
+        res = speed - np.array([c.meta["speed"] for c in conditions])[None, :]
+        if self.yaw_weight > 0:
+            dyaw = yaw - np.array([c.meta["yaw_amp"] for c in conditions])[None, :]
+            res = np.concatenate([res, self.yaw_weight * dyaw], axis=1)
+        return res
 
     def errors(self, values, conditions):
-        real = np.array([c.meta["speed"] for c in conditions])
+        r = self.residuals(values, conditions)
+        n = len(conditions)
         with np.errstate(invalid="ignore"):
-            return finite_or_inf(np.abs(self.speeds(values, conditions) - real[None, :]))
+            err = np.abs(r[:, :n]) if self.yaw_weight <= 0 else np.hypot(r[:, :n], r[:, n:])
+            return finite_or_inf(err)
 
     # --- reporting ------------------------------------------------------------------------------
     def ebt(self) -> dict:
@@ -120,43 +147,121 @@ class SwimmerProblem(Problem):
 
     def report(self, fitted, measured) -> dict:
         conds = self.train + self.held_out
-        sp = self.speeds(np.stack([fitted, measured]), conds)
+        sp, yaw = self.simulate(np.stack([fitted, measured]), conds)
         ebt = self.ebt()
         speeds = {}
         for j, c in enumerate(conds):
             speeds[f"{c.meta['label']:.2f}"] = {
                 "real": c.meta["speed"], "fitted": float(sp[0, j]), "measured": float(sp[1, j]),
-                "ebt": ebt["speeds"][c.name], "train": c in self.train, "tail_freq": c.meta["tail_freq"]}
+                "ebt": ebt["speeds"][c.name], "train": c in self.train, "tail_freq": c.meta["tail_freq"],
+                "yaw_amp_deg": {"real": float(np.degrees(c.meta["yaw_amp"])), "fitted": float(np.degrees(yaw[0, j])),
+                                "measured": float(np.degrees(yaw[1, j]))}}
         val = [f"{c.meta['label']:.2f}" for c in self.held_out]
         mae = {k: float(np.mean([abs(speeds[v][k] - speeds[v]["real"]) for v in val])) if val else None
                for k in ("fitted", "measured", "ebt")}
         return {"speeds": speeds, "speed_mae": mae, "ebt_constants": {"c1": ebt["c1"], "c2": ebt["c2"]},
-                "data_source": self.source,
+                "data_source": self.source, "yaw_weight": self.yaw_weight,
+                "identifiability": self.identifiability(fitted),
                 "published": {"speed_mae_model": 0.019, "speed_mae_ebt": 0.134,
                               "note": "Michelis et al., eight rates, full MuJoCo model, Bayesian optimisation"}}
 
+    def identifiability(self, fitted) -> dict:
+        """Which coefficients the training data pin: seeded CMA-ES searches side by side (one batched
+        evaluation per generation), each optimum validated. A coefficient is trusted only where every
+        search that fits as well as the best agrees on it; the Gauss-Newton std cannot say this when
+        there are fewer residuals than coefficients (it then scales with a near-zero residual)."""
+        space = self.space
+        n_res = len(self.train) * (2 if self.yaw_weight > 0 else 1)
+        u_fit = space.to_unit(fitted)
+        out = {"residuals": n_res, "free_coefficients": len(space.free),
+               "unconstrained_directions_at_least": max(len(space.free) - n_res, 0),
+               "at_bounds": [p.name for p, u in zip(space.parameters, u_fit) if not p.frozen and min(u, 1 - u) < 1e-3]}
+        if self.restarts < 2:
+            out["restarts"] = None
+            return out
+        from wrenorm.search import cmaes_restarts
+
+        seeds = [101 + k for k in range(self.restarts)]
+        res = cmaes_restarts(self, seeds, popsize=16, generations=self.restart_generations, quiet=True)
+        vals = np.array([r.best_values for r in res])
+        loss = np.array([r.best_loss for r in res])
+        val_err = self.errors(vals, self.held_out).mean(1) if self.held_out else np.full(len(vals), np.nan)
+        good = loss <= max(2.0 * np.nanmin(np.append(loss, self.errors(fitted[None], self.train).mean())), 1e-3)
+        units = space.to_unit(vals[good]) if good.any() else space.to_unit(vals)
+        spread = units.max(0) - units.min(0)
+        out["restarts"] = {
+            "seeds": seeds, "popsize": 16, "generations": self.restart_generations,
+            "optima": [{"values": space.as_dict(v), "train_loss": float(l), "validation_mae": float(e)}
+                       for v, l, e in zip(vals, loss, val_err)],
+            "spread_unit": {p.name: float(d) for p, d in zip(space.parameters, spread) if not p.frozen},
+            "pinned": [p.name for p, d in zip(space.parameters, spread) if not p.frozen and d < 0.05],
+            "not_pinned": [p.name for p, d in zip(space.parameters, spread) if not p.frozen and d >= 0.05],
+            "meaning": ("spread_unit: max - min over the searches whose training loss is within 2x of the best, in "
+                        "normalised [0, 1] coordinates (log scale across the bounds); pinned: < 0.05"),
+        }
+        return out
+
     def record(self, recorder, fitted, measured) -> None:
+        """Per rate, one 2-D view of the real markers (grey) with the fish simulated with the fitted
+        (blue) and the published (orange) coefficients, all started at the real fish's pose; then
+        speed against motor rate for real, fitted, published and the EBT baseline (green)."""
         conds = self.train + self.held_out
-        ebt = self.ebt()
-        for c in conds:
+        for c in sorted(conds, key=lambda c: c.meta["label"]):
             rate = self.rates[c.name]
             lab = f"f{rate.label:.2f}"
             t = np.arange(len(rate.markers)) / rate.fps
             step = max(1, len(t) // 300)
+            head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])
+            recorder.log_lines2d(f"reference/{lab}/head_path", 0.0, [head], radii=0.0015)
             for i in range(0, len(t), step):
-                recorder.log_points2d(f"reference/{lab}/markers", t[i], rate.markers[i])
-                recorder.log_lines2d(f"reference/{lab}/body", t[i], [rate.markers[i]])
+                recorder.log_points2d(f"reference/{lab}/markers", t[i], rate.markers[i], radii=0.006)
+                recorder.log_lines2d(f"reference/{lab}/body", t[i], [rate.markers[i]], radii=0.003)
             for tag, vals in (("fitted", fitted), ("measured", measured)):
-                for tt, pts in self.simulated_bodies(c, vals, duration=t[-1], every=step / rate.fps):
-                    recorder.log_points2d(f"{tag}/{lab}/markers", tt, pts)
-                    recorder.log_lines2d(f"{tag}/{lab}/body", tt, [pts])
+                bodies = self.simulated_bodies(c, vals, duration=t[-1], every=step / rate.fps)
+                path = np.array([0.5 * (pts[0] + pts[1]) for _, pts in bodies])
+                recorder.log_lines2d(f"{tag}/{lab}/head_path", 0.0, [path], radii=0.0015)
+                for tt, pts in bodies:
+                    recorder.log_points2d(f"{tag}/{lab}/markers", tt, pts, radii=0.004)
+                    recorder.log_lines2d(f"{tag}/{lab}/body", tt, [pts], radii=0.003)
+            split = "train" if c in self.train else "held out"
+            recorder.add_view(f"{rate.label:.2f} Hz ({split}): real grey, fitted blue, published orange",
+                              [f"/{who}/{lab}/**" for who in ("reference", "measured", "fitted")], "spatial2d")
+        self._record_speed_plot(recorder, fitted, measured, conds)
+        recorder.add_view("speed [m/s] vs motor rate [Hz]", ["/plot/**"], "spatial2d")
+        recorder.add_view("summary", ["/summary"], "text")
+
+    def _record_speed_plot(self, recorder, fitted, measured, conds) -> None:
+        """A static x-y plot in a 2-D view (image axes: y grows downwards, so speed is drawn as -y);
+        one plot unit is 1 Hz across and 0.1 m/s up."""
+        conds = sorted(conds, key=lambda c: c.meta["label"])
         sp = self.speeds(np.stack([fitted, measured]), conds)
-        for j, c in enumerate(conds):
-            x = c.meta["label"]
-            recorder.log_scalar("reference/speed", x, c.meta["speed"])
-            recorder.log_scalar("fitted/speed", x, sp[0, j])
-            recorder.log_scalar("measured/speed", x, sp[1, j])
-            recorder.log_scalar("reference/ebt_speed", x, ebt["speeds"][c.name])
+        ebt = self.ebt()
+        x = np.array([c.meta["label"] for c in conds])
+        series = {"real": ([c.meta["speed"] for c in conds], (230, 230, 230)),
+                  "fitted": (sp[0], (40, 160, 230)),
+                  "published coefficients": (sp[1], (230, 120, 40)),
+                  "EBT (2 constants)": ([ebt["speeds"][c.name] for c in conds], (80, 200, 80))}
+        ys = 10.0 * max(max(np.max(v[0]) for v in series.values()), 0.05)
+        y_top = np.ceil(ys) + 0.2
+        x_lo, x_hi = 0.0, np.ceil(x.max() * 2) / 2 + 0.25
+        axes = [np.array([[x_lo, 0.0], [x_hi, 0.0]]), np.array([[x_lo, 0.0], [x_lo, -y_top]])]
+        recorder.log_lines2d("plot/axes", 0.0, axes, colors=(150, 150, 150), radii=0.006)
+        ticks_x = np.arange(0.5, x_hi, 0.5)
+        ticks_y = np.arange(1.0, y_top, 1.0)
+        recorder.log_points2d("plot/ticks", 0.0,
+                              np.concatenate([np.stack([ticks_x, np.zeros_like(ticks_x)], 1),
+                                              np.stack([np.zeros_like(ticks_y), -ticks_y], 1)]),
+                              colors=(150, 150, 150), radii=0.012,
+                              labels=[f"{v:.1f} Hz" for v in ticks_x] + [f"{v / 10:.1f} m/s" for v in ticks_y])
+        for k, (name, (vals, color)) in enumerate(series.items()):
+            pts = np.stack([x, -10.0 * np.asarray(vals, float)], 1)
+            key = name.split(" ")[0].lower()
+            recorder.log_lines2d(f"plot/{key}/line", 0.0, [pts], colors=color, radii=0.01)
+            labels = [("train " if c in self.train else "") + f"{v:.3f}" if name == "real" else "" for c, v in zip(conds, vals)]
+            recorder.log_points2d(f"plot/{key}/points", 0.0, pts, colors=color, radii=0.025,
+                                  labels=labels if name == "real" else None)
+            recorder.log_points2d(f"plot/{key}/legend", 0.0, [[x_lo + 0.7, -y_top + 0.35 * k]], colors=color,
+                                  radii=0.03, labels=[name])
 
     def simulated_bodies(self, cond, values, duration: float, every: float):
         """[(t, (links+3, 2) world points: two head markers, tail joints, fin tip)] of one run,
@@ -194,28 +299,79 @@ class SwimmerProblem(Problem):
 
 # --- CLI -------------------------------------------------------------------------------------
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+GENERATIONS = 150
+POPSIZE = 32
+
+
+def _common_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
     p.add_argument("--train", default=DEFAULT_TRAIN, help="training rate labels, comma separated (others validate)")
-    p.add_argument("--dt", type=float, default=0.004, help="simulation step [s] (fitted to a whole tail beat)")
     p.add_argument("--virtual-mass", action="store_true",
                    help="add the acceleration-dependent added mass (default: MuJoCo's model, velocity terms only)")
     p.add_argument("--gait", choices=["chain", "wave"], default="chain",
                    help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave (wave)")
-    p.add_argument("--generations", type=int, default=60)
-    p.add_argument("--popsize", type=int, default=64)
+    p.add_argument("--yaw-weight", type=float, default=0.0, metavar="M/S/RAD",
+                   help="also fit the head's yaw oscillation amplitude per rate, weighted into a speed-equivalent "
+                        "error (e.g. 0.1: 1 degree counts like 1.7 mm/s); 0: speed only, as in the paper")
+    p.add_argument("--integrator", choices=["ros2", "euler"], default="ros2",
+                   help="ros2: second-order Rosenbrock (default); euler: linearly implicit Euler, first order")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    _common_arguments(p)
+    p.add_argument("--dt", type=float, default=body.DEFAULT_DT, help="simulation step [s] (fitted to a whole tail beat)")
+    p.add_argument("--generations", type=int, default=GENERATIONS)
+    p.add_argument("--popsize", type=int, default=POPSIZE)
+    p.add_argument("--restarts", type=int, default=4,
+                   help="identifiability check after the fit: this many further seeded searches side by side; "
+                        "result.json says which coefficients they agree on (0: skip)")
+
+
+def _rates(args):
+    if getattr(args, "data", None) is None:
+        return data.load_builtin(), f"built-in ({data.BUILTIN})"
+    return data.load_dir(args.data), str(args.data)
+
+
+def _check_dt(dt: float, source: str = "--dt") -> float:
+    dt = float(dt)
+    if not (0.0002 <= dt <= 0.02):
+        raise InputError(source, "dt", f"must be within [0.0002, 0.02] s, got {dt}")
+    return dt
+
+
+def _problem(args, device, rates, source, labels, dt) -> SwimmerProblem:
+    yw = float(getattr(args, "yaw_weight", 0.0))
+    if not (np.isfinite(yw) and yw >= 0):
+        raise InputError("--yaw-weight", "yaw_weight", f"must be a finite number >= 0, got {yw}")
+    return SwimmerProblem(rates, labels, device=device, dt=dt,
+                          virtual_mass=bool(getattr(args, "virtual_mass", False)),
+                          gait_mode=getattr(args, "gait", "chain"), source=source, yaw_weight=yw,
+                          scheme=1 if getattr(args, "integrator", "ros2") == "euler" else 2,
+                          restarts=int(getattr(args, "restarts", 0)) if getattr(args, "command", "fit") == "fit" else 0)
 
 
 def build_problem(args, device: str) -> SwimmerProblem:
-    if args.data is None:
-        rates, source = data.load_builtin(), f"built-in ({data.BUILTIN})"
-    else:
-        rates, source = data.load_dir(args.data), str(args.data)
+    rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
-    dt = float(getattr(args, "dt", 0.004))
-    if not (0.0002 <= dt <= 0.02):
-        raise InputError("--dt", "dt", f"must be within [0.0002, 0.02] s, got {dt}")
-    return SwimmerProblem(rates, labels, device=device, dt=dt,
-                          virtual_mass=bool(getattr(args, "virtual_mass", False)),
-                          gait_mode=getattr(args, "gait", "chain"), source=source)
+    return _problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)))
+
+
+# --- resolution flow ---------------------------------------------------------------------------
+FLOW_GENERATIONS = 80
+FLOW_DT = [0.002, 0.004, 0.008, 0.016]
+
+
+def add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    _common_arguments(p)
+
+
+def flow_problems(args, device: str) -> list[SwimmerProblem]:
+    """One problem per time step (--resolutions, seconds), finest first."""
+    rates, source = _rates(args)
+    labels = data.parse_labels(args.train, rates)
+    dts = sorted(_check_dt(d, "--resolutions") for d in (args.resolutions or FLOW_DT))
+    if len(set(dts)) != len(dts):
+        raise InputError("--resolutions", "dt", f"repeated time step in {dts}")
+    return [_problem(args, device, rates, source, labels, dt) for dt in dts]

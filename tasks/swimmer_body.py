@@ -281,10 +281,13 @@ def tail_points(g: dict, t: np.ndarray) -> np.ndarray:
     return np.stack(pts, axis=1)
 
 
-def build_batch(rates, device: str = "cpu", dt: float = 0.004, warm_seconds: float = 2.0,
+DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/test_swimmer_sim.py)
+
+
+def build_batch(rates, device: str = "cpu", dt: float = DEFAULT_DT, warm_seconds: float = 2.0,
                 meas_seconds: float = 3.0, virtual_mass: bool = False, gaits=None,
                 rho: float = 1000.0, mu: float = 0.0013, max_warm_seconds: float | None = 40.0,
-                settle: float = 2e-4):
+                settle: float = 2e-4, scheme: int = 2):
     """SwimBatch for these rates: dt fitted to the tail beat; warm-up of whole beats, at least
     warm_seconds and until the beat-averaged surge changes by less than `settle` m/s (+0.2 %)
     between beats (at most max_warm_seconds; None: exactly warm_seconds); then whole beats
@@ -308,4 +311,4 @@ def build_batch(rates, device: str = "cpu", dt: float = 0.004, warm_seconds: flo
         max_warm.append(n * int(np.ceil(cap / period - 1e-9)))
     return kern.SwimBatch(np.concatenate(tables), offs, n_per, dts, n_warm, n_meas, prt,
                           ref_x=HEAD_REF_X, rho=rho, mu=mu, virtual_mass=virtual_mass,
-                          max_warm=max_warm, settle_abs=settle, device=device)
+                          max_warm=max_warm, settle_abs=settle, device=device, scheme=scheme)

@@ -40,6 +40,7 @@ class Rate:
     fps: float = FPS
     tail_freq: float = 0.0       # Hz, tail-beat frequency
     speed: float = 0.0           # m/s, measured forward speed
+    yaw_amp: float = 0.0         # rad, amplitude of the head's yaw oscillation at tail_freq
     meta: dict = field(default_factory=dict)
 
     @property
@@ -184,6 +185,18 @@ def tail_frequency(signal: np.ndarray, fps: float = FPS) -> float:
     return float(grid[int(np.argmax(power))])
 
 
+def yaw_amplitude(markers: np.ndarray, freq: float, fps: float = FPS) -> float:
+    """Amplitude of the head's heading angle (marker 1 -> marker 0) at the beat frequency: least
+    squares of a line (slow turning) plus one sinusoid through the unwrapped angle."""
+    e = markers[:, 0] - markers[:, 1]
+    ang = np.unwrap(np.arctan2(e[:, 1], e[:, 0]))
+    t = np.arange(len(ang)) / fps
+    w = 2 * np.pi * freq
+    basis = np.stack([np.ones_like(t), t, np.cos(w * t), np.sin(w * t)], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, ang, rcond=None)
+    return float(np.hypot(coef[2], coef[3]))
+
+
 def tail_markers(local: np.ndarray, min_gap: float = 0.005) -> list[int]:
     """Tail markers (2..8) that track distinct points: mean x increasing by >= min_gap.
 
@@ -206,6 +219,7 @@ def analyse(rate: Rate) -> Rate:
         raise InputError(rate.source or rate.name, "tail markers", "fewer than 3 distinct tail markers")
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     rate.speed = measured_speed(rate.markers, rate.fps)
+    rate.yaw_amp = yaw_amplitude(rate.markers, rate.tail_freq, rate.fps)
     rate.meta = {"local": local, "tail_markers": keep}
     return rate
 

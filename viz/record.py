@@ -83,9 +83,10 @@ class Recorder:
         strips = [np.asarray(s, np.float32) for s in strips]
         self.stream.log(path, self._rr.LineStrips3D(strips, colors=colors or _color_for(path), radii=radii))
 
-    def log_points2d(self, path, t, positions, colors=None, radii=None, timeline="sim_time"):
+    def log_points2d(self, path, t, positions, colors=None, radii=None, timeline="sim_time", labels=None):
         self._at(t, timeline)
-        self.stream.log(path, self._rr.Points2D(np.asarray(positions, np.float32), colors=colors or _color_for(path), radii=radii))
+        self.stream.log(path, self._rr.Points2D(np.asarray(positions, np.float32), colors=colors or _color_for(path),
+                                                radii=radii, labels=labels))
 
     def log_lines2d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
         self._at(t, timeline)
