@@ -51,3 +51,23 @@ def test_parameter_without_effect_is_flagged_undetermined():
     assert "J" not in u["undetermined"] and "K_D" not in u["undetermined"]
     assert "idle" in u["warning"]
     assert u["std"]["J"] < 1e-3
+
+
+def test_fewer_residuals_than_parameters_is_undetermined():
+    class TwoResiduals(PDProblem):
+        def residuals(self, values, conditions):
+            return super().residuals(values, conditions)[:, :2]
+
+    p = TwoResiduals(100.0)
+    u = uncertainty(p, p.space.measured)
+    assert set(u["undetermined"]) == {"J", "K_D", "K_FF", "K_AFF"}
+    assert u["std"] == {}
+
+
+def test_parameter_at_bound_is_named():
+    p = PDProblem(100.0)
+    x = p.space.measured.copy()
+    x[p.space.index("K_D")] = p.space["K_D"].upper
+    u = uncertainty(p, x)
+    assert u["at_bound"] == ["K_D"]
+    assert "at a bound" in u["warning"]

@@ -34,6 +34,15 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         out["method"] = "none: residuals not finite near the optimum"
         return out
     r0 = r[0]
+    at_bound = [p.name for p, u in zip(free, u0) if u < 1e-3 or u > 1 - 1e-3]
+    out["at_bound"] = at_bound
+    if len(r0) <= F:
+        # as many unknowns as data: an exact fit exists along a whole family, so no std means anything
+        names = [p.name for p in free]
+        out.update(method=f"none: {len(r0)} residuals for {F} free parameters", undetermined=names,
+                   warning=f"the data ({len(r0)} residuals) cannot determine {F} free parameters: {', '.join(names)}"
+                           "; trust the predictions, not the individual values")
+        return out
     J = ((r[1:F + 1] - r[F + 1:]) / (hi - lo)[:, None]).T  # (R, F) in unit coordinates
     dof = max(len(r0) - F, 1)
     sigma2 = float(r0 @ r0) / dof
@@ -47,12 +56,17 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
     col_norm = np.linalg.norm(J, axis=0)
     und = [p.name for i, p in enumerate(free)
            if std_u[i] > UNDETERMINED_FRACTION or col_norm[i] < 1e-9 * max(col_norm.max(), 1e-300)]
+    notes = []
+    if und:
+        notes.append(f"the data cannot determine: {', '.join(und)}")
+    if at_bound:
+        notes.append(f"at a bound (the optimum may lie outside; std not meaningful): {', '.join(at_bound)}")
     out.update(
         method="gauss-newton: sigma^2 (J^T J)^-1, J by batched central finite differences",
         std={p.name: float(s) for p, s in zip(free, std)},
         correlation={"names": [p.name for p in free], "matrix": np.nan_to_num(corr).round(4).tolist()},
         undetermined=und,
-        warning=(f"the data cannot determine: {', '.join(und)}" if und else None),
+        warning="; ".join(notes) or None,
         condition_number=float(np.linalg.cond(JtJ)) if np.all(np.isfinite(JtJ)) else None,
     )
     return out
