@@ -4,7 +4,7 @@ One thread simulates one chain (one candidate x hand path) for many steps per la
 
 Model (N point masses, N-1 links of length `link`; node 0 sits on the fingertip and follows
 the hand path, node N-1 is the lead mass):
-  1. explicit-free forces, implicit per node: v <- (v + dt g) / (1 + dt c_i / m_i) with
+  1. forces, implicit per node: v <- (v + dt g) / (1 + dt c_i / m_i) with
      c_i = (drag_lin + drag_quad |v|) * l_i (drag per unit rope length, l_i = link, lead l/2);
      implicit so any drag coefficient is stable.
   2. prediction x* = x + dt v; node 0 placed on the hand sample of the new frame.
@@ -16,7 +16,10 @@ the hand path, node N-1 is the lead mass):
      |C| = l * 2 sin(theta/2), so the energy is 0.5 k (2 sin(theta/2))^2 = 0.5 k theta^2 + O(theta^4),
      and the damping 0.5 b theta_dot^2 to the same order. Unlike explicit theta forces it is
      unconditionally stable, which matters at N = 64 where explicit bending at dt = 5 ms blows up.
-     Links are hard distance constraints (exact mass-weighted projection, node 0 infinite mass).
+     Links are XPBD distance constraints with compliance `stretch` (m/N; 0 = exact mass-weighted
+     projection onto the link length), node 0 infinite mass.
+  Masses: interior nodes node_mass (1 + mass_slope (1 - 2u)), u = 0 next to the hand and 1 next
+  to the lead (see node_w), the free end lead_mass.
   4. v = (x - x_prev) / dt (position-based velocity update).
   5. self-collision: capsules of radius r around segments (a, a+1); pairs with b >= a + min_sep
      (2 = every non-adjacent pair, the flying-knot rule; tasks exclude folds shorter than a loop).
@@ -96,12 +99,28 @@ def seg_closest(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec3:
     return wp.vec3(wp.length(c1 - c2), s, t)
 
 
+@wp.func
+def node_w(i: int, n: int, m: float, ml: float, slope: float) -> float:
+    """Inverse mass of node i: 0 for the held node, 1/lead for the free end; interior nodes
+    m (1 + slope (1 - 2u)), u = 0 next to the hand and 1 next to the lead (mean m for any slope)."""
+    w = float(0.0)
+    if i == n - 1:
+        w = 1.0 / ml
+    elif i > 0:
+        u = float(0.5)
+        if n > 3:
+            u = float(i - 1) / float(n - 3)
+        w = 1.0 / (m * (1.0 + slope * (1.0 - 2.0 * u)))
+    return w
+
+
 @wp.kernel
 def rollout_kernel(
     pos: wp.array2d(dtype=wp.vec3),
     vel: wp.array2d(dtype=wp.vec3),
     prev: wp.array2d(dtype=wp.vec3),
     lam: wp.array2d(dtype=wp.vec3),
+    lam_link: wp.array2d(dtype=float),
     seg: wp.array2d(dtype=wp.vec4),
     hand: wp.array2d(dtype=wp.vec3),
     path_index: wp.array(dtype=wp.int32),
@@ -112,6 +131,8 @@ def rollout_kernel(
     drag_lin: wp.array(dtype=float),
     drag_quad: wp.array(dtype=float),
     radius: wp.array(dtype=float),
+    mass_slope: wp.array(dtype=float),
+    stretch: wp.array(dtype=float),
     n: int,
     min_sep: int,
     link: float,
@@ -140,26 +161,20 @@ def rollout_kernel(
     if st == 1 and stop_at_hit != 0:
         return
     path = path_index[b]
-    w = 1.0 / node_mass[b]
-    wl = 1.0 / lead_mass[b]
+    m = node_mass[b]
+    ml = lead_mass[b]
+    slope = mass_slope[b]
     k = wp.max(bend_k[b], 1.0e-12)
     alpha_t = link * link / (k * dt * dt)
     gamma = bend_b[b] / (k * dt)
-    inv_mid = 1.0 / ((1.0 + gamma) * (6.0 * w) + alpha_t)
-    inv_first = 1.0 / ((1.0 + gamma) * (5.0 * w) + alpha_t)
-    w_before_last = w
-    if n == 3:
-        w_before_last = 0.0
-    inv_last = 1.0 / ((1.0 + gamma) * (w_before_last + 4.0 * w + wl) + alpha_t)
-    # mass-weighted split of a link correction; the first link's hand end does not move
-    fa_last = w / (w + wl)
-    fb_last = wl / (w + wl)
+    at_s = stretch[b] / (dt * dt)  # XPBD link compliance / dt^2
     dl = drag_lin[b]
     dq = drag_quad[b]
     r = radius[b]
     two_r = 2.0 * r
     cl = clearance[b]
     vmax2 = vmax * vmax
+    inv_dt = 1.0 / dt
     nseg = n - 1
     for step in range(step0, step0 + nsteps):
         # 1-2: forces (implicit per node) and prediction
@@ -169,30 +184,27 @@ def rollout_kernel(
             xi = pos[b, i]
             vi = vel[b, i]
             prev[b, i] = xi
-            mi = node_mass[b]
+            wi = node_w(i, n, m, ml, slope)
             li = link
             if i == n - 1:
-                mi = lead_mass[b]
                 li = 0.5 * link
             c = (dl + dq * wp.length(vi)) * li
-            vi = (vi + dt * gravity) / (1.0 + dt * c / mi)
+            # one division per node (a vector divide is three)
+            vi = (vi + dt * gravity) * (1.0 / (1.0 + dt * c * wi))
             pos[b, i] = xi + dt * vi
             lam[b, i] = wp.vec3(0.0)
+            lam_link[b, i - 1] = 0.0
         # 3: constraint passes in colour order: constraints of one colour share no node, so
         # they are independent and the CPU overlaps them (a plain Gauss-Seidel sweep is one
         # serial dependency chain and runs at the latency of sqrt/div, 3x slower).
         for it in range(iters):
             for colour in range(3):
                 for i in range(1 + colour, n - 1, 3):
-                    w0 = w
-                    inv = inv_mid
-                    if i == 1:
-                        w0 = 0.0
-                        inv = inv_first
-                    w2 = w
-                    if i == n - 2:
-                        w2 = wl
-                        inv = inv_last
+                    # plain path: masses recomputed per constraint (rope_fast.py precomputes them)
+                    w0 = node_w(i - 1, n, m, ml, slope)
+                    w1 = node_w(i, n, m, ml, slope)
+                    w2 = node_w(i + 1, n, m, ml, slope)
+                    inv = 1.0 / ((1.0 + gamma) * (w0 + 4.0 * w1 + w2) + alpha_t)
                     x0 = pos[b, i - 1]
                     x1 = pos[b, i]
                     x2 = pos[b, i + 1]
@@ -202,33 +214,33 @@ def rollout_kernel(
                     dlam = (-cv - alpha_t * lm - gamma * dcv) * inv
                     lam[b, i] = lm + dlam
                     pos[b, i - 1] = x0 + w0 * dlam
-                    pos[b, i] = x1 - (2.0 * w) * dlam
+                    pos[b, i] = x1 - (2.0 * w1) * dlam
                     pos[b, i + 1] = x2 + w2 * dlam
             # links: exact projection onto |d| = l (a sqrt-free first-order factor diverges once a
             # whipping tip stretches a link past ~2.4 l in one step)
             for parity in range(2):
                 for i in range(parity, n - 1, 2):
-                    fa = 0.5
-                    fb = 0.5
-                    if i == 0:
-                        fa = 0.0
-                        fb = 1.0
-                    if i == n - 2:
-                        fa = fa_last
-                        fb = fb_last
+                    wa = node_w(i, n, m, ml, slope)
+                    wb = node_w(i + 1, n, m, ml, slope)
+                    den = wa + wb + at_s
+                    fa = wa / den
+                    fb = wb / den
                     xa = pos[b, i]
                     xb = pos[b, i + 1]
                     d = xb - xa
                     ln = wp.length(d)
+                    ll = lam_link[b, i]
+                    e = ln - link + at_s * ll  # C + alpha~ lambda (C alone when inextensible)
                     corr = wp.vec3(0.0)
                     if ln > 1.0e-9:
-                        corr = d * ((ln - link) / ln)
+                        corr = d * (e / ln)
+                        lam_link[b, i] = ll - e / den
                     pos[b, i] = xa + fa * corr
                     pos[b, i + 1] = xb - fb * corr
         # 4: velocities
         vv = float(0.0)
         for i in range(n):
-            v = (pos[b, i] - prev[b, i]) / dt
+            v = (pos[b, i] - prev[b, i]) * inv_dt
             vel[b, i] = v
             vv = vv + wp.dot(v, v)  # a sum propagates NaN (max would drop it)
         if not (vv < vmax2):
@@ -301,8 +313,12 @@ class ChainParams:
     drag_lin: np.ndarray
     drag_quad: np.ndarray
     radius: np.ndarray
+    mass_slope: np.ndarray | float = 0.0  # interior mass profile, see node_w (0: uniform)
+    stretch: np.ndarray | float = 0.0  # link compliance in m/N (XPBD; 0: inextensible)
 
-    FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_quad", "radius")
+    FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_quad", "radius", "mass_slope",
+              "stretch")
+    DEFAULTS = {"mass_slope": 0.0, "stretch": 0.0}
 
     def __post_init__(self):
         arrs = [np.atleast_1d(np.asarray(getattr(self, f), dtype=np.float32)) for f in self.FIELDS]
@@ -316,7 +332,13 @@ class ChainParams:
 
     @classmethod
     def uniform(cls, batch: int, **values) -> "ChainParams":
-        return cls(**{f: np.full(batch, values[f], dtype=np.float32) for f in cls.FIELDS})
+        return cls(**{f: np.full(batch, values.get(f, cls.DEFAULTS.get(f)), dtype=np.float32) for f in cls.FIELDS})
+
+    def node_masses(self, n: int) -> np.ndarray:
+        """(B, n) masses as the kernels use them (node 0, held by the hand, as inf)."""
+        u = np.linspace(0.0, 1.0, n - 2) if n > 3 else np.array([0.5])
+        interior = self.node_mass[:, None] * (1.0 + self.mass_slope[:, None] * (1.0 - 2.0 * u[None]))
+        return np.concatenate([np.full((self.batch, 1), np.inf), interior, self.lead_mass[:, None]], 1)
 
 
 @dataclass
@@ -341,7 +363,7 @@ class RopeSim:
 
     def __init__(self, n_nodes: int, link_length: float, dt: float = 0.005, device: str = "cpu",
                  iterations: int = 4, cull: bool = True, margin: float | None = None,
-                 gravity=GRAVITY, workers: int | None = None, min_sep: int = 2):
+                 gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True):
         if not (3 <= int(n_nodes) <= 256):
             raise ValueError(f"n_nodes must be in [3, 256], got {n_nodes}")
         wp.init()
@@ -355,6 +377,15 @@ class RopeSim:
         self.gravity = tuple(float(g) for g in gravity)
         self.workers = workers
         self.min_sep = max(2, int(min_sep))
+        # fixed: the per-size unrolled kernel (kernels/rope_fast.py), same results, faster on CPU
+        self.kernel = rollout_kernel
+        if fixed:
+            from wrenorm.kernels import rope_fast
+
+            if self.n <= rope_fast.MAX_NODES:
+                self.kernel = rope_fast.fast_kernel(self.n)
+        # build before the sliced launch: two threads meeting an unbuilt module both compile it
+        wp.load_module(self.kernel.module, device=self.device)
 
     def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
                 params: ChainParams, steps: int, t0: float = 0.0, stop_at_hit: bool = True,
@@ -373,6 +404,7 @@ class RopeSim:
         pos, vel = v3(pos0), v3(vel0)
         prev = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        lam_link = wp.zeros((B, n), dtype=float, device=dev)
         seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
         hand_w = v3(hand)
         pidx = wp.array(np.ascontiguousarray(path_index), dtype=wp.int32, device=dev)
@@ -390,8 +422,8 @@ class RopeSim:
             ns = min(chunk, steps - s0)
 
             def launch(offset, count, s0=s0, ns=ns):
-                wp.launch(rollout_kernel, dim=count, device=dev, inputs=[
-                    pos, vel, prev, lam, seg, hand_w, pidx, *pa,
+                wp.launch(self.kernel, dim=count, device=dev, inputs=[
+                    pos, vel, prev, lam, lam_link, seg, hand_w, pidx, *pa,
                     n, self.min_sep, self.link, self.dt, wp.vec3(*self.gravity), self.iterations, int(self.cull),
                     self.margin, VMAX, s0, ns, int(stop_at_hit),
                     status, hit_frame, hit_alpha, hit_s, crit_pos, crit_vel, clearance, offset])

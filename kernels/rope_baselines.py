@@ -114,9 +114,10 @@ def rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n: 
     gamma = (P["bend_b"] / (k * dt))[:, None]
     two_r = 2.0 * P["radius"]
     zero = 0.0 * w
-    masses = [None] + [P["node_mass"]] * (n - 2) + [P["lead_mass"]]
+    node_m = params.node_masses(n).astype(np.float32)
+    masses = [None] + [xp.asarray(np.ascontiguousarray(node_m[:, i])) for i in range(1, n)]
     lengths = [None] + [link] * (n - 2) + [0.5 * link]
-    W = xp.stack([zero] + [w] * (n - 2) + [wl], 1)  # (B, N) inverse masses, hand node 0
+    W = xp.stack([zero] + [1.0 / mi for mi in masses[1:]], 1)  # (B, N) inverse masses, hand node 0
     pairs = [(a, j) for a in range(n - 1) for j in range(a + max(2, min_sep), n - 1)]
     ia = np.array([p[0] for p in pairs], np.int64)
     ib = np.array([p[1] for p in pairs], np.int64)
@@ -139,6 +140,8 @@ def rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n: 
             vi = (vi + dt * g) / (1.0 + dt * c / masses[i])[:, None]
             x[:, i] = prev[:, i] + dt * vi
         lam = 0.0 * x
+        lam_l = 0.0 * x[..., 0]
+        at_s = (P["stretch"] / (dt * dt))[:, None, None]
         for _ in range(iterations):
             for colour in range(3):
                 i = np.arange(1 + colour, n - 1, 3)
@@ -160,9 +163,13 @@ def rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n: 
                 xa, xb = x[:, i], x[:, i + 1]
                 d = xb - xa
                 ln = xp.sqrt(_dot(d, d))[..., None]
-                corr = xp.where(ln > 1e-9, d * ((ln - link) / xp.where(ln > 1e-9, ln, 1.0)), 0.0 * d)
-                x[:, i] = xa + (wa / (wa + wb)) * corr
-                x[:, i + 1] = xb - (wb / (wa + wb)) * corr
+                den = wa + wb + at_s
+                e = ln - link + at_s * lam_l[:, i, None]
+                ok = ln > 1e-9
+                corr = xp.where(ok, d * (e / xp.where(ok, ln, 1.0)), 0.0 * d)
+                lam_l[:, i] = xp.where(ok, lam_l[:, i, None] - e / den, lam_l[:, i, None])[..., 0]
+                x[:, i] = xa + (wa / den) * corr
+                x[:, i + 1] = xb - (wb / den) * corr
         v = (x - prev) / dt
         active = (status == 0) | ((status == 1) & (not stop_at_hit))
         vv = xp.numpy(_dot(v, v)).sum(axis=1)

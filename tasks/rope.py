@@ -2,25 +2,53 @@
 the first self-collision (the "critical point") of a reference rope.
 
 Resolution: `--segments S` links (S + 1 point masses, node 0 on the fingertip; the flying
-knot's 11 masses are S = 10) and the step `--dt`. Each condition is one hand path with one
-reference trajectory (`--reference FILE ...`, default the built-in newton references).
+knot's 11 masses are S = 10), the step `--dt` and the constraint passes per step
+`--iterations`. Each condition is one hand path with one reference trajectory
+(`--reference FILE ...`, default the built-in newton references).
 
-Error of one condition (dimensionless, weights in WEIGHTS):
-  shape    RMS distance between chain and reference at 21 common arc-length points, / rope length
-  velocity RMS velocity difference at those points, / the reference's RMS speed there (>= 0.1 m/s)
-  time     |t_chain - t_ref| / t_ref (time of the critical point from the start)
-  place    mean |s - s_ref| of the two arc-length fractions of the contact
+Error of one condition (dimensionless), total = sum of WEIGHTS[term] * term:
+  shape    (weight 1.0) RMS distance between chain and reference at 21 common arc-length points,
+           / rope length
+  velocity (weight 0.1) RMS velocity difference at those points, / the reference's RMS speed
+           there (>= 0.1 m/s)
+  time     (weight 1.0) |t_chain - t_ref| / t_ref (time of the critical point from the start)
+  place    (weight 0.5) mean |s - s_ref| of the two arc-length fractions of the contact
+  Why these weights: 0.1 on velocity mirrors the flying knot's 5.0 (m) : 0.00375 (m/s) on squared
+  errors once shape is divided by ~1 m and velocity by a ~5 m/s speed; with it, at the fitted
+  optimum of the built-in references the four weighted terms are of one order (shape 0.08-0.12,
+  velocity 0.03-0.05, time 0.00-0.04, place 0.01-0.04), so none is ignored and none dominates.
+  place is halved because it double-counts the time error when a contact slides along the rope.
   The reference state at the critical point is interpolated between the frames bracketing the
   interpolated collision time, the same rule the kernel uses (positions linear, velocity of the
   bracketing interval). A chain that never hits itself within the reference horizon costs
   NO_HIT + clearance / margin (finite, and smaller the closer it came); a blow-up costs inf.
+  report() also scores held-out chains that never hit without that constant (no_hit_bound).
 
 Parameter mapping from the reference rope (length L, mass M, radius r, EI) to a chain with link
 l = L / S: lumped masses (interior M / S, lead half of that, held node's half goes to the hand),
 so the measured lead fraction is 1 / (2 S); bending stiffness per joint k = EI / l; bending
 damping per joint b = k * BEND_DAMPING_TIME; quadratic air drag per length 0.5 rho_air C_d 2r;
-linear drag 0; collision radius r. Total mass is frozen: scaling mass, k, b and drag together
-leaves the motion unchanged, so only the ratios are identifiable.
+linear drag 0; collision radius r; link compliance l / EA (newton's stretch stiffness). Total
+mass is frozen: scaling mass, k, b and drag together leaves the motion unchanged, so only the
+ratios are identifiable.
+
+What earned its place (built-in references, S = 10, dt = 5 ms, CMA-ES, seeds 0-3 agree):
+  - wider bounds for lead_fraction, bend_stiffness, bend_damping, drag_quad (the optimum sat on
+    the old ones): training loss 0.225 -> 0.200.
+  - `--iterations 2` instead of the default 4: 0.200 -> 0.185, held-out 0.31 -> 0.28 (mean), and
+    half the work; not the default because the command-correction tests are tuned to the
+    4-pass chain. Finer steps go the wrong way (dt = 2.5 ms: held-out flick_high 0.48 -> 1.44):
+    the under-converged, slightly soft chain is the better coarse model of this reference.
+  - stretch (link compliance) lowers the training loss to 0.172 but raises held-out flick_high
+    from 0.48 to 0.68-0.91: it over-fits, so it stays frozen at its measured value.
+  - mass_slope (a linear interior mass profile) changes nothing (0.200 -> 0.199): frozen.
+What the coarse model cannot match: the reference's free end curls into a loop a few cm across
+before the contact; a 0.11 m link cannot bend that tightly, so the chain's shape and velocity
+differ from ~0.4 s on (RMS 1-6 cm at 0.4 s, 5-25 cm at 0.6 s) at every parameter value, and
+even a 63-segment chain at dt = 0.5 ms with measured parameters is 2.5-6 cm off at 0.4 s (the
+newton rod's capsule inertia and implicit solver are not the chain's physics). The fit leans on the
+remaining freedom (lead mass -> its lower bound, bend damping -> ~0, drag -> ~0; the newton
+reference has no air drag at all) to get the timing right instead.
 """
 from __future__ import annotations
 
@@ -44,7 +72,10 @@ SAMPLES = 21
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
 MIN_SPEED = 0.1  # m/s
+# newton reference: 1e6 N/m per joint of 1.1/64 m, i.e. EA = 1.7e4 N; a link of length l has compliance l / EA
+STRETCH_EA = 1e6 * 1.1 / 64
 START_AT_REST_BELOW = 0.05  # m/s
+ITERATIONS = 4  # constraint passes per step; see the module docstring (2 fits slightly better)
 
 
 def default_error_weights():
@@ -115,9 +146,11 @@ class RopeProblem(Problem):
 
     def __init__(self, train_refs: Sequence, held_refs: Sequence = (), segments: int = 10, dt: float = 0.005,
                  device: str = "cpu", names: Sequence[str] | None = None, held_names: Sequence[str] | None = None,
-                 iterations: int = 4, weights: dict | None = None):
+                 iterations: int = ITERATIONS, weights: dict | None = None):
         if not 3 <= segments <= 63:
             raise InputError("--segments", "segments", f"{segments} is outside [3, 63] (links; masses = segments + 1)")
+        if not 1 <= iterations <= 64:
+            raise InputError("--iterations", "iterations", f"{iterations} is outside [1, 64]")
         if not 1e-4 <= dt <= 0.05:
             raise InputError("--dt", "dt", f"{dt:g} s is outside [1e-4, 0.05] s")
         if not train_refs:
@@ -143,7 +176,7 @@ class RopeProblem(Problem):
                            min_sep=self.min_sep)
         self.space = self._space(ref)
         self.tolerance = 0.15
-        self.resolution = {"segments": self.segments, "masses": self.n, "dt": self.dt}
+        self.resolution = {"segments": self.segments, "masses": self.n, "dt": self.dt, "iterations": int(iterations)}
         self.error_doc = ("weighted sum of shape (/length), velocity (/reference speed), time (/critical time) and "
                           "contact-place errors of the rope at its first self-collision, per hand path")
 
@@ -156,17 +189,25 @@ class RopeProblem(Problem):
         return ParameterSpace([
             Parameter("mass", M, 0.5 * M, 2.0 * M, "log", frozen=True, unit="kg",
                       doc="total rope mass (frozen: only ratios to it are identifiable)"),
-            Parameter("lead_fraction", lead, 0.25 * lead, 0.5, "log", unit="",
+            # Bounds: every fit of the built-in references ran lead_fraction, bend_damping and
+            # drag_quad into the original bounds (lead/4, 1e-2, 1e-3 of measured); they were widened
+            # until the optimum sat inside or the loss stopped changing (README, "Rope fit").
+            Parameter("lead_fraction", lead, lead / 25.0, 0.5, "log", unit="",
                       doc="share of the mass in the free-end (lead) node; the rest is spread evenly"),
-            Parameter("bend_stiffness", k, k / 30, k * 30, "log", unit="N m/rad",
+            Parameter("bend_stiffness", k, k / 300, k * 30, "log", unit="N m/rad",
                       doc="bending stiffness per joint, energy 0.5 k theta^2 (measured EI / link)"),
-            Parameter("bend_damping", k * BEND_DAMPING_TIME, k * BEND_DAMPING_TIME * 1e-2,
+            Parameter("bend_damping", k * BEND_DAMPING_TIME, k * BEND_DAMPING_TIME * 1e-4,
                       k * BEND_DAMPING_TIME * 1e3, "log", unit="N m s/rad",
                       doc="bending damping per joint, dissipation 0.5 b theta_dot^2"),
-            Parameter("drag_quad", drag, drag * 1e-3, drag * 30, "log", unit="N s^2/m^3",
-                      doc="quadratic air drag per unit length (0.5 rho C_d diameter)"),
+            Parameter("drag_quad", drag, drag * 1e-5, drag * 30, "log", unit="N s^2/m^3",
+                      doc="quadratic air drag per unit length (0.5 rho C_d diameter; the newton reference has none)"),
             Parameter("drag_lin", 0.0, 0.0, 2.0 * M / L, "linear", unit="N s/m^2",
                       doc="linear drag per unit length (absorbs the reference's numerical damping)"),
+            Parameter("stretch", self.link / STRETCH_EA, 1e-8, 1e-2, "log", frozen=True, unit="m/N",
+                      doc="link compliance (XPBD): stretch of one link per newton of tension (measured l / EA)"),
+            Parameter("mass_slope", 0.0, -0.9, 0.9, "linear", frozen=True, unit="",
+                      doc="interior mass profile, node mass x (1 + slope (1 - 2u)), u = 0 at the hand, 1 at the "
+                          "lead; frozen: it did not lower the built-in fit's loss (README, \"Rope fit\")"),
             Parameter("radius", self.radius, 0.25 * self.radius, 4.0 * self.radius, "log", unit="m",
                       doc="collision radius of the straight coarse links"),
         ])
@@ -180,7 +221,9 @@ class RopeProblem(Problem):
         return ChainParams(node_mass=(1.0 - f) * M / (self.n - 2), lead_mass=f * M,
                            bend_k=v[:, sp.index("bend_stiffness")], bend_b=v[:, sp.index("bend_damping")],
                            drag_lin=v[:, sp.index("drag_lin")], drag_quad=v[:, sp.index("drag_quad")],
-                           radius=v[:, sp.index("radius")])
+                           radius=v[:, sp.index("radius")],
+                           mass_slope=v[:, sp.index("mass_slope")] if "mass_slope" in sp.names else 0.0,
+                           stretch=v[:, sp.index("stretch")] if "stretch" in sp.names else 0.0)
 
     def simulate(self, values: np.ndarray, conditions: Sequence[Condition], trajectory_every: int | None = None):
         """Every candidate under every condition in one batch; chain b*C + c is (candidate b, condition c)."""
@@ -257,27 +300,93 @@ class RopeProblem(Problem):
                                      if hit or k == "total"})
                     row[who]["status"] = ["no_hit", "hit", "blew_up"][int(terms["status"][i, j])]
                 out["critical_points"][c.name] = row
+        if self.held_out:
+            out["held_out_comparison"] = self.held_out_comparison(fitted, measured)
         return out
 
+    def no_hit_bound(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+        """(B, C) error with the no-hit penalty replaced by a penalty-free score: shape and velocity
+        of the chain at the reference's critical time, the time error of a hit at the end of the
+        horizon (the least a later hit could have), place error 0. Equals the error of chains that hit."""
+        values = np.atleast_2d(values)
+        terms = self.error_terms(values, conditions)
+        out = terms["total"].copy()
+        miss = terms["status"] == 0
+        if not miss.any():
+            return out
+        res = self.simulate(values, conditions, trajectory_every=1)
+        B, C = values.shape[0], len(conditions)
+        s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
+        for i, j in zip(*np.nonzero(miss)):
+            cs = conditions[j].data
+            b = i * C + j
+            x = (cs.event.time - cs.ref.time[0]) / self.dt
+            k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
+            u = min(x - k, 1.0)  # a horizon shorter than t_ref: the last state, never extrapolated
+            pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
+            vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
+            rms = lambda d: float(np.sqrt(np.mean(np.sum(d ** 2, -1))))  # noqa: E731
+            t_ref = cs.event.time - cs.ref.time[0]
+            out[i, j] = (self.weights["shape"] * rms(resample(pos, s_nodes, s_k) - cs.ref_pos) / self.length
+                         + self.weights["velocity"] * rms(resample(vel, s_nodes, s_k) - cs.ref_vel) / cs.speed
+                         + self.weights["time"] * abs(cs.steps * self.dt - t_ref) / t_ref)
+        return out
+
+    def held_out_comparison(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
+        """Held-out error ratio fitted / measured, with the no-hit penalty and with its lower bound."""
+        vals = np.stack([measured, fitted])
+        pen = self.errors(vals, self.held_out)
+        low = self.no_hit_bound(vals, self.held_out)
+        ratio = lambda e: float(np.mean(e[1]) / np.mean(e[0])) if np.mean(e[0]) > 0 else None  # noqa: E731
+        return {
+            "with_no_hit_penalty": {"measured": pen[0].tolist(), "fitted": pen[1].tolist(),
+                                    "ratio_of_means": ratio(pen)},
+            "no_hit_scored_at_reference_time": {"measured": low[0].tolist(), "fitted": low[1].tolist(),
+                                                "ratio_of_means": ratio(low)},
+            "meaning": "ratio of mean held-out errors, fitted / measured parameters; the second row scores a chain "
+                       "that never hits by its shape and velocity error at the reference's critical time plus the "
+                       "time error of a hit at the end of the horizon (a lower bound of its time error), place "
+                       "error 0: no penalty constant in the comparison",
+        }
+
     def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:
+        """Per hand path, one 3-D view: the reference rope (grey line and its markers), the
+        measured-parameter chain (orange) and the fitted chain (blue) as line strips on
+        "sim_time" at 50 frames/s, the hand path, and each rope's state at its critical point
+        (larger points, logged at the collision time) with the contact point marked."""
         conds = self.train + self.held_out
-        every = max(1, int(round(0.02 / self.dt)))  # 50 frames per simulated second
+        every = max(1, int(round(0.02 / self.dt)))
         res = self.simulate(np.stack([measured, fitted]), conds, trajectory_every=every)
         C = len(conds)
+        s_nodes = np.linspace(0.0, 1.0, self.n)
         for j, c in enumerate(conds):
-            ref = c.data.ref
+            split = "held_out" if j >= len(self.train) else "train"
+            name = f"{split}/{c.name}"
+            ref, ev = c.data.ref, c.data.event
+            recorder.log_lines3d(f"reference/{name}/hand_path", 0.0, [ref.hand], colors=(150, 150, 150))
             stride = max(1, int(round(0.02 / ref.dt)))
             for f in range(0, len(ref.time), stride):
-                recorder.log_lines3d(f"reference/{c.name}/rope", float(ref.time[f]), [ref.markers[f]])
-            ev = c.data.event
-            recorder.log_points3d(f"reference/{c.name}/critical", float(ev.time), c.data.ref_pos)
+                t = float(ref.time[f])
+                recorder.log_lines3d(f"reference/{name}/rope", t, [ref.markers[f]])
+                recorder.log_points3d(f"reference/{name}/markers", t, ref.markers[f], radii=0.004)
+                recorder.log_points3d(f"reference/{name}/hand", t, ref.hand[f][None], radii=0.015)
+            recorder.log_points3d(f"reference/{name}/critical", float(ev.time), c.data.ref_pos, radii=0.008)
+            contact = resample(ref.markers[ev.index], ref.marker_arclength, np.array([ev.s_a, ev.s_b]))
+            recorder.log_points3d(f"reference/{name}/contact", float(ev.time), contact, radii=0.025,
+                                  colors=(255, 255, 255))
             for i, who in enumerate(("measured", "fitted")):
                 b = i * C + j
                 for f, t in enumerate(res.trajectory_times):
-                    recorder.log_lines3d(f"{who}/{c.name}/rope", float(t), [res.trajectory[f, b]])
+                    recorder.log_lines3d(f"{who}/{name}/rope", float(t), [res.trajectory[f, b]])
                 if res.status[b] == 1:
-                    recorder.log_points3d(f"{who}/{c.name}/critical", float(res.hit_time[b]), res.crit_pos[b])
-                    recorder.log_scalar(f"{who}/{c.name}/critical_time", float(res.hit_time[b]), float(res.hit_time[b]))
+                    t_hit = float(res.hit_time[b])
+                    recorder.log_points3d(f"{who}/{name}/critical", t_hit, res.crit_pos[b], radii=0.01)
+                    pts = resample(res.crit_pos[b], s_nodes, np.array([res.s_a[b], res.s_b[b]]))
+                    recorder.log_points3d(f"{who}/{name}/contact", t_hit, pts, radii=0.025)
+                    recorder.log_scalar(f"{who}/{name}/critical_time", t_hit, t_hit)
+            recorder.add_view(f"{split}: {c.name}",
+                              [f"/{who}/{name}/**" for who in ("reference", "measured", "fitted")], "spatial3d")
+        recorder.add_view("summary", ["/summary"], "text")
 
 
 # ------------------------------------------------------------------------------- CLI
@@ -289,6 +398,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--segments", type=int, default=10,
                         help="links of the coarse chain; it has segments + 1 point masses (10 = the flying knot's 11)")
     parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds (flying knot: 0.005)")
+    parser.add_argument("--iterations", type=int, default=ITERATIONS,
+                        help="constraint passes per step (fewer: softer, under-converged links and joints)")
 
 
 def build_problem(args, device: str) -> Problem:
@@ -308,9 +419,35 @@ def build_problem(args, device: str) -> Problem:
     else:
         held, held_names = builtin_references("held_out"), list(HELD_OUT_PATHS)
     return RopeProblem(train, held, segments=args.segments, dt=args.dt, device=device, names=names,
-                       held_names=held_names)
+                       held_names=held_names, iterations=args.iterations)
 
 
 def _stem(path) -> str:
     from pathlib import Path
     return Path(path).stem
+
+
+# ------------------------------------------------------------------------------- flow
+FLOW_GENERATIONS = 60
+FLOW_SEGMENTS = [6, 10, 16]
+
+
+def add_flow_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds at every resolution")
+    parser.add_argument("--iterations", type=int, default=ITERATIONS, help="constraint passes per step")
+
+
+def flow_problems(args, device: str) -> list[RopeProblem]:
+    """One RopeProblem per segment count (`--resolutions` = links of the chain), on the built-in references."""
+    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS
+    from wrenorm.tasks.rope_reference import builtin_references
+
+    segments = []
+    for r in args.resolutions or FLOW_SEGMENTS:
+        if not (float(r).is_integer() and 3 <= r <= 63):
+            raise InputError("--resolutions", "resolutions",
+                             f"rope resolutions are segment counts in [3, 63], got {r:g}")
+        segments.append(int(r))
+    train, held = builtin_references("fit"), builtin_references("held_out")
+    return [RopeProblem(train, held, segments=s, dt=args.dt, device=device, names=list(FIT_PATHS),
+                        held_names=list(HELD_OUT_PATHS), iterations=args.iterations) for s in sorted(set(segments))]

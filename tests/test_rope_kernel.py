@@ -125,14 +125,19 @@ def _swing(B=16, n=12, steps=160, seed=0):
     return pos0, v0, paths, pidx, params, n, link, dt, steps
 
 
-def test_numpy_and_torch_baselines_match_the_warp_kernel():
+@pytest.mark.parametrize("profile", [False, True])
+def test_numpy_and_torch_baselines_match_the_warp_kernel(profile):
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing()
+    if profile:  # non-uniform interior masses and compliant links
+        params.mass_slope[:] = np.linspace(-0.6, 0.6, params.batch)
+        params.stretch[:] = np.linspace(0.0, 5e-4, params.batch)
     w = rope.RopeSim(n, link, dt, min_sep=3).rollout(pos0, v0, paths, pidx, params, steps)
     assert (w.status == 1).sum() >= 3  # some chains hit inside the horizon
     npy = rb.rollout("numpy", pos0, v0, paths, pidx, params, n, link, dt, steps=steps, min_sep=3)
     assert np.array_equal(npy.status, w.status) and np.array_equal(npy.hit_frame, w.hit_frame)
     hit = w.status == 1
-    assert npy.hit_time[hit] == pytest.approx(w.hit_time[hit], abs=1e-5)
+    # float32 round-off in a different operation order (compliant links amplify it a little)
+    assert npy.hit_time[hit] == pytest.approx(w.hit_time[hit], abs=5e-5 if profile else 1e-5)
     assert npy.s_a[hit] == pytest.approx(w.s_a[hit], abs=1e-3)
     assert np.abs(npy.crit_pos - w.crit_pos).max() < 1e-4
     assert np.abs(npy.clearance - w.clearance).max() < 1e-4
@@ -142,11 +147,17 @@ def test_numpy_and_torch_baselines_match_the_warp_kernel():
     assert np.abs(th.final_vel - short.final_vel).max() < 1e-3
 
 
-def test_culling_equals_all_pairs():
+def test_fast_culled_kernel_equals_the_plain_all_pairs_kernel():
+    """The per-size unrolled kernel with culling (rope_fast.py) against the generic kernel testing
+    every pair, with non-uniform masses and stretchy links so every code path is used."""
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=256, n=16, steps=240, seed=0)
+    params.mass_slope[:] = np.linspace(-0.8, 0.8, params.batch)
+    params.stretch[:] = np.linspace(0.0, 1e-3, params.batch)
     a = rope.RopeSim(n, link, dt, cull=True).rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)
-    b = rope.RopeSim(n, link, dt, cull=False).rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)
-    assert (a.status == 1).sum() > 20
+    b = rope.RopeSim(n, link, dt, cull=False, fixed=False).rollout(pos0, v0, paths, pidx, params, steps,
+                                                                   stop_at_hit=False)
+    assert a.status.tolist().count(1) > 20
+    assert rope.RopeSim(n, link, dt).kernel is not rope.rollout_kernel
     for f in ("status", "hit_frame", "hit_alpha", "crit_pos", "crit_vel", "clearance", "final_pos"):
         assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
 

@@ -96,3 +96,54 @@ def test_no_hit_is_finite_penalty_and_report_fields(problem_and_truth):
 def test_bad_resolution_is_input_error():
     with pytest.raises(InputError):
         task.RopeProblem([synthetic_placeholder()], segments=1)
+
+
+def test_no_hit_score_equals_the_error_of_hits_and_drops_the_penalty(problem_and_truth):
+    prob, truth = problem_and_truth
+    vals = np.stack([truth, prob.space.measured])
+    assert np.array_equal(prob.no_hit_bound(vals, prob.train), prob.errors(vals, prob.train))
+    short = [task.Condition(c.name, task.RopeCase(**{**c.data.__dict__, "steps": 20})) for c in prob.train]
+    pen, score = prob.errors(truth[None], short), prob.no_hit_bound(truth[None], short)
+    assert np.all(pen >= task.NO_HIT)
+    for j, c in enumerate(short):
+        t_ref = c.data.event.time - c.data.ref.time[0]
+        late = task.WEIGHTS["time"] * abs(20 * prob.dt - t_ref) / t_ref
+        # time term of a hit at the horizon's end plus a positive state error, no penalty constant
+        assert late < score[0, j] < late + 1.0 < task.NO_HIT
+
+
+def test_flow_problems_one_per_segment_count():
+    import argparse
+
+    probs = task.flow_problems(argparse.Namespace(resolutions=[16.0, 6.0], dt=0.005, iterations=4), "cpu")
+    assert [p.segments for p in probs] == [6, 16] and [p.n for p in probs] == [7, 17]
+    # per-joint stiffness EI / link grows with the segment count
+    assert probs[0].held_out and probs[0].space["bend_stiffness"].measured * 16 == pytest.approx(
+        probs[1].space["bend_stiffness"].measured * 6)
+    with pytest.raises(InputError):
+        task.flow_problems(argparse.Namespace(resolutions=[6.5], dt=0.005, iterations=4), "cpu")
+
+
+class _Recorder:
+    def __init__(self):
+        self.calls, self.views = [], []
+
+    def __getattr__(self, name):
+        return lambda path, *a, **k: self.calls.append((name, path))
+
+    def add_view(self, name, contents, kind="timeseries"):
+        self.views.append((name, contents, kind))
+
+
+def test_record_declares_one_3d_view_per_path_with_all_three_ropes(problem_and_truth):
+    prob, truth = problem_and_truth
+    rec = _Recorder()
+    prob.record(rec, truth, prob.space.measured)
+    spatial = [v for v in rec.views if v[2] == "spatial3d"]
+    assert [v[0] for v in spatial] == ["train: flick", "train: flick_fast"]
+    for name, contents, _ in spatial:
+        cond = name.split(": ")[1]
+        assert contents == [f"/{who}/train/{cond}/**" for who in ("reference", "measured", "fitted")]
+        for who in ("reference", "measured", "fitted"):
+            assert ("log_lines3d", f"{who}/train/{cond}/rope") in rec.calls
+        assert ("log_points3d", f"fitted/train/{cond}/contact") in rec.calls  # the truth hits
