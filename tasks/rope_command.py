@@ -147,6 +147,55 @@ class CommandSpace:
         u += list(np.log(path.durations / self.base.durations) / LOG_TIME_SCALE)
         return np.array(u)
 
+    # ------------------------------------------------------------------ batches
+    def batch_waypoints(self, U) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """decode() for many commands at once: (times (B, K+1), points (B, K+1, 3), velocities)."""
+        U = np.atleast_2d(np.asarray(U, dtype=np.float64))
+        B, K = U.shape[0], self.n_segments
+        t, p, v = waypoints(self.base)
+        P, V = np.repeat(p[None], B, 0), np.repeat(v[None], B, 0)
+        ax = [AXIS_INDEX[a] for a in self.axes]
+        j = 0
+        for i in range(1, K + 1):
+            P[:, i, ax] += U[:, j:j + len(ax)] * POSITION_SCALE
+            j += len(ax)
+            if i < K:
+                V[:, i, ax] += U[:, j:j + len(ax)] * VELOCITY_SCALE
+                j += len(ax)
+        d = self.base.durations[None] * np.exp(U[:, j:j + K] * LOG_TIME_SCALE)
+        return np.concatenate([np.zeros((B, 1)), np.cumsum(d, 1)], 1), P, V
+
+    def batch_positions(self, U, times) -> np.ndarray:
+        """(B, T, 3) hand positions of many commands (cubic Hermite, as HandPath.through builds)."""
+        T, P, V = self.batch_waypoints(U)
+        B, K = T.shape[0], self.n_segments
+        t = np.clip(np.asarray(times, dtype=np.float64)[None, :], 0.0, T[:, -1:])
+        k = np.clip((t[:, :, None] >= T[:, None, 1:K]).sum(-1), 0, K - 1)  # (B, T) segment index
+        r = np.arange(B)[:, None]
+        t0, d = T[r, k], T[r, k + 1] - T[r, k]
+        s = np.clip((t - t0) / d, 0.0, 1.0)[..., None]
+        d = d[..., None]
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        return h00 * P[r, k] + h10 * d * V[r, k] + h01 * P[r, k + 1] + h11 * d * V[r, k + 1]
+
+    def batch_peaks(self, U, per_segment: int = 200) -> tuple[np.ndarray, np.ndarray]:
+        """(peak speed (B,), peak acceleration (B,)) on HandPath's own per-segment grid."""
+        T, P, V = self.batch_waypoints(U)
+        s = np.linspace(0.0, 1.0, per_segment)[None, None, :, None]
+        d = np.diff(T, axis=1)[:, :, None, None]
+        p0, p1, v0, v1 = P[:, :-1, None], P[:, 1:, None], V[:, :-1, None] * d, V[:, 1:, None] * d
+        vel = ((6 * s**2 - 6 * s) * p0 + (3 * s**2 - 4 * s + 1) * v0 + (-6 * s**2 + 6 * s) * p1
+               + (3 * s**2 - 2 * s) * v1) / d
+        acc = ((12 * s - 6) * p0 + (6 * s - 4) * v0 + (-12 * s + 6) * p1 + (6 * s - 2) * v1) / d**2
+        B = T.shape[0]
+        return (np.linalg.norm(vel, axis=-1).reshape(B, -1).max(1), np.linalg.norm(acc, axis=-1).reshape(B, -1).max(1))
+
+    def limit_excess(self, U) -> np.ndarray:
+        """(B,) how far each command is outside the hand limits (relative excess, 0 = feasible)."""
+        vs, acc = self.batch_peaks(U)
+        return np.maximum(vs / self.max_speed - 1.0, 0.0) + np.maximum(acc / self.max_acceleration - 1.0, 0.0)
+
     # ------------------------------------------------------------------ limits
     def violations(self, u) -> list[str]:
         u = np.asarray(u, dtype=np.float64)

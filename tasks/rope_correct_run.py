@@ -16,7 +16,8 @@ SYSTEM = "rope"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from wrenorm.tasks.rope_correct import DEFAULT_RADIUS, DEFAULT_REG, DEFAULT_TOLERANCE, FD_STEP
+    from wrenorm.tasks.rope_correct import DEFAULT_TOLERANCE, FD_STEP
+    from wrenorm.tasks.rope_plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
@@ -36,12 +37,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse-model parameters to steer with; each gets its own correction run")
     p.add_argument("--max-trials", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
-    p.add_argument("--radius", type=float, default=DEFAULT_RADIUS, help="initial trust radius (units of u)")
-    p.add_argument("--reg", type=float, default=DEFAULT_REG, help="Tikhonov weight relative to mean diag(F^T F)")
-    p.add_argument("--fd-step", type=float, default=FD_STEP, help="finite-difference step (units of u)")
-    p.add_argument("--secant", action="store_true",
-                   help="also learn a rank-one correction of F from the real trials (Broyden); off: coarse F only")
-    p.add_argument("--segments", type=int, default=10, help="links of the coarse chain")
+    p.add_argument("--method", choices=["plan", "qp"], default="plan",
+                   help="plan: model-offset ILC, each command a batched CMA-ES plan on the coarse model plus the "
+                        "offset learned from the real trials; qp: linear trust-region step through the model's FD "
+                        "sensitivity")
+    p.add_argument("--no-plan-first", action="store_true",
+                   help="(plan) run the start command as trial 1 instead of the model's own plan from it")
+    p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE, help="(plan) CMA-ES population per search")
+    p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS, help="(plan) CMA-ES generations per plan")
+    p.add_argument("--radius", type=float, default=None,
+                   help="initial trust radius (units of u; default 1.5 for plan, 1.0 for qp)")
+    p.add_argument("--reg", type=float, default=None,
+                   help="plan: weight of |u - u_best|^2 (default 1e-4); qp: Tikhonov weight relative to mean "
+                        "diag(F^T F) (default 1e-2)")
+    p.add_argument("--fd-step", type=float, default=FD_STEP, help="(qp) finite-difference step (units of u)")
+    p.add_argument("--secant", action=argparse.BooleanOptionalAction, default=None,
+                   help="learn how the model's error changes with u from pairs of real trials (Broyden); "
+                        "default on for plan, off for qp")
+    p.add_argument("--model-place", action="store_true",
+                   help="(plan) predict the contact place with the coarse chain too (default: from the trials)")
+    p.add_argument("--segments", type=int, default=20,
+                   help="links of the coarse chain (20: its fitted critical state at the goal command is 2-3x "
+                        "closer to the fine rope's than at 10 links)")
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
     p.add_argument("--fine-segments", type=int, default=64, help="segments of the fine newton rope")
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
@@ -80,8 +97,10 @@ def run(args) -> int:
         raise InputError("--max-trials", "max_trials", f"{args.max_trials} is outside [1, 100]")
     if not args.tolerance > 0:
         raise InputError("--tolerance", "tolerance", f"must be > 0, got {args.tolerance}")
-    if not (args.radius > 0 and args.fd_step > 0 and args.reg >= 0):
+    if not ((args.radius is None or args.radius > 0) and args.fd_step > 0 and (args.reg is None or args.reg >= 0)):
         raise InputError("--radius/--fd-step/--reg", "value", "radius and fd-step must be > 0, reg >= 0")
+    if not (4 <= args.popsize <= 4096 and 1 <= args.generations <= 1000):
+        raise InputError("--popsize/--generations", "value", "need popsize in [4, 4096] and generations in [1, 1000]")
     if args.seed < 0:
         raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
     for label in args.params:
@@ -132,7 +151,9 @@ def run(args) -> int:
                  f"{args.variant} rope)")
         res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
                       radius=args.radius, reg=args.reg, fd_step=args.fd_step, secant=args.secant,
-                      progress=progress)
+                      method=args.method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
+                      generations=args.generations,
+                      freeze_place=not args.model_place, progress=progress)
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
 
@@ -148,8 +169,10 @@ def run(args) -> int:
         "error_meaning": "rope.py's weighted critical-state error to the goal: shape/length + 0.1 velocity/speed + "
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
-        "settings": {"radius": args.radius, "reg": args.reg, "fd_step": args.fd_step, "seed": args.seed,
-                     "secant": args.secant},
+        "settings": {"method": args.method, "plan_first": not args.no_plan_first, "radius": args.radius,
+                     "reg": args.reg, "fd_step": args.fd_step, "seed": args.seed, "secant": args.secant,
+                     "popsize": args.popsize, "generations": args.generations,
+                     "place_from": "coarse model" if args.model_place else "trials"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
                  for label, r in runs.items()},
         "real_runs": real.runs, "real_wall_s": real.wall_s,
