@@ -384,8 +384,7 @@ class RopeSim:
 
             if self.n <= rope_fast.MAX_NODES:
                 self.kernel = rope_fast.fast_kernel(self.n)
-        # build before the sliced launch: two threads meeting an unbuilt module both compile it
-        wp.load_module(self.kernel.module, device=self.device)
+        self._loaded = False
 
     def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
                 params: ChainParams, steps: int, t0: float = 0.0, stop_at_hit: bool = True,
@@ -416,6 +415,10 @@ class RopeSim:
         crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
+        if not self._loaded:
+            # build before the sliced launch: two threads meeting an unbuilt module both compile it
+            wp.load_module(self.kernel.module, device=dev)
+            self._loaded = True
         chunk = int(trajectory_every or chunk or steps)
         frames = [pos.numpy().copy()] if trajectory_every else None
         for s0 in range(0, steps, chunk):

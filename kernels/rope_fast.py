@@ -136,6 +136,7 @@ def _build(n: int):
         V = Mat()
         Q = Mat()  # positions at the start of the step
         L = Mat()  # bending multipliers (row i: centre node i)
+        CQ = Mat()
         S = Seg()  # bounding spheres: midpoint, half length
         CB = Blk()  # block spheres
         FAR = Flags()
@@ -158,6 +159,9 @@ def _build(n: int):
                 P[i] = xi + dt * vi
                 L[i] = wp.vec3(0.0)
                 LL[i - 1] = 0.0
+            # curvature at the start of the step, for the bending damping (the same every pass)
+            for i in range(1, NM1):
+                CQ[i] = Q[i - 1] - 2.0 * Q[i] + Q[i + 1]
             for it in range(iters):
                 # bending in three colours (centre i mod 3), then links in two (even, odd): the
                 # generic kernel's order, unrolled; within a colour nothing shares a node
@@ -166,8 +170,7 @@ def _build(n: int):
                     x1 = P[wp.static(BEND_ORDER[kk])]
                     x2 = P[wp.static(BEND_ORDER[kk] + 1)]
                     cv = x0 - 2.0 * x1 + x2
-                    dcv = cv - (Q[wp.static(BEND_ORDER[kk] - 1)] - 2.0 * Q[wp.static(BEND_ORDER[kk])]
-                                + Q[wp.static(BEND_ORDER[kk] + 1)])
+                    dcv = cv - CQ[wp.static(BEND_ORDER[kk])]
                     lm = L[wp.static(BEND_ORDER[kk])]
                     dlam = (-cv - alpha_t * lm - gamma * dcv) * IB[wp.static(BEND_ORDER[kk])]
                     L[wp.static(BEND_ORDER[kk])] = lm + dlam
