@@ -19,17 +19,24 @@ def plot_flow(path: Path, flow: dict) -> None:
     plt = _figure()
     key, x = _axis(flow)
     names = [n for n, p in flow["points"][0]["parameters"].items() if not p["frozen"]]
-    fig, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.4), squeeze=False)
-    for ax, name in zip(axes[0], names):
+    ncols = min(3, len(names))
+    nrows = -(-len(names) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False)
+    for ax in axes.flat[len(names):]:
+        ax.set_visible(False)
+    for ax, name in zip(axes.flat, names):
         ps = [pt["parameters"][name] for pt in flow["points"]]
         y = np.array([p["fitted"] for p in ps])
         err = np.array([p["std_restarts"] or 0.0 for p in ps])
         ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="fitted")
-        ax.axhline(ps[0]["measured"], color="k", ls=":", label="measured")
+        # measured values can depend on resolution too (the rope's per-link stiffness is EI / link length)
+        ax.plot(x, [p["measured"] for p in ps], "k:", label="measured")
         pred = [pt.get("analytic", {}).get(f"{name}_sim_first_order") for pt in flow["points"]]
         if all(v is not None for v in pred):
             ax.plot(x, pred, "--", label="analytic (1st order)")
         ax.set_xscale("log")
+        if ps[0].get("scale") == "log" and np.all(y > 0):
+            ax.set_yscale("log")
         from matplotlib.ticker import NullFormatter, ScalarFormatter
 
         ax.xaxis.set_major_formatter(ScalarFormatter())
@@ -38,7 +45,8 @@ def plot_flow(path: Path, flow: dict) -> None:
         ax.set_xlabel(key)
         ax.set_title(name)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{flow['task']}: effective parameters against resolution")
+    fig.suptitle(f"{flow['task']}: effective parameters against resolution (error bars: spread of restarts)")
+    fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)
 

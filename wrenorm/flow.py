@@ -34,7 +34,7 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
             "parameters": {
                 p.name: {"measured": p.measured, "fitted": float(best.best_values[i]),
                          "std_restarts": None if p.frozen else float(spread[i]),
-                         "std_jacobian": unc["std"].get(p.name), "frozen": p.frozen,
+                         "std_jacobian": unc["std"].get(p.name), "frozen": p.frozen, "scale": p.scale,
                          "restarts": vals[:, i].tolist()}
                 for i, p in enumerate(prob.space.parameters)},
             "loss": {"measured": float(loss[0]), "fitted": float(loss[1])},
