@@ -169,8 +169,9 @@ def run(args) -> int:
         "error_meaning": "rope.py's weighted critical-state error to the goal: shape/length + 0.1 velocity/speed + "
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
-        "settings": {"method": args.method, "plan_first": not args.no_plan_first, "radius": args.radius,
-                     "reg": args.reg, "fd_step": args.fd_step, "seed": args.seed, "secant": args.secant,
+        "settings": {"method": args.method, "plan_first": not args.no_plan_first,
+                     "radius": args.radius if args.radius is not None else _default("radius", args.method),
+                     "reg": args.reg if args.reg is not None else _default("reg", args.method), "fd_step": args.fd_step, "seed": args.seed, "secant": args.secant if args.secant is not None else args.method == "plan",
                      "popsize": args.popsize, "generations": args.generations,
                      "place_from": "coarse model" if args.model_place else "trials"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
@@ -189,6 +190,14 @@ def run(args) -> int:
         print(f"{label:>9}: {verdict}; errors {errs}")
     print(f"\nresult: {out / 'correct.json'}  plot: {out / 'correct.png'}")
     return 0
+
+
+def _default(name: str, method: str) -> float:
+    from wrenorm.tasks import rope_correct, rope_plan
+
+    if name == "radius":
+        return rope_correct.DEFAULT_PLAN_RADIUS if method == "plan" else rope_correct.DEFAULT_RADIUS
+    return rope_plan.DEFAULT_REG if method == "plan" else rope_correct.DEFAULT_REG
 
 
 def _plot(path: Path, runs: dict, args) -> None:
