@@ -16,6 +16,7 @@ position projected on that axis against time.
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,7 +60,9 @@ def _label_of(path: Path) -> tuple[str, float] | None:
 
 def _read_csv(path: Path, columns: int) -> np.ndarray:
     try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2)
+        with warnings.catch_warnings():  # an empty file is reported below as a column-count error
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, delimiter=",", ndmin=2)
     except ValueError as exc:
         raise InputError(str(path), "contents", f"not a numeric CSV ({exc})") from None
     if data.shape[1] != columns:
