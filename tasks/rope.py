@@ -433,24 +433,41 @@ def _stem(path) -> str:
 # ------------------------------------------------------------------------------- flow
 FLOW_GENERATIONS = 60
 FLOW_SEGMENTS = [6, 10, 16]
+FLOW_DT = [0.0025, 0.005, 0.01]
 
 
 def add_flow_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds at every resolution")
+    parser.add_argument("--axis", choices=["segments", "dt"], default="segments",
+                        help="what --resolutions varies: segments (links of the chain) or dt (step [s])")
+    parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds at every point of --axis segments")
+    parser.add_argument("--segments", type=int, default=10, help="links of the chain at every point of --axis dt")
     parser.add_argument("--iterations", type=int, default=ITERATIONS, help="constraint passes per step")
 
 
 def flow_problems(args, device: str) -> list[RopeProblem]:
-    """One RopeProblem per segment count (`--resolutions` = links of the chain), on the built-in references."""
+    """One RopeProblem per resolution on the built-in references: segment counts (--axis segments,
+    the default; step --dt) or steps in seconds (--axis dt; --segments links), coarse to fine in
+    segments, fine to coarse in dt."""
     from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS
     from wrenorm.tasks.rope_reference import builtin_references
 
-    segments = []
-    for r in args.resolutions or FLOW_SEGMENTS:
-        if not (float(r).is_integer() and 3 <= r <= 63):
+    by_dt = getattr(args, "axis", "segments") == "dt"
+    points = []
+    for r in args.resolutions or (FLOW_DT if by_dt else FLOW_SEGMENTS):
+        if by_dt and not 1e-4 <= r <= 0.05:
+            raise InputError("--resolutions", "dt", f"rope time steps must be in [1e-4, 0.05] s, got {r:g}")
+        if not by_dt and not (float(r).is_integer() and 3 <= r <= 63):
             raise InputError("--resolutions", "resolutions",
                              f"rope resolutions are segment counts in [3, 63], got {r:g}")
-        segments.append(int(r))
+        points.append(float(r) if by_dt else int(r))
+    if len(set(points)) != len(points):
+        raise InputError("--resolutions", "resolutions", f"repeated resolution in {sorted(points)}")
     train, held = builtin_references("fit"), builtin_references("held_out")
-    return [RopeProblem(train, held, segments=s, dt=args.dt, device=device, names=list(FIT_PATHS),
-                        held_names=list(HELD_OUT_PATHS), iterations=args.iterations) for s in sorted(set(segments))]
+
+    def problem(segments, dt):
+        return RopeProblem(train, held, segments=segments, dt=dt, device=device, names=list(FIT_PATHS),
+                           held_names=list(HELD_OUT_PATHS), iterations=args.iterations)
+
+    if by_dt:
+        return [problem(getattr(args, "segments", 10), dt) for dt in sorted(points)]
+    return [problem(s, args.dt) for s in sorted(points)]

@@ -77,8 +77,10 @@ class SwimmerProblem(Problem):
     def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = body.DEFAULT_DT,
                  warm_seconds: float = 2.0, meas_seconds: float = 3.0, virtual_mass: bool = False,
                  gait_mode: str = "chain", source: str = "built-in", yaw_weight: float = 0.0, scheme: int = 2,
-                 restarts: int = 0):
+                 restarts: int = 0, bodies: int = len(body.LINKS)):
         self.device = device
+        self.bodies = int(bodies)
+        self.links = body.merge_links(self.bodies)  # the tail's rigid bodies (all: the robot's five plates + fin)
         self.space = parameter_space()
         self.tolerance = TOLERANCE
         self.dt, self.warm_seconds, self.meas_seconds, self.virtual_mass = dt, warm_seconds, meas_seconds, virtual_mass
@@ -86,7 +88,7 @@ class SwimmerProblem(Problem):
         self.restart_generations = 100
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
-                           "integrator": "ros2" if scheme == 2 else "implicit-euler"}
+                           "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
         self.error_doc = ("|v_sim - v_real| in m/s: forward cruising speed, slope of a straight-line fit of the "
                           "head position along the swimming direction against time")
         if self.yaw_weight > 0:
@@ -95,7 +97,7 @@ class SwimmerProblem(Problem):
                               "in the amplitude of the head's yaw oscillation at the tail-beat frequency")
         self.source = source
         self.rates = {r.name: r for r in rates}
-        self.gaits = {r.name: body.gait(r, gait_mode) for r in rates}
+        self.gaits = {r.name: body.gait(r, gait_mode, self.bodies) for r in rates}
         conds = [Condition(r.name, data=r, meta={"label": r.label, "speed": r.speed, "tail_freq": r.tail_freq,
                                                   "yaw_amp": r.yaw_amp})
                  for r in rates]
@@ -109,7 +111,7 @@ class SwimmerProblem(Problem):
             self._batches[key] = body.build_batch(
                 [self.rates[n] for n in key], device=self.device, dt=self.dt, warm_seconds=self.warm_seconds,
                 meas_seconds=self.meas_seconds, virtual_mass=self.virtual_mass,
-                gaits=[self.gaits[n] for n in key], scheme=self.scheme)
+                gaits=[self.gaits[n] for n in key], scheme=self.scheme, bodies=self.bodies)
         return self._batches[key]
 
     def simulate(self, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
@@ -341,7 +343,7 @@ def _check_dt(dt: float, source: str = "--dt") -> float:
     return dt
 
 
-def _problem(args, device, rates, source, labels, dt) -> SwimmerProblem:
+def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LINKS)) -> SwimmerProblem:
     yw = float(getattr(args, "yaw_weight", 0.0))
     if not (np.isfinite(yw) and yw >= 0):
         raise InputError("--yaw-weight", "yaw_weight", f"must be a finite number >= 0, got {yw}")
@@ -349,7 +351,8 @@ def _problem(args, device, rates, source, labels, dt) -> SwimmerProblem:
                           virtual_mass=bool(getattr(args, "virtual_mass", False)),
                           gait_mode=getattr(args, "gait", "chain"), source=source, yaw_weight=yw,
                           scheme=1 if getattr(args, "integrator", "ros2") == "euler" else 2,
-                          restarts=int(getattr(args, "restarts", 0)) if getattr(args, "command", "fit") == "fit" else 0)
+                          restarts=int(getattr(args, "restarts", 0)) if getattr(args, "command", "fit") == "fit" else 0,
+                          bodies=bodies)
 
 
 def build_problem(args, device: str) -> SwimmerProblem:
@@ -361,17 +364,37 @@ def build_problem(args, device: str) -> SwimmerProblem:
 # --- resolution flow ---------------------------------------------------------------------------
 FLOW_GENERATIONS = 80
 FLOW_DT = [0.002, 0.004, 0.008, 0.016]
+FLOW_BODIES = [2, 3, 6]
 
 
 def add_flow_arguments(p: argparse.ArgumentParser) -> None:
     _common_arguments(p)
+    p.add_argument("--axis", choices=["dt", "bodies"], default="dt",
+                   help="what --resolutions varies: dt, the time step [s]; bodies, the tail's rigid bodies "
+                        f"(2-{len(body.LINKS)}: plates merged, the fin kept; {len(body.LINKS)} is the robot)")
+    p.add_argument("--dt", type=float, default=body.DEFAULT_DT, help="time step [s] at every point of --axis bodies")
+    p.add_argument("--bodies", type=int, default=len(body.LINKS), help="tail bodies at every point of --axis dt")
+
+
+def _check_bodies(n, source: str) -> int:
+    if not (float(n).is_integer() and 2 <= n <= len(body.LINKS)):
+        raise InputError(source, "bodies", f"tail bodies must be whole numbers in [2, {len(body.LINKS)}], got {n:g}")
+    return int(n)
 
 
 def flow_problems(args, device: str) -> list[SwimmerProblem]:
-    """One problem per time step (--resolutions, seconds), finest first."""
+    """One problem per resolution, finest first: time steps [s] (--axis dt, the default) or tail
+    body counts (--axis bodies), the other held at --dt / --bodies."""
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
+    if getattr(args, "axis", "dt") == "bodies":
+        counts = sorted((_check_bodies(n, "--resolutions") for n in (args.resolutions or FLOW_BODIES)), reverse=True)
+        if len(set(counts)) != len(counts):
+            raise InputError("--resolutions", "bodies", f"repeated body count in {counts}")
+        dt = _check_dt(getattr(args, "dt", body.DEFAULT_DT))
+        return [_problem(args, device, rates, source, labels, dt, n) for n in counts]
+    bodies = _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies")
     dts = sorted(_check_dt(d, "--resolutions") for d in (args.resolutions or FLOW_DT))
     if len(set(dts)) != len(dts):
         raise InputError("--resolutions", "dt", f"repeated time step in {dts}")
-    return [_problem(args, device, rates, source, labels, dt) for dt in dts]
+    return [_problem(args, device, rates, source, labels, dt, bodies) for dt in dts]

@@ -13,6 +13,11 @@ The robot's links (five plates and the fin) are then laid along that curve joint
 gives each link's angle relative to the head over one tail beat; a 3-harmonic Fourier series of
 those angles, mean removed (the head axis from two markers carries a small unknown offset), is
 the prescribed gait.
+
+Coarser tails (merge_links): consecutive links merged into one rigid body each, for the
+resolution flow over the number of tail bodies. A merged link points along the chord between
+the robot's gait joints at the ends of its run, so the joints the coarse fish keeps move as the
+robot's do.
 """
 from __future__ import annotations
 
@@ -66,7 +71,48 @@ def head_inertia() -> tuple[float, float, float]:
     return float(mass), float(xc), float(j)
 
 
-def parts() -> dict:
+def merge_runs(bodies: int) -> list:
+    """Indices of LINKS in each of `bodies` tail bodies (see merge_links)."""
+    if not 2 <= bodies <= len(LINKS):
+        raise ValueError(f"tail bodies must be within [2, {len(LINKS)}], got {bodies}")
+    return [r.tolist() for r in np.array_split(np.arange(len(LINKS) - 1), bodies - 1)] + [[len(LINKS) - 1]]
+
+
+def merge_links(bodies: int = len(LINKS)) -> list:
+    """The tail as `bodies` rigid links: the fin stays one body (its shape is not a plate's) and
+    the plates are split into bodies - 1 runs of consecutive plates, front runs one longer when
+    they do not divide evenly. A merged body keeps the run's length (joint to joint) and mass;
+    its part sits at the run's mass centre with the yaw inertia of the straight run about it
+    (parallel axes); its ellipsoid keeps the run's lateral projected area (sum r0 r2, with
+    r0 = sum r0) and volume (sum r0 r1 r2). Why area and volume, not an ellipsoid spanning the
+    whole run: the plates are 15 mm wide with gaps between them, and the fluid model's drag
+    and lift scale with these, so the merged fish meets the same water.
+    All bodies returns the links unchanged, so that fish is the default one bit for bit."""
+    links = list(LINKS)
+    runs = merge_runs(bodies)
+    if bodies == len(links):
+        return links
+    out = []
+    for run in runs:
+        if len(run) == 1:
+            out.append(links[run[0]])
+            continue
+        lengths = np.array([links[i][0] for i in run])
+        start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+        x = start + np.array([links[i][1] for i in run])             # part centres along the run
+        r = np.array([links[i][2] for i in run])
+        m = np.array([links[i][3] for i in run])
+        j = np.array([links[i][4] for i in run])
+        xc = float((m * x).sum() / m.sum())
+        r0 = float(r[:, 0].sum())
+        r2 = float((r[:, 0] * r[:, 2]).sum() / r0)
+        r1 = float((r[:, 0] * r[:, 1] * r[:, 2]).sum() / (r0 * r2))
+        out.append((float(lengths.sum()), xc, (r0, r1, r2), float(m.sum()),
+                    float((j + m * (x - xc) ** 2).sum())))
+    return out
+
+
+def parts(links=LINKS) -> dict:
     """Per-part constants in kernel order: head fluid parts, head mass lump, then one per link."""
     semi, amass, inert, link, offset = [], [], [], [], []
 
@@ -85,7 +131,7 @@ def parts() -> dict:
         add(r, 0.0, 0.0, -1, x)
     mass, xc, j = head_inertia()
     add((0.0, 0.0, 0.0), mass, j, -1, xc)
-    for i, (_, d, r, m, jj) in enumerate(LINKS):
+    for i, (_, d, r, m, jj) in enumerate(links):
         add(r, m, jj, i, d)
     return {"semi": np.array(semi), "amass": np.array(amass), "inert": np.array(inert),
             "link": np.array(link), "offset": np.array(offset)}
@@ -146,7 +192,7 @@ def chain_angles(curve, freq: float, samples: int = 128) -> np.ndarray:
     return np.stack(out, axis=1)
 
 
-def gait(rate, mode: str = "chain") -> dict:
+def gait(rate, mode: str = "chain", bodies: int = len(LINKS)) -> dict:
     """Prescribed tail motion of one rate, mean (constant bend) removed.
 
     mode "wave": every tail part sits at its nominal x with the wave's lateral position and
@@ -154,6 +200,7 @@ def gait(rate, mode: str = "chain") -> dict:
     mode "chain": rigid links laid joint by joint along the wave (inextensible; the video's tail
     is longer than the robot's, so the fin tip then swings about 20 % less than the markers).
     Both carry the chain's Fourier link angles psi_j = sum_k a_jk cos + b_jk sin (2 pi k f t).
+    `bodies` < 6 merges tail links (merge_links); the gait carries its tail as "links".
     """
     local, keep = rate.meta["local"], rate.meta["tail_markers"]
     curve, rms = fit_wave(local, keep, rate.tail_freq, rate.fps)
@@ -162,9 +209,26 @@ def gait(rate, mode: str = "chain") -> dict:
     spec = np.fft.rfft(ang, axis=0) / samples
     a = 2 * spec[1:HARMONICS + 1].real.T      # (links, K)
     b = -2 * spec[1:HARMONICS + 1].imag.T
+    links = merge_links(bodies)
+    if bodies < len(LINKS):
+        a, b = _merged_angles(a, b, rate.tail_freq, merge_runs(bodies), samples)
     wave = curve.coef.copy()
     wave[:, 0] = 0.0
-    return {"freq": rate.tail_freq, "a": a, "b": b, "wave": wave, "wave_rms": rms, "mode": mode}
+    return {"freq": rate.tail_freq, "a": a, "b": b, "wave": wave, "wave_rms": rms, "mode": mode, "links": links}
+
+
+def _merged_angles(a, b, freq, runs, samples):
+    """Fourier angles of merged links: each points along the chord between the full gait's joints
+    at the ends of its run, so the merged joints move with the robot's (to the foreshortening of
+    a rigid link of the run's straight length)."""
+    t = np.arange(samples) / (samples * freq)
+    psi, _, _ = link_motion({"freq": freq, "a": a, "b": b}, t)
+    lengths = np.array([lk[0] for lk in LINKS])
+    jx = np.concatenate([np.zeros((samples, 1)), np.cumsum(lengths * np.cos(psi), 1)], 1)
+    jy = np.concatenate([np.zeros((samples, 1)), np.cumsum(lengths * np.sin(psi), 1)], 1)
+    chord = np.stack([np.arctan2(jy[:, r[-1] + 1] - jy[:, r[0]], jx[:, r[-1] + 1] - jx[:, r[0]]) for r in runs], 1)
+    spec = np.fft.rfft(chord, axis=0) / samples
+    return 2 * spec[1:HARMONICS + 1].real.T, -2 * spec[1:HARMONICS + 1].imag.T
 
 
 def wave_eval(g: dict, x: np.ndarray, t: np.ndarray):
@@ -185,10 +249,10 @@ def wave_eval(g: dict, x: np.ndarray, t: np.ndarray):
     return T0 @ s.T, T1 @ s.T, T2 @ s.T, T0 @ sx.T, T1 @ sx.T, T2 @ sx.T
 
 
-def nominal_x() -> tuple[np.ndarray, np.ndarray]:
+def nominal_x(links=LINKS) -> tuple[np.ndarray, np.ndarray]:
     """x of the joints (links+1, tip last) and of the link parts' centres, tail straight."""
-    joints = JOINT0_X + np.concatenate([[0.0], np.cumsum([lk[0] for lk in LINKS])])
-    centres = joints[:-1] + np.array([lk[1] for lk in LINKS])
+    joints = JOINT0_X + np.concatenate([[0.0], np.cumsum([lk[0] for lk in links])])
+    centres = joints[:-1] + np.array([lk[1] for lk in links])
     return joints, centres
 
 
@@ -199,7 +263,7 @@ def tip_motion(g: dict, t: np.ndarray):
         return y[:, 0], yt[:, 0], yx[:, 0]
     pts = tail_points(g, t)
     psi, psid, _ = link_motion(g, t)
-    lengths = np.array([lk[0] for lk in LINKS])
+    lengths = np.array([lk[0] for lk in g.get("links", LINKS)])
     yt = (lengths[None, :] * np.cos(psi) * psid).sum(axis=1)
     return pts[:, -1, 1], yt, np.tan(psi[:, -1])
 
@@ -219,7 +283,8 @@ def link_motion(g: dict, t: np.ndarray):
 
 def part_table(g: dict, t: np.ndarray, prt: dict | None = None) -> np.ndarray:
     """(T, parts, ROW) head-frame kinematics of every part at times t."""
-    prt = prt or parts()
+    links = g.get("links", LINKS)
+    prt = prt or parts(links)
     if g.get("mode") == "wave":
         return _wave_table(g, t, prt)
     psi, psid, psidd = link_motion(g, t)
@@ -227,7 +292,7 @@ def part_table(g: dict, t: np.ndarray, prt: dict | None = None) -> np.ndarray:
     jx, jy = np.full(n, JOINT0_X), np.zeros(n)
     jdx, jdy, jddx, jddy = (np.zeros(n) for _ in range(4))
     frames = []
-    for i, (length, *_rest) in enumerate(LINKS):
+    for i, (length, *_rest) in enumerate(links):
         c, s = np.cos(psi[:, i]), np.sin(psi[:, i])
         frames.append((jx, jy, jdx, jdy, jddx, jddy, c, s, psid[:, i], psidd[:, i]))
         w, al = psid[:, i], psidd[:, i]
@@ -250,7 +315,7 @@ def part_table(g: dict, t: np.ndarray, prt: dict | None = None) -> np.ndarray:
 
 
 def _wave_table(g: dict, t: np.ndarray, prt: dict) -> np.ndarray:
-    _, centres = nominal_x()
+    _, centres = nominal_x(g.get("links", LINKS))
     table = np.zeros((len(t), len(prt["link"]), kern.ROW))
     for e, (lk, d) in enumerate(zip(prt["link"], prt["offset"])):
         if lk < 0:
@@ -270,13 +335,14 @@ def _wave_table(g: dict, t: np.ndarray, prt: dict) -> np.ndarray:
 
 def tail_points(g: dict, t: np.ndarray) -> np.ndarray:
     """(T, links+1, 2) head-frame joint positions (for drawing the simulated fish)."""
+    links = g.get("links", LINKS)
     if g.get("mode") == "wave":
-        joints, _ = nominal_x()
+        joints, _ = nominal_x(links)
         y = wave_eval(g, joints, t)[0]
         return np.stack([np.broadcast_to(joints, y.shape), y], axis=-1)
     psi, _, _ = link_motion(g, t)
     pts = [np.stack([np.full(len(t), JOINT0_X), np.zeros(len(t))], axis=1)]
-    for i, (length, *_r) in enumerate(LINKS):
+    for i, (length, *_r) in enumerate(links):
         pts.append(pts[-1] + length * np.stack([np.cos(psi[:, i]), np.sin(psi[:, i])], axis=1))
     return np.stack(pts, axis=1)
 
@@ -287,16 +353,22 @@ DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/tes
 def build_batch(rates, device: str = "cpu", dt: float = DEFAULT_DT, warm_seconds: float = 2.0,
                 meas_seconds: float = 3.0, virtual_mass: bool = False, gaits=None,
                 rho: float = 1000.0, mu: float = 0.0013, max_warm_seconds: float | None = 40.0,
-                settle: float = 2e-4, scheme: int = 2):
+                settle: float = 2e-4, scheme: int = 2, bodies: int | None = None):
     """SwimBatch for these rates: dt fitted to the tail beat; warm-up of whole beats, at least
     warm_seconds and until the beat-averaged surge changes by less than `settle` m/s (+0.2 %)
     between beats (at most max_warm_seconds; None: exactly warm_seconds); then whole beats
-    covering meas_seconds for the speed."""
-    prt = parts()
+    covering meas_seconds for the speed. `bodies`: tail bodies (merge_links); default: the
+    given gaits' tail, else the full one."""
+    if bodies is None:
+        bodies = len(gaits[0].get("links", LINKS)) if gaits is not None else len(LINKS)
+    links = merge_links(bodies)
+    prt = parts(links)
     tables, offs, n_per, dts, n_warm, n_meas, max_warm = [], [], [], [], [], [], []
     off = 0
     for i, r in enumerate(rates):
-        g = gaits[i] if gaits is not None else gait(r)
+        g = gaits[i] if gaits is not None else gait(r, bodies=bodies)
+        if len(g["a"]) != len(links):
+            raise ValueError(f"gait has {len(g['a'])} link angles, the tail {len(links)} links")
         period = 1.0 / g["freq"]
         n = int(np.ceil(period / dt))
         step = period / n

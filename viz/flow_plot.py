@@ -10,8 +10,12 @@ from wrenorm.viz.plots import _figure, save_figure
 
 
 def _axis(flow):
+    """The resolution key the flow varies: the first numeric one whose value differs between points
+    (a flow over rope time steps also records its fixed segment count first); with one point, the
+    first numeric key."""
     res = [p["resolution"] for p in flow["points"]]
-    key = next(k for k, v in res[0].items() if isinstance(v, (int, float)))
+    numeric = [k for k, v in res[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    key = next((k for k in numeric if len({r.get(k) for r in res}) > 1), numeric[0])
     return key, np.array([r[key] for r in res], float)
 
 

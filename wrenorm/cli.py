@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     for task in TASKS:
         fp = flow_sub.add_parser(task, help=f"resolution flow of the {task} system")
         fp.add_argument("--resolutions", type=float, nargs="+", default=None,
-                        help="pd: f_sim [Hz]; rope: segment counts; swimmer: time steps [s]")
+                        help="pd: f_sim [Hz]; rope: segment counts (--axis dt: steps [s]); "
+                             "swimmer: time steps [s] (--axis bodies: tail bodies)")
         fp.add_argument("--out", type=Path, default=None)
         fp.add_argument("--seed", type=_positive_int, default=0)
         fp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")

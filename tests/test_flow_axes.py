@@ -1,0 +1,119 @@
+"""Resolution flow over further axes: rope time step, swimmer tail-body count (merged links)."""
+import json
+
+import numpy as np
+import pytest
+
+from wrenorm.cli import main
+from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
+from wrenorm.viz.flow_plot import _axis
+
+
+@pytest.fixture(scope="module")
+def rates():
+    return sd.load_builtin()
+
+
+def _straight(links):
+    """Total length, mass, first mass moment and yaw inertia about the first joint, lateral
+    projected area and volume (up to 4/3 pi) of a straight tail."""
+    start = np.concatenate([[0.0], np.cumsum([lk[0] for lk in links])[:-1]])
+    x = start + np.array([lk[1] for lk in links])
+    r = np.array([lk[2] for lk in links])
+    m = np.array([lk[3] for lk in links])
+    j = np.array([lk[4] for lk in links])
+    return np.array([sum(lk[0] for lk in links), m.sum(), (m * x).sum(), (j + m * x * x).sum(),
+                     (r[:, 0] * r[:, 2]).sum(), r.prod(1).sum()])
+
+
+@pytest.mark.parametrize("bodies", [2, 3, 4, 5])
+def test_merged_tail_keeps_length_mass_inertia_area_volume(bodies):
+    merged = sb.merge_links(bodies)
+    assert len(merged) == bodies
+    assert merged[-1] == sb.LINKS[-1]  # the fin stays its own body
+    np.testing.assert_allclose(_straight(merged), _straight(sb.LINKS), rtol=1e-12)
+
+
+def test_all_bodies_is_the_default_fish_bit_for_bit(rates):
+    assert sb.merge_links(len(sb.LINKS)) == sb.LINKS
+    vals = np.array([swimmer.parameter_space().measured, [0.2, 5.0, 1.0, 2.0, 0.1]])
+    default = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
+    full = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016, bodies=6)
+    conds = default.train + default.held_out
+    assert np.array_equal(default.speeds(vals, conds), full.speeds(vals, conds))
+    coarse = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016, bodies=2)
+    sp = coarse.speeds(vals, conds)
+    assert np.all(np.isfinite(sp)) and np.abs(sp - default.speeds(vals, conds)).max() > 1e-3
+
+
+def test_merged_joints_move_with_the_robots(rates):
+    """The joints a merged tail keeps follow the full gait's joints at its run ends, off by the
+    foreshortening of one straight link over a bent run: less the shorter the runs."""
+    for rate in rates:
+        t = np.linspace(0.0, 1.0 / rate.tail_freq, 40, endpoint=False)
+        full = sb.tail_points(sb.gait(rate), t)
+        amp = np.abs(full[:, -1, 1]).max()
+        assert amp > 0.05
+        err = {}
+        for bodies in (2, 3, 5):
+            pts = sb.tail_points(sb.gait(rate, bodies=bodies), t)
+            assert pts.shape == (40, bodies + 1, 2)
+            ends = [r[-1] + 1 for r in sb.merge_runs(bodies)]
+            err[bodies] = np.abs(pts[:, 1:] - full[:, ends]).max() / amp
+        assert err[5] < err[3] < err[2] < 0.1 and err[5] < 0.02
+
+
+def test_merged_fish_without_water_keeps_its_centre_of_mass(rates):
+    """Momentum balance of the merged parts: with no fluid the tail only shakes the head."""
+    rate, dt = rates[1], 0.002
+    links = sb.merge_links(2)
+    g = sb.gait(rate, bodies=2)
+    prt = sb.parts(links)
+    m = prt["inert"][:, 0]
+    sim = sb.build_batch([rate], dt=dt, rho=0.0, mu=0.0, warm_seconds=0.0, meas_seconds=2.0,
+                         max_warm_seconds=None, gaits=[g])
+    _, traj, _ = sim.run(np.array([[0.4, 7.79, 2.81, 3.84, 0.27]]), rec_stride=10,
+                         rec_frames=int(sim.steps[0]) // 10)
+    period = 1.0 / g["freq"]
+    n = int(np.ceil(period / dt))
+    tab = sb.part_table(g, np.arange(n) * (period / n), prt)
+    com = []
+    for X, Y, th, k in traj[0, 0]:
+        loc = (m[:, None] * tab[int(k), :, :2]).sum(0) / m.sum()
+        c, s = np.cos(th), np.sin(th)
+        com.append([X + c * loc[0] - s * loc[1], Y + s * loc[0] + c * loc[1]])
+    com = np.array(com)
+    assert np.abs(traj[0, 0, :, :2]).max() > 0.003
+    assert np.abs(com - com[0]).max() < 5e-4
+
+
+def test_swimmer_flow_over_tail_bodies(tmp_path):
+    out = tmp_path / "flow"
+    assert main(["flow", "swimmer", "--axis", "bodies", "--resolutions", "2", "6", "--dt", "0.016",
+                 "--out", str(out), "--quiet", "--no-record", "--restarts", "2", "--generations", "3"]) == 0
+    flow = json.loads((out / "flow.json").read_text())
+    assert [p["resolution"]["tail_bodies"] for p in flow["points"]] == [6, 2]
+    assert all(p["resolution"]["dt"] == 0.016 for p in flow["points"])
+    key, x = _axis(flow)
+    assert key == "tail_bodies" and x.tolist() == [6.0, 2.0]
+    assert (out / "flow.png").stat().st_size > 10_000
+    assert main(["flow", "swimmer", "--axis", "bodies", "--resolutions", "1", "--out", str(tmp_path / "bad")]) == 2
+
+
+def test_rope_flow_over_time_step(tmp_path):
+    out = tmp_path / "flow"
+    assert main(["flow", "rope", "--axis", "dt", "--resolutions", "0.01", "0.005", "--segments", "6",
+                 "--out", str(out), "--quiet", "--no-record", "--restarts", "2", "--generations", "2"]) == 0
+    flow = json.loads((out / "flow.json").read_text())
+    assert [p["resolution"]["dt"] for p in flow["points"]] == [0.005, 0.01]
+    assert all(p["resolution"]["segments"] == 6 for p in flow["points"])
+    key, x = _axis(flow)
+    assert key == "dt" and x.tolist() == [0.005, 0.01]
+    assert main(["flow", "rope", "--axis", "dt", "--resolutions", "0.2", "--out", str(tmp_path / "bad")]) == 2
+
+
+def test_plot_axis_is_the_varied_key():
+    pts = lambda *res: {"points": [{"resolution": r} for r in res]}  # noqa: E731
+    assert _axis(pts({"segments": 10, "dt": 0.01, "on": True}, {"segments": 10, "dt": 0.005, "on": False}))[0] == "dt"
+    assert _axis(pts({"segments": 6, "masses": 7}, {"segments": 10, "masses": 11}))[0] == "segments"
+    assert _axis(pts({"gait": "chain", "dt": 0.01}))[0] == "dt"
