@@ -323,6 +323,8 @@ def _common_arguments(p: argparse.ArgumentParser) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     _common_arguments(p)
     p.add_argument("--dt", type=float, default=body.DEFAULT_DT, help="simulation step [s] (fitted to a whole tail beat)")
+    p.add_argument("--bodies", type=int, default=len(body.LINKS),
+                   help=f"tail bodies (2..{len(body.LINKS)}: consecutive plates merged; default: every plate and the fin)")
     p.add_argument("--generations", type=int, default=GENERATIONS)
     p.add_argument("--popsize", type=int, default=POPSIZE)
     p.add_argument("--restarts", type=int, default=4,
@@ -358,7 +360,8 @@ def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LIN
 def build_problem(args, device: str) -> SwimmerProblem:
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
-    return _problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)))
+    return _problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)),
+                    _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies"))
 
 
 # --- resolution flow ---------------------------------------------------------------------------
