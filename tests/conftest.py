@@ -1,7 +1,6 @@
 import os
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
-os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.expanduser("~"), ".cache", "warp"))
 
 import warp as wp  # noqa: E402
 
