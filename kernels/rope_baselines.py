@@ -124,7 +124,6 @@ def _rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n:
     g = xp.asarray(np.array(gravity, np.float32))
     P = {f: xp.asarray(getattr(params, f)) for f in ChainParams.FIELDS}
     w = 1.0 / P["node_mass"]
-    wl = 1.0 / P["lead_mass"]
     k = xp.where(P["bend_k"] > 1e-12, P["bend_k"], 1e-12)
     alpha_t = (link * link / (k * dt * dt))[:, None]
     gamma = (P["bend_b"] / (k * dt))[:, None]

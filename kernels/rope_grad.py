@@ -23,7 +23,7 @@ def _step_kernel(n: int, iters: int):
     key = (int(n), int(iters))
     if key in _CACHE:
         return _CACHE[key]
-    N, NM1, LAST, ITERS = n, n - 1, n - 1, iters
+    N, LAST, ITERS = n, n - 1, iters
     BEND_ORDER = [i for c in range(3) for i in range(1 + c, n - 1, 3)]
     LINK_ORDER = [i for p in range(2) for i in range(p, n - 1, 2)]
     NBEND, NLINK = len(BEND_ORDER), len(LINK_ORDER)

@@ -302,7 +302,6 @@ class PDProblem(Problem):
         return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name}
 
     def record(self, rec, fitted, measured):
-        conds = self.train + self.held_out
         for group in (self.train, self.held_out):
             traj = self.trajectories(np.stack([measured, fitted]), group)
             for j, c in enumerate(group):
@@ -318,7 +317,6 @@ class PDProblem(Problem):
                 rec.add_view(f"{split}: {c.name} q", [f"/{who}/{split}/{c.name}/**" for who in ("reference", "measured", "fitted")])
                 rec.add_view(f"{split}: {c.name} q - q_ref", [f"/{who}/residual/{split}/{c.name}" for who in ("measured", "fitted")])
         rec.add_view("summary", ["/summary"], "text")
-        del conds
 
 
 # Effective delay of each integrator, derived on the staggered grid each scheme implies

@@ -318,7 +318,7 @@ class RopeProblem(Problem):
         if not miss.any():
             return out
         res = self.simulate(values, conditions, trajectory_every=1)
-        B, C = values.shape[0], len(conditions)
+        C = len(conditions)
         s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
         for i, j in zip(*np.nonzero(miss)):
             cs = conditions[j].data

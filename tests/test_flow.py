@@ -1,7 +1,6 @@
 """Resolution flow and identifiability."""
 import json
 
-import numpy as np
 import pytest
 
 from wrenorm.cli import main

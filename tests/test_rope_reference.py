@@ -16,7 +16,7 @@ from wrenorm.tasks.rope_collision import candidate_pairs, segment_distances
 from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
 from wrenorm.tasks.rope_reference import (
     RopeReference, builtin_reference_path, builtin_references, first_self_collision, load_reference,
-    save_reference, validate_arrays)
+    save_reference)
 
 L, R, M = 1.1, 0.005, 23
 

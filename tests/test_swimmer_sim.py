@@ -1,5 +1,4 @@
 """Swimmer simulation: conservation checks, step-size convergence and a known-truth fit."""
-import argparse
 
 import cma
 import numpy as np

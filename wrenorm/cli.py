@@ -173,7 +173,7 @@ def cmd_view(args) -> int:
     if not rrd.exists():
         raise InputError(str(run), "recording.rrd", "no recording in this run folder")
     try:
-        import rerun as rr
+        import rerun  # noqa: F401  (the viewer ships with rerun-sdk)
     except ImportError:
         raise InputError("view", "rerun-sdk", "not installed: pip install 'wrenorm[viz]'") from None
     import subprocess

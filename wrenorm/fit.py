@@ -144,7 +144,7 @@ def run_fit(
         result.update(extra)
     if record:
         _record(problem, out, result, history, fitted, measured, quiet)
-    _plot(out, problem, history, quiet)
+    _plot(out, problem, history)
     result["wall_seconds"] = time.perf_counter() - t0
     write_json(out / "result.json", result)
     return result
@@ -189,7 +189,7 @@ def _record(problem, out, result, history, fitted, measured, quiet):
         raise
 
 
-def _plot(out, problem, history, quiet):
+def _plot(out, problem, history):
     try:
         from wrenorm.viz.plots import plot_search
     except ImportError:  # matplotlib missing: plots are a convenience, never fatal
