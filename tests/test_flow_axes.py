@@ -8,6 +8,8 @@ from wrenorm.cli import main
 from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
 from wrenorm.viz.flow_plot import _axis
 
+from swimmer_checks import com_drift
+
 
 @pytest.fixture(scope="module")
 def rates():
@@ -65,26 +67,9 @@ def test_merged_joints_move_with_the_robots(rates):
 
 def test_merged_fish_without_water_keeps_its_centre_of_mass(rates):
     """Momentum balance of the merged parts: with no fluid the tail only shakes the head."""
-    rate, dt = rates[1], 0.002
-    links = sb.merge_links(2)
-    g = sb.gait(rate, bodies=2)
-    prt = sb.parts(links)
-    m = prt["inert"][:, 0]
-    sim = sb.build_batch([rate], dt=dt, rho=0.0, mu=0.0, warm_seconds=0.0, meas_seconds=2.0,
-                         max_warm_seconds=None, gaits=[g])
-    _, traj, _ = sim.run(np.array([[0.4, 7.79, 2.81, 3.84, 0.27]]), rec_stride=10,
-                         rec_frames=int(sim.steps[0]) // 10)
-    period = 1.0 / g["freq"]
-    n = int(np.ceil(period / dt))
-    tab = sb.part_table(g, np.arange(n) * (period / n), prt)
-    com = []
-    for X, Y, th, k in traj[0, 0]:
-        loc = (m[:, None] * tab[int(k), :, :2]).sum(0) / m.sum()
-        c, s = np.cos(th), np.sin(th)
-        com.append([X + c * loc[0] - s * loc[1], Y + s * loc[0] + c * loc[1]])
-    com = np.array(com)
-    assert np.abs(traj[0, 0, :, :2]).max() > 0.003
-    assert np.abs(com - com[0]).max() < 5e-4
+    drift, excursion = com_drift(rates[1], 0.002, bodies=2, seconds=2.0)
+    assert excursion > 0.003
+    assert drift < 5e-4
 
 
 def test_swimmer_flow_over_tail_bodies(tmp_path):

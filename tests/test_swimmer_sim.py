@@ -6,7 +6,8 @@ import pytest
 
 from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
 
-PUBLISHED = np.array([0.4, 7.79, 2.81, 3.84, 0.27])
+from swimmer_checks import PUBLISHED, com_drift
+
 
 
 @pytest.fixture(scope="module")
@@ -25,31 +26,11 @@ def test_no_fluid_no_gait_no_motion(rates):
     assert np.all(sim.last_state[0, 0, :6] == 0.0)
 
 
-def _com_drift(rate, dt):
-    g = sb.gait(rate)
-    prt = sb.parts()
-    m = prt["inert"][:, 0]
-    sim = sb.build_batch([rate], dt=dt, rho=0.0, mu=0.0, warm_seconds=0.0, meas_seconds=4.0,
-                         max_warm_seconds=None, gaits=[g])
-    stride = 10
-    _, traj, _ = sim.run(PUBLISHED[None], rec_stride=stride, rec_frames=int(sim.steps[0]) // stride)
-    period = 1.0 / g["freq"]
-    n = int(np.ceil(period / dt))
-    tab = sb.part_table(g, np.arange(n) * (period / n), prt)
-    com = []
-    for X, Y, th, k in traj[0, 0]:
-        loc = (m[:, None] * tab[int(k), :, :2]).sum(0) / m.sum()
-        c, s = np.cos(th), np.sin(th)
-        com.append([X + c * loc[0] - s * loc[1], Y + s * loc[0] + c * loc[1]])
-    com = np.array(com)
-    return np.abs(com - com[0]).max(), np.abs(traj[0, 0, :, :2]).max()
-
-
 def test_no_fluid_centre_of_mass_stays_put(rates):
     """Without water the tail only shakes the head: momentum stays zero, the centre of mass fixed
     (to the integrator's first order)."""
-    coarse, excursion = _com_drift(rates[1], 0.004)
-    fine, _ = _com_drift(rates[1], 0.001)
+    coarse, excursion = com_drift(rates[1], 0.004)
+    fine, _ = com_drift(rates[1], 0.001)
     assert excursion > 0.003          # the head does move
     assert coarse < 1e-3 and fine < 0.4 * coarse
 
