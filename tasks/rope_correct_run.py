@@ -23,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted correction in --out with its saved settings; real trials "
+                        "already run are read back, not run again")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
     p.add_argument("--variant", default="default", help="real rope material: default|stiff|soft|heavy")
@@ -80,7 +83,7 @@ def run(args) -> int:
     from wrenorm.tasks import rope_critical as crit
     from wrenorm.tasks.rope import RopeProblem
     from wrenorm.tasks.rope_command import CommandSpace
-    from wrenorm.tasks.rope_correct import (CoarseModel, CoarseRope, NewtonRope, correct, fit_parameters,
+    from wrenorm.tasks.rope_correct import (CoarseModel, CoarseRope, NewtonRope, StoredTrials, correct, fit_parameters,
                                             parameters_from_file, trial_rows)
     from wrenorm.tasks.rope_newton import get_variant
     from wrenorm.tasks.rope_paths import get_hand_path
@@ -91,6 +94,8 @@ def run(args) -> int:
 
     from wrenorm.cli import _device
 
+    if args.resume:
+        _restore_settings(args)
     get_variant(args.variant)
     args.device = _device(args.device)
     if not 1 <= args.max_trials <= 100:
@@ -108,8 +113,12 @@ def run(args) -> int:
             raise InputError(label, "--params", "is neither 'measured', 'fitted' nor an existing result.json")
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     space = CommandSpace(start_path)
-    out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
-                      resume=False, force=args.force)
+    if args.resume:
+        out = Path(args.out)
+    else:
+        out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
+                          resume=False, force=args.force)
+        write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
     goal_ref = _goal_reference(args.goal, args.variant, progress)
@@ -128,6 +137,9 @@ def run(args) -> int:
         goal_ref = real(goal_path)
         real_doc = f"coarse chain with the fitted {args.variant} parameters (stand-in for the real rope)"
     goal = crit.Goal.from_reference(goal_ref)
+    real = StoredTrials(real, out / "real-trials")
+    if real.folder.exists() and any(real.folder.iterdir()):
+        progress(f"resuming: {len(list(real.folder.glob('trial-*.npz')))} real trials on record in {real.folder}")
 
     u0 = np.zeros(space.dim)
     if args.perturb > 0:
@@ -176,7 +188,7 @@ def run(args) -> int:
                      "place_from": "coarse model" if args.model_place else "trials"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
                  for label, r in runs.items()},
-        "real_runs": real.runs, "real_wall_s": real.wall_s,
+        "real_runs": real.runs, "real_trials_read_back": real.reused, "real_wall_s": real.wall_s,
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
     }
     write_json(out / "correct.json", result)
@@ -190,6 +202,28 @@ def run(args) -> int:
         print(f"{label:>9}: {verdict}; errors {errs}")
     print(f"\nresult: {out / 'correct.json'}  plot: {out / 'correct.png'}")
     return 0
+
+
+SETTINGS_FILE = "settings.json"
+_NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
+
+
+def _restore_settings(args) -> None:
+    """--resume: take every setting from the interrupted run, so its plans and trials repeat exactly."""
+    import json
+
+    if args.out is None:
+        raise InputError("--resume", "out", "name the folder of the interrupted correction with --out")
+    f = Path(args.out) / SETTINGS_FILE
+    if not f.is_file():
+        raise InputError(str(args.out), "--resume", f"no {SETTINGS_FILE} of an interrupted correction in this folder")
+    try:
+        saved = json.loads(f.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(str(f), SETTINGS_FILE, f"cannot be read: {e}") from None
+    for key, value in saved.items():
+        if key not in _NOT_SAVED:
+            setattr(args, key, value)
 
 
 def _default(name: str, method: str) -> float:

@@ -247,3 +247,50 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert main(["correct", "rope", "--variant", "rubber", "--out", str(tmp_path / "o")]) == 2
     assert "variant" in capsys.readouterr().err
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
+
+
+CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",
+                 "--generations", "8", "--popsize", "16", "--max-trials", "4", "--params", "measured",
+                 "--tolerance", "0.001", "--no-record", "--quiet"]
+
+
+def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path):
+    """An interrupted correction (here: all but its first two real trials lost) resumes with its saved
+    settings, reads the two trials back instead of re-running them, and ends exactly where an
+    uninterrupted run ends."""
+    import shutil
+
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope_correct import StoredTrials
+
+    full = tmp_path / "full"
+    assert main(CORRECT_QUICK + ["--out", str(full)]) == 0
+    done = json.loads((full / "correct.json").read_text())
+    trials = done["runs"]["measured"]["trials"]
+    assert len(trials) == 4 and done["real_trials_read_back"] == 0
+
+    cut = tmp_path / "cut"
+    shutil.copytree(full, cut)
+    (cut / "correct.json").unlink()
+    store = StoredTrials(None, cut / "real-trials")
+    keep = {store.file_for(CommandSpace(PATHS["flick"]).decode(np.array(t["command_u"]))).name for t in trials[:2]}
+    for f in store.folder.glob("trial-*.npz"):
+        if f.name not in keep:
+            f.unlink()
+    assert len(list(store.folder.glob("trial-*.npz"))) == 2
+    # settings come from the folder: options given now (other than --out) are ignored
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--max-trials", "9", "--out", str(cut)]) == 0
+    again = json.loads((cut / "correct.json").read_text())
+    assert again["real_trials_read_back"] == 2 and again["real_runs"] == done["real_runs"] - 2
+    assert [t["error"] for t in again["runs"]["measured"]["trials"]] == [t["error"] for t in trials]
+    assert again["max_trials"] == 4
+
+
+def test_correct_resume_without_saved_settings_exits_2(tmp_path, capsys):
+    from wrenorm.cli import main
+
+    (tmp_path / "empty").mkdir()
+    assert main(["correct", "rope", "--resume", "--out", str(tmp_path / "empty")]) == 2
+    assert "settings.json" in capsys.readouterr().err
+    assert main(["correct", "rope", "--resume"]) == 2
+    assert "--out" in capsys.readouterr().err

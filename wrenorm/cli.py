@@ -30,9 +30,9 @@ def _device(name: str) -> str:
 
     wp.config.quiet = True
     wp.init()
-    if name == "cuda" and not wp.is_cuda_available():
+    if name.startswith("cuda") and not wp.is_cuda_available():
         raise InputError("--device", "device", "cuda requested but no CUDA device is available")
-    return "cuda:0" if name == "cuda" else "cpu"
+    return "cuda:0" if name.startswith("cuda") else "cpu"
 
 
 def _positive_int(text: str) -> int:
