@@ -62,3 +62,36 @@ def test_yaw_estimator_recovers_known_amplitude():
     markers[:, 0] = front
     markers[:, 1] = [2.0, 1.0]
     np.testing.assert_allclose(sd.yaw_amplitude(markers, f, fps), amp, rtol=1e-6)
+
+
+def test_real_heading_on_a_synthetic_crabbing_turning_fish():
+    """A head that travels along +x while its marker axis points 20 deg off the tailward direction and
+    turns by 10 deg over the clip: path direction 0, crab ~ -(20 + 5), turn 10."""
+    fps, secs, freq = 50.0, 4.0, 1.0
+    t = np.arange(int(fps * secs)) / fps
+    yaw = np.radians(180.0 + 20.0 + 10.0 * t / secs) + 0.1 * np.sin(2 * np.pi * freq * t)
+    head = np.stack([0.05 * t, np.zeros_like(t)], 1)
+    axis = 0.04 * np.stack([np.cos(yaw), np.sin(yaw)], 1)
+    markers = np.zeros((len(t), 9, 2))
+    markers[:, 0], markers[:, 1] = head - axis / 2, head + axis / 2
+    h = swimmer.real_heading(sd.Rate(label=1.0, markers=markers, fps=fps, tail_freq=freq))
+    assert abs(h["path_direction_deg"]) < 1e-9
+    assert h["turn_deg"] == pytest.approx(10.0 * (secs - 1.0) / secs, abs=0.2)
+    assert h["crab_deg"] == pytest.approx(-25.0, abs=0.3)
+
+
+def test_simulated_fish_in_the_view_start_at_the_real_head_and_follow_the_real_path(rates):
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
+    cond = prob.train[0]
+    rate = prob.rates[cond.name]
+    real_dir = swimmer.real_heading(rate)["path_direction_deg"]
+    for align in (True, False):
+        bodies = prob.simulated_bodies(cond, prob.space.measured, duration=3.0, every=0.1, align_path=align)
+        head = np.array([0.5 * (p[0] + p[1]) for _, p in bodies])
+        assert np.linalg.norm(head[0] - 0.5 * (rate.markers[0, 0] + rate.markers[0, 1])) < 0.01
+        d = head[-1] - head[0]
+        off = (np.degrees(np.arctan2(d[1], d[0])) - real_dir + 180.0) % 360.0 - 180.0
+        if align:
+            assert abs(off) < 1e-6
+        else:
+            assert abs(off) > 5.0  # started at the real head pose, the straight-swimming model drifts off
