@@ -19,6 +19,7 @@ def test_bench_writes_results_and_table(tmp_path):
     assert res["pd"][0]["joint_steps_per_s"] > 0
     table = (out / "results.md").read_text()
     assert "x numpy" in table and "PD joint" in table
+    assert (out / "results.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_bench_refuses_nonpositive_batches(tmp_path, capsys):

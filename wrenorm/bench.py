@@ -193,6 +193,9 @@ def run(args) -> int:
     table = _table(res)
     write_json(args.out / "results.json", res)
     write_atomic(args.out / "results.md", table)
+    from wrenorm.viz.bench_plot import plot_bench
+
+    plot_bench(args.out / "results.png", res)
     print(table)
-    print(f"written: {args.out / 'results.json'}, {args.out / 'results.md'}")
+    print(f"written: {args.out / 'results.json'}, {args.out / 'results.md'}, {args.out / 'results.png'}")
     return 0
