@@ -45,6 +45,32 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _parameter_set_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--free", nargs="+", default=[], metavar="NAME",
+                   help="also fit these parameters (expand the set when the held-out verdict says 'expand')")
+    p.add_argument("--freeze", nargs="+", default=[], metavar="NAME",
+                   help="hold these parameters at their measured values")
+
+
+def _apply_parameter_set(problems, args) -> None:
+    """--free / --freeze: the paper's procedure starts from the smallest set and grows it when
+    held-out conditions say the omitted physics was not absorbed."""
+    free, freeze = list(getattr(args, "free", [])), list(getattr(args, "freeze", []))
+    both = sorted(set(free) & set(freeze))
+    if both:
+        raise InputError("--free/--freeze", ",".join(both), "named both free and frozen")
+    if not (free or freeze):
+        return
+    changes = {n: {"frozen": False} for n in free} | {n: {"frozen": True} for n in freeze}
+    for pb in problems:
+        try:
+            pb.space = pb.space.with_changes(**changes)
+        except InputError as e:
+            raise InputError("--free/--freeze", e.field, e.problem) from None
+        if not pb.space.free:
+            raise InputError("--freeze", ",".join(freeze), f"leaves no free parameter of {pb.space.names}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="wrenorm", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -59,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
         tp.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder")
         tp.add_argument("--quiet", action="store_true", help="no progress lines")
         tp.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
+        _parameter_set_arguments(tp)
         try:
             _task_module(task).add_arguments(tp)
         except ModuleNotFoundError:
@@ -71,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="pd: f_sim [Hz]; rope: segment counts (--axis dt: steps [s]); "
                              "swimmer: time steps [s] (--axis bodies: tail bodies)")
         fp.add_argument("--out", type=Path, default=None)
+        _parameter_set_arguments(fp)
         fp.add_argument("--seed", type=_positive_int, default=0)
         fp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
         fp.add_argument("--force", action="store_true")
@@ -119,6 +147,7 @@ def cmd_fit(args) -> int:
     device = _device(args.device)
     mod = _task_module(args.task)
     problems = mod.build_problems(args, device) if hasattr(mod, "build_problems") else [mod.build_problem(args, device)]
+    _apply_parameter_set(problems, args)
     out = prepare_out(args.out or _default_out(args.task), resume=args.resume, force=args.force)
     print(f"wrenorm fit {args.task}: writing {out}", file=sys.stderr)
     result = run_fits(problems, out, args, mod)
@@ -155,6 +184,7 @@ def cmd_flow(args) -> int:
     if args.restarts < 2:
         raise InputError("--restarts", "restarts", "need at least 2 searches for a spread")
     problems = mod.flow_problems(args, device)
+    _apply_parameter_set(problems, args)
     out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=False, force=args.force)
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet,
                     generations=args.generations or getattr(mod, "FLOW_GENERATIONS", 60),

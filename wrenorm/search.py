@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import AllCandidatesFailed
+from .errors import AllCandidatesFailed, InputError
 from .problem import Problem, finite_or_inf
 from .results import write_atomic
 
@@ -74,6 +74,11 @@ def cmaes(
     if resume and checkpoint and Path(checkpoint).exists():
         with open(checkpoint, "rb") as f:
             state = pickle.load(f)
+        saved_free = state.get("free", [p.name for p in space.free])
+        if saved_free != [p.name for p in space.free]:
+            raise InputError(str(checkpoint), "free parameters",
+                             f"the interrupted search fits {saved_free}, this run {[p.name for p in space.free]}; "
+                             "resume with the same --free/--freeze")
         es, history, counts = state["es"], state["history"], state["counts"]
         np.random.set_state(state["np_random"])
         _progress(f"resuming {problem.task} search at generation {len(history)}", quiet)
@@ -131,7 +136,8 @@ def cmaes(
             quiet,
         )
         if checkpoint:
-            blob = {"es": es, "history": history, "counts": counts, "best": best, "np_random": np.random.get_state()}
+            blob = {"es": es, "history": history, "counts": counts, "best": best, "np_random": np.random.get_state(),
+                    "free": [p.name for p in space.free]}
             write_atomic(checkpoint, pickle.dumps(blob))
         if _SLOW:  # fault-injection hook for the kill -9 / --resume test
             time.sleep(_SLOW)
