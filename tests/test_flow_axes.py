@@ -102,3 +102,30 @@ def test_plot_axis_is_the_varied_key():
     assert _axis(pts({"segments": 10, "dt": 0.01, "on": True}, {"segments": 10, "dt": 0.005, "on": False}))[0] == "dt"
     assert _axis(pts({"segments": 6, "masses": 7}, {"segments": 10, "masses": 11}))[0] == "segments"
     assert _axis(pts({"gait": "chain", "dt": 0.01}))[0] == "dt"
+
+
+def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path):
+    """A flow killed after its first resolution (its points file cut back to that point) resumes from
+    there and ends with the same points as the uninterrupted flow."""
+    import shutil
+
+    args = ["flow", "rope", "--axis", "dt", "--resolutions", "0.01", "0.005", "0.0025", "--segments", "6",
+            "--quiet", "--no-record", "--restarts", "2", "--generations", "3"]
+    full = tmp_path / "full"
+    assert main([*args, "--out", str(full)]) == 0
+    done = json.loads((full / "flow.json").read_text())
+    cut = tmp_path / "cut"
+    shutil.copytree(full, cut)
+    (cut / "flow.json").unlink()
+    state = json.loads((cut / "flow_points.json").read_text())
+    first = state["points"][0]
+    state["points"], state["start"] = [dict(first, read_back=True)], [p["fitted"] for p in first["parameters"].values()]
+    (cut / "flow_points.json").write_text(json.dumps(state))
+    assert main([*args, "--out", str(cut), "--resume"]) == 0
+    again = json.loads((cut / "flow.json").read_text())["points"]
+    assert again[0].pop("read_back") is True  # the finished point was read back, not fitted again
+    assert again == done["points"]
+    # other options than the interrupted flow's are refused, as is a folder with nothing to resume
+    assert main([*args[:-1], "4", "--out", str(cut), "--resume"]) == 2
+    (tmp_path / "empty").mkdir()
+    assert main([*args, "--out", str(tmp_path / "empty"), "--resume"]) == 2

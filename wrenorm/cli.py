@@ -105,6 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
         fp.add_argument("--quiet", action="store_true")
         fp.add_argument("--no-record", action="store_true")
         fp.add_argument("--restarts", type=int, default=4, help="seeded CMA-ES searches side by side")
+        fp.add_argument("--resume", action="store_true",
+                        help="continue the interrupted flow in --out after its last finished resolution")
         fp.add_argument("--generations", type=int, default=None)
         try:
             mod = _task_module(task)
@@ -185,8 +187,13 @@ def cmd_flow(args) -> int:
         raise InputError("--restarts", "restarts", "need at least 2 searches for a spread")
     problems = mod.flow_problems(args, device)
     _apply_parameter_set(problems, args)
-    out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=False, force=args.force)
-    flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet,
+    if args.resume:
+        if args.out is None:
+            raise InputError("--resume", "out", "name the folder of the interrupted flow with --out")
+        out = Path(args.out)
+    else:
+        out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=False, force=args.force)
+    flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet, resume=args.resume,
                     generations=args.generations or getattr(mod, "FLOW_GENERATIONS", 60),
                     analytic=getattr(mod, "flow_analytic", None), record=not args.no_record)
     for pt in flow["points"]:

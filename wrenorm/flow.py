@@ -7,21 +7,47 @@ where the system exposes residuals, the Gauss-Newton std at the best optimum is 
 """
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
 from .results import SCHEMA, versions, write_json
 from .search import cmaes_restarts, mean_loss
 from .uncertainty import uncertainty
 
+POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
+
+
+def _settings(problems, seed, restarts, popsize, generations) -> dict:
+    return {"task": problems[0].task, "resolutions": [p.resolution for p in problems], "seed": seed,
+            "restarts": restarts, "popsize": popsize, "generations": generations,
+            "free": [[q.name for q in p.space.free] for p in problems]}
+
+
+def _resumed(out: Path, settings: dict) -> tuple[list, object]:
+    f = out / POINTS_FILE
+    if not f.is_file():
+        raise InputError(str(out), "--resume", f"no {POINTS_FILE} of an interrupted flow in this folder")
+    try:
+        saved = json.loads(f.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(str(f), POINTS_FILE, f"cannot be read: {e}") from None
+    if saved.get("settings") != json.loads(json.dumps(settings)):
+        raise InputError(str(f), "settings", "the interrupted flow ran other resolutions or search settings; "
+                                             "resume with the same options")
+    return saved["points"], (np.array(saved["start"]) if saved["start"] is not None else None)
+
 
 def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsize: int = 16,
-             generations: int = 60, quiet: bool = False, analytic=None, record: bool = True) -> dict:
+             generations: int = 60, quiet: bool = False, analytic=None, record: bool = True,
+             resume: bool = False) -> dict:
     t0 = time.perf_counter()
-    points, start = [], None
-    for prob in problems:
+    settings = _settings(problems, seed, restarts, popsize, generations)
+    points, start = _resumed(out, settings) if resume else ([], None)
+    for prob in problems[len(points):]:
         seeds = [seed + 1000 * k for k in range(restarts)]
         res = cmaes_restarts(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
         best = min(res, key=lambda r: r.best_loss)
@@ -46,6 +72,7 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
             point["analytic"] = analytic(prob, prob.space.as_dict(best.best_values))
         points.append(point)
         start = best.best_values
+        write_json(out / POINTS_FILE, {"settings": settings, "points": points, "start": start.tolist()})
     flow = {"schema": SCHEMA.replace("result", "flow"), "task": problems[0].task, "points": points,
             "uncertainty_method": f"std over {restarts} seeded CMA-ES restarts run side by side (std_restarts); "
                                   "Gauss-Newton sigma^2 (J^T J)^-1 where residuals exist (std_jacobian)",
