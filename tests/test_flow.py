@@ -25,6 +25,10 @@ def test_pd_flow_follows_kd_plus_dt_kp(tmp_path):
     # the delay is proportional to 1/f_sim
     assert delays[0] / delays[1] == pytest.approx(2.0, rel=0.05)
     assert delays[1] / delays[2] == pytest.approx(2.0, rel=0.05)
+    from wrenorm.viz.readback import entity_paths
+
+    paths = entity_paths(out / "recording.rrd")
+    assert {"/flow/K_D/fitted", "/flow/K_D/measured", "/flow/K_D/analytic", "/resolution/f_sim"} <= paths
 
 
 class WithIdleParameter(PDProblem):

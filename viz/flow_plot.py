@@ -61,19 +61,33 @@ def record_flow(path: Path, flow: dict) -> None:
     if not rerun_available():
         return
     key, x = _axis(flow)
+    res = [p["resolution"] for p in flow["points"]]
+    # the x axis the viewer draws is a timeline: a time step becomes a duration timeline (read as
+    # 10ms, 5ms, ...), an integer resolution (segments, bodies) a sequence; anything else its index
+    if all("dt" in r for r in res) and len({r["dt"] for r in res}) == len(res):
+        timeline, ticks = "dt", [float(r["dt"]) for r in res]
+    elif np.allclose(x, np.round(x)) and len(set(x)) == len(x):
+        timeline, ticks = key, [int(round(v)) for v in x]
+    else:
+        timeline, ticks = "resolution", list(range(len(res)))
     rec = Recorder(path, recording_id=f"flow-{flow['task']}")
     try:
-        # timeline "resolution" counts the fitted resolutions in order; its value is logged beside
-        for i, (pt, xv) in enumerate(zip(flow["points"], x)):
-            rec.log_scalar(f"flow/{key}", i, xv, timeline="resolution")
-            for name, p in pt["parameters"].items():
-                if p["frozen"]:
-                    continue
-                rec.log_scalar(f"flow/{name}/fitted", i, p["fitted"], timeline="resolution")
-                rec.log_scalar(f"flow/{name}/measured", i, p["measured"], timeline="resolution")
+        names = [n for n, p in flow["points"][0]["parameters"].items() if not p["frozen"]]
+        for pt, tick, xv in zip(flow["points"], ticks, x):
+            at = {"t": tick, "timeline": timeline}
+            rec.log_scalar(f"resolution/{key}", value=float(xv), **at)
+            for name in names:
+                p = pt["parameters"][name]
+                rec.log_scalar(f"flow/{name}/fitted", value=p["fitted"], **at)
+                rec.log_scalar(f"flow/{name}/measured", value=p["measured"], **at)
                 a = pt.get("analytic", {}).get(f"{name}_sim_first_order")
                 if a is not None:
-                    rec.log_scalar(f"flow/{name}/analytic", i, a, timeline="resolution")
+                    rec.log_scalar(f"flow/{name}/analytic", value=a, **at)
+        for name in names:
+            rec.add_view(f"{name}: fitted, measured" + (", analytic" if any(
+                f"{name}_sim_first_order" in pt.get("analytic", {}) for pt in flow["points"]) else "")
+                + f" against {timeline}", [f"/flow/{name}/**"])
+        rec.add_view(f"{key} at each point", ["/resolution/**"])
         rec.close()
     except BaseException:
         rec.abort()

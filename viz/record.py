@@ -15,6 +15,7 @@ COLORS = {
     "reference": (230, 230, 230),
     "measured": (230, 120, 40),
     "fitted": (40, 160, 230),
+    "analytic": (80, 200, 80),
 }
 
 
@@ -26,8 +27,19 @@ def rerun_available() -> bool:
     return True
 
 
+def _role(path: str) -> str | None:
+    """reference / measured / fitted / analytic: from the entity path's first part, else its last."""
+    parts = path.strip("/").split("/")
+    return next((p for p in (parts[0], parts[-1]) if p in COLORS), None)
+
+
 def _color_for(path: str):
-    return COLORS.get(path.split("/", 1)[0])
+    role = _role(path)
+    return None if role is None else COLORS[role]
+
+
+# timelines counted in integers; every other timeline is a duration in seconds
+SEQUENCE_TIMELINES = ("generation", "resolution", "segments", "bodies", "trial")
 
 
 class Recorder:
@@ -42,6 +54,7 @@ class Recorder:
         self.stream = rr.RecordingStream(application_id, recording_id=recording_id)
         self.stream.save(str(self._tmp))
         self._views: list[tuple[str, str, list[str]]] = []
+        self._styled: set[str] = set()
 
     # --- layout ----------------------------------------------------------------
     def add_view(self, name: str, contents: list[str], kind: str = "timeseries") -> None:
@@ -64,13 +77,18 @@ class Recorder:
     def _at(self, t: float | None, timeline: str):
         if t is None:
             self.stream.disable_timeline(timeline) if hasattr(self.stream, "disable_timeline") else None
-        elif timeline in ("generation", "resolution"):
+        elif timeline in SEQUENCE_TIMELINES:
             self.stream.set_time(timeline, sequence=int(t))
         else:
             self.stream.set_time(timeline, duration=float(t))
 
     # --- archetypes -----------------------------------------------------------
     def log_scalar(self, path: str, t: float, value: float, timeline: str = "sim_time") -> None:
+        if path not in self._styled:
+            self._styled.add(path)
+            color = _color_for(path)
+            if color is not None:  # the same colour for measured / fitted / reference in every view
+                self.stream.log(path, self._rr.SeriesLines(colors=[color]), static=True)
         self._at(t, timeline)
         self.stream.log(path, self._rr.Scalars(float(value)))
 
@@ -101,7 +119,7 @@ class Recorder:
         self.stream.send_columns(path, indexes=[column], columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
         color = _color_for(path)
         if color is not None:
-            self.stream.log(path, rr.SeriesLines(colors=[color], names=[path.split("/", 1)[0]]), static=True)
+            self.stream.log(path, rr.SeriesLines(colors=[color], names=[_role(path)]), static=True)
 
     def log_text(self, path: str, text: str) -> None:
         self.stream.log(path, self._rr.TextDocument(text, media_type="text/markdown"), static=True)
