@@ -388,7 +388,8 @@ class RopeProblem(Problem):
                     recorder.log_points3d(f"{who}/{name}/contact", t_hit, pts, radii=0.025)
                     recorder.log_scalar(f"{who}/{name}/critical_time", t_hit, t_hit)
             recorder.add_view(f"{split}: {c.name}",
-                              [f"/{who}/{name}/**" for who in ("reference", "measured", "fitted")], "spatial3d")
+                              [f"/{who}/{name}/**" for who in ("reference", "measured", "fitted")], "spatial3d",
+                              around=np.concatenate([ref.markers.reshape(-1, 3), ref.hand]))
         recorder.add_view("summary", ["/summary"], "text")
 
 

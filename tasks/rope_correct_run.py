@@ -254,7 +254,9 @@ def _plot(path: Path, runs: dict, args) -> None:
 
 
 def _record(path: Path, runs: dict, goal, args) -> None:
-    from wrenorm.viz.record import Recorder, rerun_available
+    """Per trial: the real rope's shape at its first self-collision under each model's command,
+    against the goal's (white); and every run's error per trial against the tolerance."""
+    from wrenorm.viz.record import COLORS, Recorder, rerun_available
 
     if not rerun_available():
         return
@@ -263,17 +265,26 @@ def _record(path: Path, runs: dict, goal, args) -> None:
     rec = Recorder(path, application_id="wrenorm-correct")
     s = rec.stream
     try:
-        s.log("goal/critical", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)], colors=[(230, 230, 230)]),
-              static=True)
-        colors = {"measured": (230, 120, 40), "fitted": (40, 160, 230)}
+        s.log("shape/goal", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)], colors=[COLORS["reference"]],
+                                            radii=0.004), static=True)
+        names = []
         for label, r in runs.items():
-            name = Path(label).stem if label not in colors else label
+            name = label if label in COLORS else Path(label).stem
+            names.append(name)
             for t in r["trials"]:
-                s.set_time("trial", sequence=t.index + 1)
-                s.log(f"{name}/error", rr.Scalars(t.total))
+                rec.log_scalar(f"error/{name}", t.index + 1, t.total, timeline="trial")
+                rec.log_scalar("error/tolerance", t.index + 1, args.tolerance, timeline="trial")
                 if t.hit:
-                    s.log(f"{name}/real_critical", rr.LineStrips3D([t.state.pos[0].astype(np.float32)],
-                                                                   colors=[colors.get(label, (120, 200, 80))]))
+                    s.log(f"shape/{name}", rr.LineStrips3D([t.state.pos[0].astype(np.float32)], radii=0.004,
+                                                           colors=[COLORS.get(name, (120, 200, 80))]))
+                else:
+                    s.log(f"shape/{name}", rr.Clear(recursive=False))
+        rec.add_view("real rope at its first self-collision: goal white, "
+                     + ", ".join(f"{n} model {'orange' if n == 'measured' else 'blue' if n == 'fitted' else 'green'}"
+                                 for n in names), ["/shape/**"], "spatial3d",
+                     around=np.concatenate([goal.state.pos[0]] + [t.state.pos[0] for r in runs.values()
+                                                                  for t in r["trials"] if t.hit]))
+        rec.add_view(f"error per real trial (goal reached at <= {args.tolerance})", ["/error/**"])
         rec.close()
     except BaseException:
         rec.abort()

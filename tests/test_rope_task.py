@@ -126,13 +126,14 @@ def test_flow_problems_one_per_segment_count():
 
 class _Recorder:
     def __init__(self):
-        self.calls, self.views = [], []
+        self.calls, self.views, self.around = [], [], []
 
     def __getattr__(self, name):
         return lambda path, *a, **k: self.calls.append((name, path))
 
-    def add_view(self, name, contents, kind="timeseries"):
+    def add_view(self, name, contents, kind="timeseries", around=None):
         self.views.append((name, contents, kind))
+        self.around.append(around)
 
 
 def test_record_declares_one_3d_view_per_path_with_all_three_ropes(problem_and_truth):
@@ -147,3 +148,15 @@ def test_record_declares_one_3d_view_per_path_with_all_three_ropes(problem_and_t
         for who in ("reference", "measured", "fitted"):
             assert ("log_lines3d", f"{who}/train/{cond}/rope") in rec.calls
         assert ("log_points3d", f"fitted/train/{cond}/contact") in rec.calls  # the truth hits
+    # the camera frames the reference rope and hand over the whole throw
+    assert all(a is not None and np.asarray(a).shape[1] == 3 for a in rec.around if a is not None)
+    assert sum(a is not None for a in rec.around) == len(spatial)
+
+
+def test_side_eye_frames_the_points():
+    from wrenorm.viz.record import _side_eye
+
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.2, 2.0], [np.nan, 0.0, 0.0]])
+    eye, target = _side_eye(pts)
+    assert np.allclose(target, [0.5, 0.1, 1.0])
+    assert eye[1] < target[1] - 2.0 and abs(eye[0] - target[0]) < 1e-12  # from -y, outside the box

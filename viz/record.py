@@ -16,6 +16,7 @@ COLORS = {
     "measured": (230, 120, 40),
     "fitted": (40, 160, 230),
     "analytic": (80, 200, 80),
+    "tolerance": (150, 150, 150),
 }
 
 
@@ -38,6 +39,15 @@ def _color_for(path: str):
     return None if role is None else COLORS[role]
 
 
+def _side_eye(points) -> tuple[list[float], list[float]]:
+    """Camera position and target that frame `points` from the side (-y), a little above."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    centre, extent = 0.5 * (lo + hi), max(float(np.max(hi - lo)), 1e-3)
+    return (centre + np.array([0.0, -1.25 * extent, 0.1 * extent])).tolist(), centre.tolist()
+
+
 # timelines counted in integers; every other timeline is a duration in seconds
 SEQUENCE_TIMELINES = ("generation", "resolution", "segments", "bodies", "trial")
 
@@ -53,15 +63,16 @@ class Recorder:
         self._tmp = self.path.with_name(self.path.name + ".partial")
         self.stream = rr.RecordingStream(application_id, recording_id=recording_id)
         self.stream.save(str(self._tmp))
-        self._views: list[tuple[str, str, list[str]]] = []
+        self._views: list[tuple] = []
         self._styled: set[str] = set()
 
     # --- layout ----------------------------------------------------------------
-    def add_view(self, name: str, contents: list[str], kind: str = "timeseries") -> None:
+    def add_view(self, name: str, contents: list[str], kind: str = "timeseries", around=None) -> None:
         """Declare a view (kind: timeseries | spatial3d | spatial2d | text) so that related entities
         (reference, measured, fitted of one condition) share one plot instead of the viewer's
-        automatic one-entity-per-plot layout."""
-        self._views.append((kind, name, contents))
+        automatic one-entity-per-plot layout. around (spatial3d): points (..., 3) the camera frames,
+        seen from the side (-y), z up."""
+        self._views.append((kind, name, contents, None if around is None else _side_eye(around)))
 
     def _send_blueprint(self) -> None:
         if not self._views:
@@ -70,7 +81,11 @@ class Recorder:
 
         make = {"timeseries": rrb.TimeSeriesView, "spatial3d": rrb.Spatial3DView,
                 "spatial2d": rrb.Spatial2DView, "text": rrb.TextDocumentView}
-        views = [make[kind](name=name, origin="/", contents=contents) for kind, name, contents in self._views]
+        views = []
+        for kind, name, contents, eye in self._views:
+            extra = {} if eye is None else {"eye_controls": rrb.EyeControls3D(position=eye[0], look_target=eye[1],
+                                                                               eye_up=(0.0, 0.0, 1.0))}
+            views.append(make[kind](name=name, origin="/", contents=contents, **extra))
         self.stream.send_blueprint(rrb.Blueprint(rrb.Grid(*views), collapse_panels=True))
 
     # --- time ----------------------------------------------------------------
