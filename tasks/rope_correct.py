@@ -135,6 +135,7 @@ class StoredTrials:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.reused = 0
+        self.unstored = 0
         self._seen: set[str] = set()
 
     @property
@@ -155,7 +156,15 @@ class StoredTrials:
 
         f = self.file_for(path)
         if not f.exists():
-            save_reference(f, self.real(path))
+            ref = self.real(path)
+            try:
+                save_reference(f, ref)
+            except InputError:
+                # a trial that blew up (non-finite markers) is not a valid reference file: it costs
+                # this trial (no self-collision, large error), is kept in memory only, and a resumed
+                # run repeats it (the real system is deterministic here)
+                self.unstored += 1
+                return ref
         elif f.name not in self._seen:
             self.reused += 1
         self._seen.add(f.name)

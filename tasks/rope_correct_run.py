@@ -188,7 +188,7 @@ def run(args) -> int:
                      "place_from": "coarse model" if args.model_place else "trials"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
                  for label, r in runs.items()},
-        "real_runs": real.runs, "real_trials_read_back": real.reused, "real_wall_s": real.wall_s,
+        "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored, "real_wall_s": real.wall_s,
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
     }
     write_json(out / "correct.json", result)

@@ -118,5 +118,7 @@ class Goal:
         }
         total = sum(w[k] * t[k] for k in t)
         # clearance is in metres; over a tenth of the length it is O(1), like rope.py's / margin
-        t["total"] = np.where(st.hit, total, NO_HIT + np.minimum(st.clearance, 1.0) / (0.1 * self.length))
+        # a rope that blew up (non-finite clearance) costs the largest miss, not NaN
+        clear = np.minimum(np.nan_to_num(np.asarray(st.clearance, np.float64), nan=1.0, posinf=1.0), 1.0)
+        t["total"] = np.where(st.hit, total, NO_HIT + clear / (0.1 * self.length))
         return t

@@ -294,3 +294,31 @@ def test_correct_resume_without_saved_settings_exits_2(tmp_path, capsys):
     assert "settings.json" in capsys.readouterr().err
     assert main(["correct", "rope", "--resume"]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_a_blown_up_real_trial_costs_that_trial_not_the_run(problem, tmp_path):
+    """A real trial with non-finite markers cannot be stored as a reference file; the store hands it
+    back anyway, and the correction scores it as a trial without self-collision."""
+    from dataclasses import replace as dc_replace
+
+    from wrenorm.tasks.rope_correct import StoredTrials
+
+    space = CommandSpace(PATHS["flick"])
+    good = CoarseRope(problem, problem.space.measured)
+    goal = crit.Goal.from_reference(load_reference(builtin_reference_path("flick_high")))
+
+    class BlowsUp:
+        runs, wall_s = 0, 0.0
+
+        def __call__(self, path):
+            self.runs += 1
+            ref = good(path)
+            markers = ref.markers.copy()
+            markers[len(markers) // 3:] = np.nan
+            return dc_replace(ref, markers=markers)
+
+    store = StoredTrials(BlowsUp(), tmp_path / "trials")
+    st = crit.from_reference(store(space.decode(np.zeros(space.dim))))
+    assert store.unstored == 1 and not list(store.folder.glob("trial-*.npz"))
+    assert not st.hit[0]
+    assert goal.terms(st)["total"][0] >= 1.0  # a miss costs, and is finite
