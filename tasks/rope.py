@@ -249,16 +249,44 @@ class RopeProblem(Problem):
         res.status = np.where(late, 0, res.status)
         return res
 
-    def error_terms(self, values: np.ndarray, conditions: Sequence[Condition]) -> dict:
+    def _critical(self, values: np.ndarray, conditions: Sequence[Condition]):
+        """Rollout, the references' cases, and each chain's critical positions and velocities
+        resampled to the SAMPLES common arc-length points, (B, C, K, 3)."""
         res = self.simulate(values, conditions)
         B, C = np.atleast_2d(values).shape[0], len(conditions)
         s_nodes = np.linspace(0.0, 1.0, self.n)
         s_k = np.linspace(0.0, 1.0, SAMPLES)
-        cases = [c.data for c in conditions]
-        ref_pos = np.stack([cs.ref_pos for cs in cases])  # (C, K, 3)
-        ref_vel = np.stack([cs.ref_vel for cs in cases])
         pos = resample(res.crit_pos, s_nodes, s_k).reshape(B, C, SAMPLES, 3)
         vel = resample(res.crit_vel, s_nodes, s_k).reshape(B, C, SAMPLES, 3)
+        return res, [c.data for c in conditions], pos, vel
+
+    def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+        """(B, C R) signed, weighted residuals of the critical state (shape and velocity at the K
+        points, time, contact place), for the Gauss-Newton uncertainty; NaN where a chain never
+        hits. Per condition, the norms of the shape and velocity blocks are the loss's RMS terms."""
+        res, cases, pos, vel = self._critical(values, conditions)
+        B, C = pos.shape[:2]
+        w, K = self.weights, SAMPLES
+        hit = (res.status.reshape(B, C) == 1)[:, :, None]
+        ref_pos = np.stack([cs.ref_pos for cs in cases])[None]
+        ref_vel = np.stack([cs.ref_vel for cs in cases])[None]
+        speed = np.array([cs.speed for cs in cases])[None, :, None]
+        t_ref = np.array([cs.event.time - cs.ref.time[0] for cs in cases])[None]
+        blocks = [
+            (w["shape"] / (self.length * np.sqrt(K))) * (pos - ref_pos).reshape(B, C, -1),
+            (w["velocity"] / np.sqrt(K)) * (vel - ref_vel).reshape(B, C, -1) / speed,
+            (w["time"] * (res.hit_time.reshape(B, C) - np.array([cs.event.time for cs in cases])) / t_ref)[..., None],
+            0.5 * w["place"] * np.stack([res.s_a.reshape(B, C) - np.array([cs.event.s_a for cs in cases]),
+                                         res.s_b.reshape(B, C) - np.array([cs.event.s_b for cs in cases])], -1),
+        ]
+        r = np.where(hit, np.concatenate(blocks, axis=-1), np.nan)
+        return r.reshape(B, -1)
+
+    def error_terms(self, values: np.ndarray, conditions: Sequence[Condition]) -> dict:
+        res, cases, pos, vel = self._critical(values, conditions)
+        B, C = pos.shape[:2]
+        ref_pos = np.stack([cs.ref_pos for cs in cases])  # (C, K, 3)
+        ref_vel = np.stack([cs.ref_vel for cs in cases])
         rms = lambda d: np.sqrt(np.mean(np.sum(d ** 2, -1), -1))  # noqa: E731
         t_ref = np.array([cs.event.time - cs.ref.time[0] for cs in cases])
         terms = {

@@ -160,3 +160,33 @@ def test_side_eye_frames_the_points():
     eye, target = _side_eye(pts)
     assert np.allclose(target, [0.5, 0.1, 1.0])
     assert eye[1] < target[1] - 2.0 and abs(eye[0] - target[0]) < 1e-12  # from -y, outside the box
+
+
+def test_residual_blocks_are_the_weighted_loss_terms(problem_and_truth):
+    prob, truth = problem_and_truth
+    vals = np.stack([truth, prob.space.measured, 0.5 * (truth + prob.space.measured)])
+    terms = prob.error_terms(vals, prob.train)
+    r = prob.residuals(vals, prob.train).reshape(len(vals), len(prob.train), -1)
+    K3 = task.SAMPLES * 3
+    w = prob.weights
+    for b in range(len(vals)):
+        for c in range(len(prob.train)):
+            if terms["status"][b, c] != 1:
+                assert np.all(np.isnan(r[b, c]))
+                continue
+            assert np.linalg.norm(r[b, c, :K3]) == pytest.approx(w["shape"] * terms["shape"][b, c], rel=1e-9)
+            assert np.linalg.norm(r[b, c, K3:2 * K3]) == pytest.approx(w["velocity"] * terms["velocity"][b, c], rel=1e-9)
+            assert abs(r[b, c, 2 * K3]) == pytest.approx(w["time"] * terms["time"][b, c], rel=1e-9, abs=1e-15)
+    assert (terms["status"] == 1).sum() >= 4
+
+
+def test_rope_fit_reports_gauss_newton_uncertainty(problem_and_truth):
+    from wrenorm.uncertainty import uncertainty
+
+    prob, truth = problem_and_truth
+    off = truth.copy()
+    off[prob.space.index("bend_stiffness")] *= 1.1  # a small misfit, so sigma^2 > 0
+    u = uncertainty(prob, off)
+    assert u["method"].startswith("gauss-newton")
+    free = [p.name for p in prob.space.free]
+    assert set(u["std"]) == set(free) and all(np.isfinite(v) and v > 0 for v in u["std"].values())
