@@ -363,7 +363,8 @@ class RopeSim:
 
     def __init__(self, n_nodes: int, link_length: float, dt: float = 0.005, device: str = "cpu",
                  iterations: int = 4, cull: bool = True, margin: float | None = None,
-                 gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True):
+                 gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True,
+                 lanes: int | None = None):
         if not (3 <= int(n_nodes) <= 256):
             raise ValueError(f"n_nodes must be in [3, 256], got {n_nodes}")
         wp.init()
@@ -379,11 +380,18 @@ class RopeSim:
         self.min_sep = max(2, int(min_sep))
         # fixed: the per-size unrolled kernel (kernels/rope_fast.py), same results, faster on CPU
         self.kernel = rollout_kernel
+        self.lanes = 0  # chains per thread of the SIMD-lane kernel (kernels/rope_lanes.py); 0: one
         if fixed:
-            from wrenorm.kernels import rope_fast
+            from wrenorm.kernels import rope_fast, rope_lanes
 
             if self.n <= rope_fast.MAX_NODES:
                 self.kernel = rope_fast.fast_kernel(self.n)
+            # lanes fill a CPU's vector units; a GPU runs one chain per thread
+            if lanes is None:
+                lanes = rope_lanes.LANES if self.device.startswith("cpu") and self.n <= rope_lanes.MAX_NODES else 0
+            if lanes:
+                self.kernel = rope_lanes.lanes_kernel(self.n, lanes)
+                self.lanes = int(lanes)
         self._loaded = False
 
     def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
@@ -427,11 +435,14 @@ class RopeSim:
             ns = min(chunk, steps - s0)
 
             def launch(offset, count, s0=s0, ns=ns):
-                wp.launch(self.kernel, dim=count, device=dev, inputs=[
-                    pos, vel, prev, lam, lam_link, seg, hand_w, pidx, *pa,
-                    n, self.min_sep, self.link, self.dt, wp.vec3(*self.gravity), self.iterations, int(self.cull),
-                    self.margin, VMAX, s0, ns, int(stop_at_hit),
-                    status, hit_frame, hit_alpha, hit_s, crit_pos, crit_vel, clearance, offset])
+                inputs = [pos, vel, prev, lam, lam_link, seg, hand_w, pidx, *pa,
+                          n, self.min_sep, self.link, self.dt, wp.vec3(*self.gravity), self.iterations, int(self.cull),
+                          self.margin, VMAX, s0, ns, int(stop_at_hit),
+                          status, hit_frame, hit_alpha, hit_s, crit_pos, crit_vel, clearance, offset]
+                if self.lanes:
+                    wp.launch(self.kernel, dim=-(-count // self.lanes), device=dev, inputs=inputs + [offset + count])
+                else:
+                    wp.launch(self.kernel, dim=count, device=dev, inputs=inputs)
 
             launch_sliced(launch, B, dev, self.workers)
             if frames is not None:
@@ -479,8 +490,9 @@ def benchmark(n_nodes: int = 16, batch: int = 4096, steps: int = 200, device: st
               variant: str = "culled", repeats: int = 2) -> dict:
     """Chain-steps per second of a swung-rope rollout (chains keep running after their first hit).
 
-    variant: "culled" | "allpairs" (Warp, all cores), "culled-1core" (Warp, one slice),
-    "generic" (the size-generic kernel, culled), "numpy" | "torch" (vectorised baselines of the same step).
+    variant: "culled" (the default kernel: SIMD lanes on the CPU), "allpairs" (all cores, no culling),
+    "culled-1core" (one slice), "scalar" (rope_fast.py, one chain per thread), "generic" (the
+    size-generic kernel, culled), "numpy" | "torch" (vectorised baselines of the same step).
     `kernel_chain_steps_per_s` counts the launches only (on CUDA the copies to and from the host
     are otherwise a large share at a million chains).
     """
@@ -502,7 +514,8 @@ def benchmark(n_nodes: int = 16, batch: int = 4096, steps: int = 200, device: st
         repeats = 1
     else:
         sim = RopeSim(n_nodes, link, dt, device, iterations=4, cull=variant != "allpairs",
-                      workers=1 if variant.endswith("1core") else None, fixed=variant != "generic")
+                      workers=1 if variant.endswith("1core") else None, fixed=variant != "generic",
+                      lanes=0 if variant == "scalar" else None)
         run = lambda: sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)  # noqa: E731
         sim.rollout(pos0[:64], v0, paths, pidx[:64], ChainParams(**{f: getattr(params, f)[:64] for f in ChainParams.FIELDS}), 2)
     times, kernel_times = [], []

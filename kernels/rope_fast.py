@@ -23,6 +23,11 @@ temporal culling; N = 8: 0.45 -> 0.37 us. Collision bookkeeping is about 0.1 us 
 
 Each kernel is its own Warp module ("unique"), so building the kernel for a new chain size
 never forces the others to recompile.
+
+On the CPU, chains of up to TEMPORAL_MAX_NODES nodes run in kernels/rope_lanes.py instead (16
+chains per thread in vector lanes; its per-lane collision test is this kernel's temporal path,
+kept in step with it by the same bit-identity tests). This kernel serves CUDA (one chain per
+thread) and longer chains.
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ def test_bench_writes_results_and_table(tmp_path):
     rope = [r for r in res["rope"] if not r.get("comparison")]
     assert {r["n_nodes"] for r in rope} == {8, 16, 32}
     variants = {r["variant"] for r in res["rope"] if r.get("comparison")}
-    assert {"culled", "allpairs", "numpy", "torch"} <= variants
+    assert {"culled", "allpairs", "scalar", "numpy", "torch"} <= variants
     for r in res["rope"]:
         assert r["chain_steps_per_s"] > 0 and r["kernel_chain_steps_per_s"] >= r["chain_steps_per_s"] * 0.99
     assert res["pd"][0]["joint_steps_per_s"] > 0

@@ -170,8 +170,9 @@ def test_blow_up_is_flagged_not_raised():
     assert np.all(res.status == 2)
 
 
+@pytest.mark.parametrize("lanes", [0, 16])
 @pytest.mark.parametrize("n,stop,chunk", [(8, True, None), (16, False, 37), (16, True, 50)])
-def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk):
+def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, lanes):
     """rope_fast.py skips block pairs whose gap bound (last tested gap minus accumulated relative
     motion) stays above min(clearance, margin); swung chains that hit, near-miss and stay clear
     must give exactly the all-pairs generic kernel's record (chunked launches restart the bounds)."""
@@ -182,7 +183,9 @@ def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk):
     params.bend_k[::3] *= 40.0  # stiff chains: many never touch, some pass within the margin
     params.mass_slope[:] = np.linspace(-0.5, 0.5, params.batch)
     kw = dict(stop_at_hit=stop, chunk=chunk)
-    a = rope.RopeSim(n, link, dt).rollout(pos0, v0, paths, pidx, params, steps, **kw)
+    sim = rope.RopeSim(n, link, dt, lanes=lanes)
+    assert sim.lanes == lanes
+    a = sim.rollout(pos0, v0, paths, pidx, params, steps, **kw)
     b = rope.RopeSim(n, link, dt, cull=False, fixed=False).rollout(pos0, v0, paths, pidx, params, steps, **kw)
     margin = 0.25 * link
     clear = a.status == 0
@@ -191,3 +194,26 @@ def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk):
     for f in ("status", "hit_frame", "hit_alpha", "hit_time", "s_a", "s_b", "crit_pos", "crit_vel", "clearance",
               "final_pos", "final_vel"):
         assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+
+
+def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch():
+    """16 chains per thread (kernels/rope_lanes.py): a batch that is not a multiple of 16, split
+    across threads, with stretchy links and uneven masses, gives the generic all-pairs kernel's
+    bits in every output field; blown-up chains stay blown up without disturbing their lane mates."""
+    from wrenorm.kernels import rope_lanes
+
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=203, n=11, steps=240, seed=0)
+    params.stretch[:] = np.linspace(0.0, 1e-3, params.batch)
+    params.mass_slope[:] = np.linspace(0.6, -0.6, params.batch)
+    params.node_mass[5] = np.nan  # one chain blows up at once
+    sim = rope.RopeSim(n, link, dt)
+    assert sim.lanes == rope_lanes.LANES and sim.kernel is rope_lanes.lanes_kernel(n)
+    for kw in (dict(stop_at_hit=True), dict(stop_at_hit=False, chunk=45)):
+        a = sim.rollout(pos0, v0, paths, pidx, params, steps, **kw)
+        b = rope.RopeSim(n, link, dt, cull=False, fixed=False).rollout(pos0, v0, paths, pidx, params, steps, **kw)
+        assert a.status[5] == 2 and (a.status == 1).sum() >= 5
+        for f in ("status", "hit_frame", "hit_alpha", "crit_pos", "crit_vel", "clearance", "final_pos", "final_vel"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+    assert rope.RopeSim(n, link, dt, device="cpu", fixed=False).lanes == 0
+    with pytest.raises(ValueError):
+        rope_lanes.lanes_kernel(rope_lanes.MAX_NODES + 1)

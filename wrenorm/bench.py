@@ -65,7 +65,7 @@ def bench_rope(device: str, batches: list[int], quick: bool) -> list[dict]:
     # baselines and variants side by side at one batch size
     b = 1024 if quick else (4096 if device == "cpu" else 262144)
     base_steps = 20 if quick else 50
-    variants = ["culled", "allpairs"] + (["culled-1core"] if device == "cpu" else ["generic"]) + ["numpy", "torch"]
+    variants = ["culled", "allpairs"] + (["culled-1core", "scalar"] if device == "cpu" else ["generic"]) + ["numpy", "torch"]
     for v in variants:
         r = rope.benchmark(16, b, base_steps if v in ("numpy", "torch") else steps, device if v not in ("numpy", "torch") else "cpu", v)
         r["comparison"] = True
