@@ -22,7 +22,7 @@ import warp as wp
 from wrenorm.kernels.rope import node_w, seg_closest
 from wrenorm.kernels.rope_fast import _OPTIONS, BLOCK, TEMPORAL_MAX_NODES
 
-LANES = 16  # 16 float32 = one AVX-512 register; 8 measured 20 % slower per chain on this CPU
+LANES = 16  # 16 float32 = one AVX-512 register; 8 lanes ran the constraint passes a third slower per chain
 MAX_NODES = TEMPORAL_MAX_NODES
 _CACHE: dict = {}
 
