@@ -217,3 +217,21 @@ def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch()
     assert rope.RopeSim(n, link, dt, device="cpu", fixed=False).lanes == 0
     with pytest.raises(ValueError):
         rope_lanes.lanes_kernel(rope_lanes.MAX_NODES + 1)
+
+
+@pytest.mark.parametrize("stop,chunk", [(False, None), (True, 60)])
+def test_lane_kernel_with_spatial_culling_is_bit_identical_to_all_pairs(stop, chunk):
+    """Chains longer than TEMPORAL_MAX_NODES cull in space (block and segment spheres), per lane."""
+    from wrenorm.kernels import rope_fast
+
+    n = rope_fast.TEMPORAL_MAX_NODES + 1
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=150, n=n, steps=220, seed=0)
+    params.mass_slope[:] = np.linspace(-0.5, 0.5, params.batch)
+    kw = dict(stop_at_hit=stop, chunk=chunk)
+    sim = rope.RopeSim(n, link, dt)
+    assert sim.lanes > 0
+    a = sim.rollout(pos0, v0, paths, pidx, params, steps, **kw)
+    b = rope.RopeSim(n, link, dt, cull=False, fixed=False).rollout(pos0, v0, paths, pidx, params, steps, **kw)
+    assert (a.status == 1).sum() >= 20
+    for f in ("status", "hit_frame", "hit_alpha", "crit_pos", "crit_vel", "clearance", "final_pos", "final_vel"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
