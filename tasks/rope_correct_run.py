@@ -113,11 +113,9 @@ def run(args) -> int:
             raise InputError(label, "--params", "is neither 'measured', 'fitted' nor an existing result.json")
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     space = CommandSpace(start_path)
-    if args.resume:
-        out = Path(args.out)
-    else:
-        out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
-                          resume=False, force=args.force)
+    out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
+                      resume=args.resume, force=args.force, state=SETTINGS_FILE)
+    if not args.resume:
         write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
@@ -215,8 +213,8 @@ def _restore_settings(args) -> None:
     if args.out is None:
         raise InputError("--resume", "out", "name the folder of the interrupted correction with --out")
     f = Path(args.out) / SETTINGS_FILE
-    if not f.is_file():
-        raise InputError(str(args.out), "--resume", f"no {SETTINGS_FILE} of an interrupted correction in this folder")
+    if not f.is_file():  # checked before any setting is taken from it; prepare_out checks again
+        raise InputError(str(args.out), "--resume", f"no saved state ({SETTINGS_FILE}) in this folder to resume from")
     try:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:

@@ -177,7 +177,7 @@ def _print_summary(result: dict, out: Path) -> None:
 
 def cmd_flow(args) -> int:
     from .fit import prepare_out
-    from .flow import run_flow
+    from .flow import POINTS_FILE, run_flow
 
     device = _device(args.device)
     mod = _task_module(args.task)
@@ -187,12 +187,8 @@ def cmd_flow(args) -> int:
         raise InputError("--restarts", "restarts", "need at least 2 searches for a spread")
     problems = mod.flow_problems(args, device)
     _apply_parameter_set(problems, args)
-    if args.resume:
-        if args.out is None:
-            raise InputError("--resume", "out", "name the folder of the interrupted flow with --out")
-        out = Path(args.out)
-    else:
-        out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=False, force=args.force)
+    out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=args.resume, force=args.force,
+                      state=POINTS_FILE)
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet, resume=args.resume,
                     generations=args.generations or getattr(mod, "FLOW_GENERATIONS", 60),
                     analytic=getattr(mod, "flow_analytic", None), record=not args.no_record)

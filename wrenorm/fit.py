@@ -23,15 +23,16 @@ from .uncertainty import uncertainty
 STATE_FILE = "search_state.pkl"
 
 
-def prepare_out(out: Path, resume: bool, force: bool) -> Path:
-    """Refuse to clobber an earlier run unless told to (--force), or continue it (--resume)."""
+def prepare_out(out: Path, resume: bool, force: bool, state: str = STATE_FILE) -> Path:
+    """Refuse to clobber an earlier run unless told to (--force), or continue it (--resume): a run
+    to continue must hold its saved `state` file (here or in a sub-run folder)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(str(out), "--out", "exists and is not a folder")
     existing = out.exists() and any(out.iterdir())
     if resume:
-        if not (out / STATE_FILE).exists() and not any(out.glob(f"*/{STATE_FILE}")):
-            raise InputError(str(out), "--resume", f"no saved search state ({STATE_FILE}) in this folder to resume from")
+        if not (out / state).exists() and not any(out.glob(f"*/{state}")):
+            raise InputError(str(out), "--resume", f"no saved state ({state}) in this folder to resume from")
     elif existing:
         if not force:
             raise InputError(str(out), "--out", "folder exists and is not empty; pass --force to overwrite it or --resume to continue it")

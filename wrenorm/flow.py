@@ -28,9 +28,7 @@ def _settings(problems, seed, restarts, popsize, generations) -> dict:
 
 
 def _resumed(out: Path, settings: dict) -> tuple[list, object]:
-    f = out / POINTS_FILE
-    if not f.is_file():
-        raise InputError(str(out), "--resume", f"no {POINTS_FILE} of an interrupted flow in this folder")
+    f = out / POINTS_FILE  # prepare_out checked that it exists
     try:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:
