@@ -110,7 +110,7 @@ def rollout(
 
 def simulate(values, q_des, qd_des, q_ref, geo, dt, device="cpu", record=False):
     """values (B, 11); q_des, qd_des (C, T, 2); q_ref (C, T+1, 2) -> errors (B, C)[, traj (B, C, T+1, 2)]."""
-    from wrenorm.parallel import launch_sliced
+    from wrenorm.kernels.launch import launch_sliced
 
     B, (C, T, _) = len(values), q_des.shape
     slot = np.repeat(np.asarray(values, np.float64), C, axis=0)

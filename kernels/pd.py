@@ -139,7 +139,7 @@ def _slots(values: np.ndarray, n_cond: int):
 
 def simulate(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, record: bool = False):
     """values (B, 5) -> errors (B, C) [normalised RMS of q - q_ref], and trajectories (B, C, T+1) if record."""
-    from wrenorm.parallel import launch_sliced
+    from wrenorm.kernels.launch import launch_sliced
 
     B, C, T = values.shape[0], cmds.n_cond, cmds.n_steps
     slot_params, cond = _slots(np.asarray(values, np.float64), C)
@@ -185,23 +185,3 @@ def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt
     errors = err.numpy().reshape(B, C).copy()
     tape.zero()
     return errors, grads
-
-
-def benchmark(batch: int, steps: int = 1000, device: str = "cpu", repeats: int = 3) -> dict:
-    """Joint-steps per second of the rollout kernel (batch slots x steps)."""
-    import time
-
-    rng = np.random.default_rng(0)
-    C = 1
-    cmds = PDCommands(rng.normal(size=(C, steps)) * 0.1, np.zeros((C, steps)), np.zeros((C, steps)),
-                      np.zeros((C, steps + 1)) + 0.1, np.zeros((C, 2)), device)
-    values = np.tile([0.05, 20.0, 0.5, 0.0, 0.0], (batch, 1))
-    simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
-    wp.synchronize_device(device)
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
-        wp.synchronize_device(device)
-        best = min(best, time.perf_counter() - t0)
-    return {"batch": batch, "steps": steps, "seconds": best, "joint_steps_per_s": batch * steps / best}

@@ -1,7 +1,7 @@
 """Shared swimmer test helper (not a test module)."""
 import numpy as np
 
-from wrenorm.tasks import swimmer_body as sb
+from wrenorm.tasks.swimmer import body as sb
 
 PUBLISHED = np.array([0.4, 7.79, 2.81, 3.84, 0.27])
 

@@ -5,7 +5,7 @@ import pytest
 
 from wrenorm.cli import main
 from wrenorm.params import Parameter, ParameterSpace
-from wrenorm.tasks.pd import PDProblem
+from wrenorm.tasks.pd.problem import PDProblem
 from wrenorm.uncertainty import uncertainty
 
 

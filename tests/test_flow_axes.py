@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from wrenorm.cli import main
-from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
+from wrenorm.tasks.swimmer import body as sb, data as sd, problem as swimmer
 from wrenorm.viz.flow_plot import _axis
 
 from swimmer_checks import com_drift

@@ -6,7 +6,7 @@ import pytest
 
 from wrenorm import search
 from wrenorm.cli import main
-from wrenorm.tasks.pd import ANALYTIC_DELAY, PDProblem
+from wrenorm.tasks.pd.problem import ANALYTIC_DELAY, PDProblem
 
 
 def _fit(f_sim, integrator="semi-implicit", generations=120):
@@ -144,7 +144,7 @@ def test_malformed_csv_exit_2(tmp_path, capsys, content, field):
 
 def test_measured_log_reference(tmp_path):
     """A log made by the continuous joint is fitted like the built-in reference."""
-    from wrenorm.tasks.pd import Command, continuous_reference
+    from wrenorm.tasks.pd.problem import Command, continuous_reference
 
     cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
     t = np.arange(0, 4.0, 0.001)

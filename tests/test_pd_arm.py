@@ -4,7 +4,7 @@ import pytest
 
 from wrenorm import search
 from wrenorm.kernels import arm
-from wrenorm.tasks.pd_arm import K_D, ArmProblem
+from wrenorm.tasks.pd.arm import K_D, ArmProblem
 
 
 def test_mass_matrix_is_symmetric_positive_and_matches_energy():

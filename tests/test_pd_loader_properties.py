@@ -5,7 +5,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.pd import LOG_COLUMNS, load_log
+from wrenorm.tasks.pd.problem import LOG_COLUMNS, load_log
 
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
 cells = st.one_of(finite.map(repr), st.text(max_size=6), st.just(""), st.just("1e400"))

@@ -72,7 +72,7 @@ def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
 def test_every_candidate_blowing_up_says_so():
     from wrenorm import search
     from wrenorm.errors import AllCandidatesFailed
-    from wrenorm.tasks.pd import PDProblem
+    from wrenorm.tasks.pd.problem import PDProblem
 
     class Exploding(PDProblem):
         def errors(self, values, conditions):
@@ -84,7 +84,7 @@ def test_every_candidate_blowing_up_says_so():
 
 def test_blowups_are_counted_not_fatal():
     from wrenorm import search
-    from wrenorm.tasks.pd import PDProblem
+    from wrenorm.tasks.pd.problem import PDProblem
 
     class Flaky(PDProblem):
         def errors(self, values, conditions):

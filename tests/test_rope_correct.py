@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from wrenorm.errors import InputError
-from wrenorm.tasks import rope_critical as crit
-from wrenorm.tasks.rope import RopeProblem
-from wrenorm.tasks.rope_command import CommandSpace
-from wrenorm.tasks.rope_correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
-from wrenorm.tasks.rope_plan import Offset, plan, predicted_cost, state_vector
-from wrenorm.tasks.rope_paths import HandPath, builtin_hand_paths
-from wrenorm.tasks.rope_reference import builtin_reference_path, load_reference
-from wrenorm.tasks.rope_sensitivity import central_jacobian, resolvable
+from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.problem import RopeProblem
+from wrenorm.tasks.rope.control.command import CommandSpace
+from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
+from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector
+from wrenorm.tasks.rope.reference.paths import HandPath, builtin_hand_paths
+from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
+from wrenorm.tasks.rope.control.sensitivity import central_jacobian, resolvable
 
 PATHS = builtin_hand_paths()
 
@@ -198,7 +198,7 @@ def test_dead_command_direction_gives_zero_singular_values(problem):
     """A hand motion after the rope has hit itself cannot change the critical state."""
     base = PATHS["flick"]
     times = np.concatenate([[0.0], np.cumsum(base.durations)])
-    from wrenorm.tasks.rope_command import waypoints
+    from wrenorm.tasks.rope.control.command import waypoints
 
     _, p, v = waypoints(base)
     late = HandPath.through(np.append(times, [1.2, 1.45]), np.vstack([p, p[-1], p[-1] + [0.1, 0.0, 0.1]]),
@@ -261,7 +261,7 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path):
     import shutil
 
     from wrenorm.cli import main
-    from wrenorm.tasks.rope_correct import StoredTrials
+    from wrenorm.tasks.rope.control.correct import StoredTrials
 
     full = tmp_path / "full"
     assert main(CORRECT_QUICK + ["--out", str(full)]) == 0
@@ -301,7 +301,7 @@ def test_a_blown_up_real_trial_costs_that_trial_not_the_run(problem, tmp_path):
     back anyway, and the correction scores it as a trial without self-collision."""
     from dataclasses import replace as dc_replace
 
-    from wrenorm.tasks.rope_correct import StoredTrials
+    from wrenorm.tasks.rope.control.correct import StoredTrials
 
     space = CommandSpace(PATHS["flick"])
     good = CoarseRope(problem, problem.space.measured)

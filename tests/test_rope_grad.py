@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 
 from wrenorm.kernels import rope
-from wrenorm.kernels.rope_grad import GRAD_FIELDS, GradRope
+from wrenorm.tasks.rope.bench import swing_paths
+from wrenorm.kernels.rope.grad import GRAD_FIELDS, GradRope
 
 N, LINK, DT, STEPS = 6, 0.12, 0.005, 40
 
 
 def _setup(B=1):
-    paths = rope.swing_paths(2, STEPS, DT, seed=3)
+    paths = swing_paths(2, STEPS, DT, seed=3)
     p0, v0 = rope.hanging_state(paths[0, 0], N, LINK)
     params = rope.ChainParams(node_mass=np.full(B, 0.03), lead_mass=np.full(B, 0.02), bend_k=np.full(B, 0.02),
                               bend_b=np.full(B, 1e-3), drag_lin=np.full(B, 0.3), drag_quad=np.full(B, 0.3),

@@ -6,7 +6,8 @@ import pytest
 import warp as wp
 
 from wrenorm.kernels import rope
-from wrenorm.kernels import rope_baselines as rb
+from wrenorm.tasks.rope.bench import swing_paths
+from wrenorm.tasks.rope import baselines as rb
 
 
 def _params(batch, **kw):
@@ -113,7 +114,7 @@ def test_stiff_hanging_chain_swings_with_the_rigid_pendulum_period():
 
 def _swing(B=16, n=12, steps=160, seed=0):
     dt, link = 0.005, 1.1 / (n - 1)
-    paths = rope.swing_paths(4, steps, dt, seed)
+    paths = swing_paths(4, steps, dt, seed)
     pidx = np.arange(B) % 4
     rng = np.random.default_rng(seed)
     params = rope.ChainParams(node_mass=np.full(B, 0.02), lead_mass=rng.uniform(0.02, 0.1, B),
@@ -176,7 +177,7 @@ def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, 
     """rope_fast.py skips block pairs whose gap bound (last tested gap minus accumulated relative
     motion) stays above min(clearance, margin); swung chains that hit, near-miss and stay clear
     must give exactly the all-pairs generic kernel's record (chunked launches restart the bounds)."""
-    from wrenorm.kernels import rope_fast
+    from wrenorm.kernels.rope import fixed as rope_fast
 
     assert n <= rope_fast.TEMPORAL_MAX_NODES
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=192, n=n, steps=220, seed=0)
@@ -200,7 +201,7 @@ def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch()
     """16 chains per thread (kernels/rope_lanes.py): a batch that is not a multiple of 16, split
     across threads, with stretchy links and uneven masses, gives the generic all-pairs kernel's
     bits in every output field; blown-up chains stay blown up without disturbing their lane mates."""
-    from wrenorm.kernels import rope_lanes
+    from wrenorm.kernels.rope import lanes as rope_lanes
 
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=203, n=11, steps=240, seed=0)
     params.stretch[:] = np.linspace(0.0, 1e-3, params.batch)
@@ -222,7 +223,7 @@ def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch()
 @pytest.mark.parametrize("stop,chunk", [(False, None), (True, 60)])
 def test_lane_kernel_with_spatial_culling_is_bit_identical_to_all_pairs(stop, chunk):
     """Chains longer than TEMPORAL_MAX_NODES cull in space (block and segment spheres), per lane."""
-    from wrenorm.kernels import rope_fast
+    from wrenorm.kernels.rope import fixed as rope_fast
 
     n = rope_fast.TEMPORAL_MAX_NODES + 1
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=150, n=n, steps=220, seed=0)

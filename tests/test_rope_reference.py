@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope_collision import candidate_pairs, segment_distances
-from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
-from wrenorm.tasks.rope_reference import (
+from wrenorm.tasks.rope.reference.events import candidate_pairs, segment_distances
+from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
+from wrenorm.tasks.rope.reference.generate import (
     RopeReference, builtin_reference_path, builtin_references, first_self_collision, load_reference,
     save_reference)
 
@@ -319,7 +319,7 @@ def test_builtin_references_ship_and_collide(kind):
 # ----------------------------------------------------------------------------------------- newton run
 
 def test_short_newton_run_follows_hand_and_keeps_length():
-    from wrenorm.tasks.rope_newton import RopeMaterial, simulate
+    from wrenorm.tasks.rope.reference.newton import RopeMaterial, simulate
 
     # Hand moves 0.1 m sideways in 0.16 s; the rope must be dragged along without stretching.
     path = HandPath.through([0, 0.16], [[0, 0, 1.0], [0.1, 0, 1.0]], [[0, 0, 0], [0, 0, 0]])
@@ -345,7 +345,7 @@ def test_unshipped_variant_goes_to_user_cache(monkeypatch, tmp_path):
 
 
 def test_cli_rejects_unknown_path(tmp_path, capsys):
-    from wrenorm.tasks.rope_reference import main
+    from wrenorm.tasks.rope.reference.generate import main
 
     with pytest.raises(SystemExit) as e:
         main(["--out", str(tmp_path / "x.npz"), "--path", "nope"])

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from wrenorm.errors import InputError
-from wrenorm.tasks import rope as task
-from wrenorm.tasks.rope_paths import builtin_hand_paths
-from wrenorm.tasks.rope_reference import RopeReference, first_self_collision
+from wrenorm.tasks.rope import problem as task
+from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
+from wrenorm.tasks.rope.reference.generate import RopeReference, first_self_collision
 
 SEG, DT = 10, 0.005
 LENGTH, MASS, RADIUS, EI = 1.1, 0.2, 0.005, 3e-3

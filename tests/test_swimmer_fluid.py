@@ -3,6 +3,7 @@ import mujoco
 import numpy as np
 
 from wrenorm.kernels import swimmer as kern
+from wrenorm.tasks.swimmer import body
 
 RHO, MU = 1000.0, 0.0013
 
@@ -30,7 +31,7 @@ def test_virtual_mass_matches_mujoco():
     for _ in range(6):
         semi = rng.uniform(0.002, 0.2, size=3)
         _, fl = mujoco_wrench(semi, [0.5, 0.25, 1.5, 1.0, 1.0], 0.0, [0.0, 0.0], 0.0)
-        vm, vi = kern.virtual_mass_inertia(semi)
+        vm, vi = body.virtual_mass_inertia(semi)
         np.testing.assert_allclose(vm, fl[6:9], rtol=1e-5)
         np.testing.assert_allclose(vi, fl[9:12], rtol=1e-5)
 
@@ -58,7 +59,7 @@ def test_planar_fluid_wrench_matches_mujoco():
         q, _ = mujoco_wrench(semi, coef, yaw, v, wz)
         c, s = np.cos(yaw), np.sin(yaw)
         local_vel.append([c * v[0] + s * v[1], -s * v[0] + c * v[1], wz])
-        vm, vi = kern.virtual_mass_inertia(semi)
+        vm, vi = body.virtual_mass_inertia(semi)
         amass.append([RHO * vm[0], RHO * vm[1], RHO * vi[2]])
         semis.append(semi)
         coefs.append(coef)
@@ -80,7 +81,7 @@ def test_each_coefficient_matters():
     """Guard against a term silently dropped: changing any coefficient changes MuJoCo's wrench and ours alike."""
     semi = np.array([0.05, 0.004, 0.03])
     base = np.array([0.4, 7.79, 2.81, 3.84, 0.27])
-    vm, vi = kern.virtual_mass_inertia(semi)
+    vm, vi = body.virtual_mass_inertia(semi)
     am = [RHO * vm[0], RHO * vm[1], RHO * vi[2]]
     yaw, v, wz = 0.3, np.array([0.2, -0.15]), 1.7
     c, s = np.cos(yaw), np.sin(yaw)

@@ -5,7 +5,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.swimmer_data import load_dir
+from wrenorm.tasks.swimmer.data import load_dir
 
 values = st.floats(allow_nan=True, allow_infinity=True, width=32)
 

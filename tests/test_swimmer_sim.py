@@ -4,7 +4,7 @@ import cma
 import numpy as np
 import pytest
 
-from wrenorm.tasks import swimmer, swimmer_body as sb, swimmer_data as sd
+from wrenorm.tasks.swimmer import body as sb, data as sd, problem as swimmer
 
 from swimmer_checks import PUBLISHED, com_drift
 
@@ -85,7 +85,7 @@ def test_integrators_converge_at_their_order(rates):
 def test_restructured_kernel_equals_part_by_part_kernel(rates):
     """Inertial sums precomputed per sample (reduce_table) give what assembling every part's mass
     matrix and inertial force each step gives (the first derivation, kernels/swimmer_direct.py)."""
-    from wrenorm.kernels import swimmer_direct
+    import swimmer_direct
 
     coef = np.array([PUBLISHED, [0.5, 0.25, 1.5, 1.0, 1.0], [5.0, 50.0, 20.0, 0.3, 0.02]])
     for vm in (False, True):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from wrenorm.errors import InputError
-from wrenorm.tasks import swimmer, swimmer_data as sd
+from wrenorm.tasks.swimmer import data as sd, problem as swimmer
 
 
 @pytest.fixture(scope="module")

@@ -52,7 +52,7 @@ def _log(msg: str) -> None:
 
 
 def bench_rope(device: str, batches: list[int], quick: bool) -> list[dict]:
-    from wrenorm.kernels import rope
+    from wrenorm.tasks.rope import bench as rope
 
     rows = []
     steps = 50 if quick else 200
@@ -75,7 +75,7 @@ def bench_rope(device: str, batches: list[int], quick: bool) -> list[dict]:
 
 
 def bench_swimmer(device: str, batches: list[int], quick: bool) -> list[dict]:
-    from wrenorm.kernels import swimmer
+    from wrenorm.tasks.swimmer import bench as swimmer
 
     rows = []
     for b in batches[:4]:
@@ -86,7 +86,7 @@ def bench_swimmer(device: str, batches: list[int], quick: bool) -> list[dict]:
 
 
 def bench_pd(device: str, batches: list[int], quick: bool) -> list[dict]:
-    from wrenorm.kernels import pd
+    from wrenorm.tasks.pd import bench as pd
 
     rows = []
     for b in batches:

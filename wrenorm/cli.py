@@ -120,11 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
     ref_sub = ref.add_subparsers(dest="system", required=True)
     rope_ref = ref_sub.add_parser("rope", help="fine newton rope reference (.npz)")
     try:
-        importlib.import_module("wrenorm.tasks.rope_reference").add_reference_arguments(rope_ref)
+        importlib.import_module("wrenorm.tasks.rope.reference.generate").add_reference_arguments(rope_ref)
     except ModuleNotFoundError:
         pass
-    for command, module, text in (("correct", "wrenorm.tasks.rope_correct_run", "correct a command over real trials"),
-                                  ("sensitivity", "wrenorm.tasks.rope_sensitivity",
+    for command, module, text in (("correct", "wrenorm.tasks.rope.control.correct_cli", "correct a command over real trials"),
+                                  ("sensitivity", "wrenorm.tasks.rope.control.sensitivity",
                                    "how many command / parameter directions move the observed state")):
         cp = sub.add_parser(command, help=text)
         cp_sub = cp.add_subparsers(dest="system", required=True)
@@ -231,11 +231,11 @@ def main(argv=None) -> int:
         if args.command == "view":
             return cmd_view(args)
         if args.command == "reference":
-            return importlib.import_module("wrenorm.tasks.rope_reference").run_reference(args)
+            return importlib.import_module("wrenorm.tasks.rope.reference.generate").run_reference(args)
         if args.command == "correct":
-            return importlib.import_module("wrenorm.tasks.rope_correct_run").run(args)
+            return importlib.import_module("wrenorm.tasks.rope.control.correct_cli").run(args)
         if args.command == "sensitivity":
-            return importlib.import_module("wrenorm.tasks.rope_sensitivity").run(args)
+            return importlib.import_module("wrenorm.tasks.rope.control.sensitivity").run(args)
         if args.command == "bench":
             return importlib.import_module("wrenorm.bench").run(args)
     except InputError as e:

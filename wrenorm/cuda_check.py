@@ -24,11 +24,14 @@ _REGCOUNT, _FRAME_SIZE = 0x2F, 0x11
 
 def kernel_modules(rope_sizes=(8, 16)) -> dict:
     """name -> warp Module for every simulation kernel (per-size rope kernels for `rope_sizes`)."""
-    from wrenorm.kernels import arm, pd, rope, rope_fast, rope_grad, swimmer, swimmer_direct
-    from wrenorm.tasks import rope_newton
+    from wrenorm.kernels import arm, pd
+    from wrenorm.kernels.rope import fixed as rope_fast
+    from wrenorm.kernels.rope import generic, grad
+    from wrenorm.kernels.swimmer import fluid, kernel
+    from wrenorm.tasks.rope.reference import newton as rope_newton
 
-    mods = {"pd": pd, "arm": arm, "rope": rope, "swimmer": swimmer, "swimmer_direct": swimmer_direct,
-            "rope_grad": rope_grad, "rope_newton": rope_newton}
+    mods = {"pd": pd, "arm": arm, "rope": generic, "swimmer": kernel, "swimmer_fluid": fluid,
+            "rope_grad": grad, "rope_newton": rope_newton}
     for n in rope_sizes:
         mods[f"rope_fast[N={n}]"] = rope_fast.fast_kernel(n).module
     return mods
@@ -100,7 +103,9 @@ def _rope_case(device: str, batch: int = 512, steps: int = 240):
 
     n, dt = 16, 0.005
     link = 1.1 / (n - 1)
-    paths = rope.swing_paths(8, steps, dt)
+    from wrenorm.tasks.rope.bench import swing_paths
+
+    paths = swing_paths(8, steps, dt)
     pidx = np.arange(batch, dtype=np.int32) % paths.shape[0]
     rng = np.random.default_rng(3)
     params = rope.ChainParams(node_mass=np.full(batch, 0.2 / n), lead_mass=np.full(batch, 0.05),
@@ -121,7 +126,7 @@ def parity(device: str) -> dict:
     out["rope"] = {"status_agree": float(np.mean(a.status == b.status)),
                    "hit_time_max_abs_s": float(np.max(np.abs(a.hit_time[both] - b.hit_time[both]))) if both.any() else None,
                    "hit_fraction_cpu": float(np.mean(a.status == 1))}
-    from wrenorm.tasks import swimmer_body, swimmer_data
+    from wrenorm.tasks.swimmer import body as swimmer_body, data as swimmer_data
 
     rates = swimmer_data.load_builtin()
     rate = min(rates, key=lambda r: abs(r.label - 1.0))

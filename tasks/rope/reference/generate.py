@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope_collision import CollisionEvent, first_collision
+from wrenorm.tasks.rope.reference.events import CollisionEvent, first_collision
 
 __all__ = ["RopeReference", "CollisionEvent", "load_reference", "save_reference", "first_self_collision",
            "generate_reference", "builtin_references", "add_reference_arguments", "run_reference"]
@@ -48,7 +48,7 @@ class RopeReference:
 
 def first_self_collision(ref: RopeReference, exclude_arclength: float | None = None) -> CollisionEvent | None:
     """First frame where two non-neighbouring parts of the marker polyline are within a rope
-    diameter; see :mod:`wrenorm.tasks.rope_collision`."""
+    diameter; see :mod:`wrenorm.tasks.rope.reference.events`."""
     return first_collision(ref.time, ref.markers, ref.marker_arclength, ref.length, ref.radius, exclude_arclength)
 
 
@@ -221,8 +221,8 @@ def generate_reference(path_name, out=None, segments: int = 64, variant: str = "
     reference's collision detector sees the contact geometry the fine simulation resolved (33
     markers on 64 segments cut corners of the curled tip and called one contact 0.16 s early).
     """
-    from wrenorm.tasks.rope_newton import get_variant, simulate
-    from wrenorm.tasks.rope_paths import HandPath, get_hand_path
+    from wrenorm.tasks.rope.reference.newton import get_variant, simulate
+    from wrenorm.tasks.rope.reference.paths import HandPath, get_hand_path
 
     if isinstance(path_name, HandPath):
         hand_path, label = path_name, "custom"
@@ -276,7 +276,7 @@ def builtin_reference_path(path_name: str, variant: str = "default") -> Path:
 
 def builtin_references(kind: str = "fit", variant: str = "default", progress=None) -> list[RopeReference]:
     """The built-in references of one kind ("fit" or "held_out"); generated and cached when not shipped."""
-    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
     names = {"fit": FIT_PATHS, "held_out": HELD_OUT_PATHS}.get(kind)
     if names is None:
@@ -301,8 +301,8 @@ def builtin_references(kind: str = "fit", variant: str = "default", progress=Non
 # --------------------------------------------------------------------------------------------------- CLI
 
 def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
-    from wrenorm.tasks.rope_newton import VARIANTS
-    from wrenorm.tasks.rope_paths import builtin_hand_paths
+    from wrenorm.tasks.rope.reference.newton import VARIANTS
+    from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
 
     parser.add_argument("--out", required=True, help="output .npz file (written atomically)")
     parser.add_argument("--path", default="flick", choices=sorted(builtin_hand_paths()), help="hand path")
@@ -327,7 +327,7 @@ def run_reference(args) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m wrenorm.tasks.rope_reference",
+    parser = argparse.ArgumentParser(prog="python -m wrenorm.tasks.rope.reference.generate",
                                      description="Generate a fine reference rope trajectory with newton.")
     add_reference_arguments(parser)
     args = parser.parse_args(argv)

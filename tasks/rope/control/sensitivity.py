@@ -96,7 +96,7 @@ def central_jacobian(f, x: np.ndarray, h: float, lo: np.ndarray | None = None, h
 
 def measurement_covariance(goal, marker_noise: float, time_noise: float, frame_time: float = FRAME_TIME):
     """Diagonal covariance of e from marker and timing noise (documented model, see module doc)."""
-    from wrenorm.tasks.rope import SAMPLES
+    from wrenorm.tasks.rope.problem import SAMPLES
 
     K, w = SAMPLES, goal.weights
     sig_v = np.sqrt(2.0) * marker_noise / frame_time
@@ -173,7 +173,7 @@ def command_analysis(model, goal, fd_step: float, noise_samples: int, noise_size
 
 def parameter_analysis(problem, values, goals, names, h: float, step: float, snr: float,
                        marker_noise: float, time_noise: float) -> dict:
-    from wrenorm.tasks import rope_critical as crit
+    from wrenorm.tasks.rope import observable as crit
 
     sp = problem.space
     # only throws the coarse chain completes with a collision have a critical state to differentiate
@@ -239,13 +239,13 @@ def run(args) -> int:
     from wrenorm.cli import _device
     from wrenorm.fit import prepare_out
     from wrenorm.results import versions, write_json
-    from wrenorm.tasks import rope_critical as crit
-    from wrenorm.tasks.rope import RopeProblem
-    from wrenorm.tasks.rope_command import CommandSpace
-    from wrenorm.tasks.rope_correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
-    from wrenorm.tasks.rope_correct_run import _goal_reference
-    from wrenorm.tasks.rope_newton import get_variant
-    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
+    from wrenorm.tasks.rope import observable as crit
+    from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
+    from wrenorm.tasks.rope.control.correct_cli import _goal_reference
+    from wrenorm.tasks.rope.reference.newton import get_variant
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
 
     def progress(msg):
         if not args.quiet:

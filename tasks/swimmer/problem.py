@@ -17,8 +17,8 @@ import numpy as np
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
-from wrenorm.tasks import swimmer_body as body
-from wrenorm.tasks import swimmer_data as data
+from wrenorm.tasks.swimmer import body
+from wrenorm.tasks.swimmer import data
 
 PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kutta_lift": 3.84, "magnus_lift": 0.27}
 DEFAULT_TRAIN = "1.00,1.75"

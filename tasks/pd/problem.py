@@ -354,7 +354,7 @@ def build_problems(args, device: str) -> list[PDProblem]:
     for f in args.f_sim:
         _check_positive({"f_sim": f})
     if args.arm:
-        from wrenorm.tasks.pd_arm import ArmProblem
+        from wrenorm.tasks.pd.arm import ArmProblem
 
         if args.reference or args.integrator != "semi-implicit":
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")

@@ -111,7 +111,7 @@ class RopeCase:
 
 
 def prepare_case(name: str, ref, n_nodes: int, dt: float) -> RopeCase:
-    from wrenorm.tasks.rope_reference import first_self_collision
+    from wrenorm.tasks.rope.reference.generate import first_self_collision
 
     ev = first_self_collision(ref)
     if ev is None or ev.index == 0:
@@ -435,8 +435,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_problem(args, device: str) -> Problem:
-    from wrenorm.tasks.rope_reference import builtin_references, load_reference
-    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS
+    from wrenorm.tasks.rope.reference.generate import builtin_references, load_reference
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
     if args.reference:
         train = [load_reference(p) for p in args.reference]
@@ -477,8 +477,8 @@ def flow_problems(args, device: str) -> list[RopeProblem]:
     """One RopeProblem per resolution on the built-in references: segment counts (--axis segments,
     the default; step --dt) or steps in seconds (--axis dt; --segments links), coarse to fine in
     segments, fine to coarse in dt."""
-    from wrenorm.tasks.rope_paths import FIT_PATHS, HELD_OUT_PATHS
-    from wrenorm.tasks.rope_reference import builtin_references
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
+    from wrenorm.tasks.rope.reference.generate import builtin_references
 
     by_dt = getattr(args, "axis", "segments") == "dt"
     points = []

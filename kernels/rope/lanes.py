@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope import node_w, seg_closest
-from wrenorm.kernels.rope_fast import _OPTIONS, BLOCK, MAX_NODES, TEMPORAL_MAX_NODES
+from wrenorm.kernels.rope.model import node_w, seg_closest
+from wrenorm.kernels.rope.fixed import _OPTIONS, BLOCK, MAX_NODES, TEMPORAL_MAX_NODES
 
 LANES = 16  # 16 float32 = one AVX-512 register; 8 lanes ran the constraint passes a third slower per chain
 _CACHE: dict = {}

@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem
-from wrenorm.tasks.pd import ANALYTIC_DELAY, DURATION, FADE_IN, RAMP, Command
+from wrenorm.tasks.pd.problem import ANALYTIC_DELAY, DURATION, FADE_IN, RAMP, Command
 
 K_P = np.array([[20.0, 3.0], [3.0, 8.0]])
 K_D = np.array([[0.6, 0.05], [0.05, 0.25]])

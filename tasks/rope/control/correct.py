@@ -31,8 +31,8 @@ import numpy as np
 
 from wrenorm.errors import InputError
 from wrenorm.problem import Condition
-from wrenorm.tasks import rope_critical as crit
-from wrenorm.tasks.rope_command import CommandSpace
+from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control.command import CommandSpace
 
 FD_STEP = 0.1  # units of u: 5 mm, 5 cm/s, 1 % of a segment's time
 DEFAULT_TOLERANCE = 0.05  # total error (rope.py units): ~2 % of the length in shape, 2 % in time
@@ -104,7 +104,7 @@ class NewtonRope:
     """The fine newton rope (tasks/rope_newton) as the real system; repeated commands are cached."""
 
     def __init__(self, variant: str = "default", segments: int = 64, duration: float = 1.5, device: str = "cpu"):
-        from wrenorm.tasks.rope_newton import get_variant
+        from wrenorm.tasks.rope.reference.newton import get_variant
 
         get_variant(variant)
         self.variant, self.segments, self.duration, self.device = variant, int(segments), float(duration), device
@@ -112,7 +112,7 @@ class NewtonRope:
         self._cache = {}
 
     def __call__(self, path):
-        from wrenorm.tasks.rope_reference import generate_reference
+        from wrenorm.tasks.rope.reference.generate import generate_reference
 
         key = (path.control_points.tobytes(), path.durations.tobytes())
         if key not in self._cache:
@@ -152,7 +152,7 @@ class StoredTrials:
         return self.folder / f"trial-{key}.npz"
 
     def __call__(self, path):
-        from wrenorm.tasks.rope_reference import load_reference, save_reference
+        from wrenorm.tasks.rope.reference.generate import load_reference, save_reference
 
         f = self.file_for(path)
         if not f.exists():
@@ -182,7 +182,7 @@ class CoarseRope:
         self.duration = duration
 
     def __call__(self, path):
-        from wrenorm.tasks.rope_reference import RopeReference
+        from wrenorm.tasks.rope.reference.generate import RopeReference
 
         t = time.perf_counter()
         pb, cs = self.problem, self.problem.train[0].data
@@ -254,7 +254,7 @@ def correct(real, model: CoarseModel, goal: crit.Goal, u0: np.ndarray, max_trial
       0.085 with the model's place, reaches 0.037 in 6 trials with it frozen).
     A trial that does not improve the best error is rejected: the next command is planned again
     around the best one with half the trust radius (a real trial is the expensive thing)."""
-    from wrenorm.tasks import rope_plan
+    from wrenorm.tasks.rope.control import plan as rope_plan
 
     space = model.space
     if method not in ("plan", "qp"):
@@ -462,9 +462,9 @@ def fit_parameters(variant: str, segments: int, dt: float, seed: int, generation
     """Renormalised parameters: a short CMA-ES fit of RopeProblem to the variant's built-in fit
     paths (the fine rope's reference throws, cached; these are experiments, reported as such)."""
     from wrenorm.search import cmaes
-    from wrenorm.tasks.rope import RopeProblem
-    from wrenorm.tasks.rope_paths import FIT_PATHS
-    from wrenorm.tasks.rope_reference import builtin_references
+    from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS
+    from wrenorm.tasks.rope.reference.generate import builtin_references
 
     refs = builtin_references("fit", variant, progress=progress)
     problem = RopeProblem(refs, segments=segments, dt=dt, device=device, names=list(FIT_PATHS))

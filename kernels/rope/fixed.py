@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope import node_w, seg_closest
+from wrenorm.kernels.rope.model import node_w, seg_closest
 
 _OPTIONS = {"enable_backward": False, "optimization_level": 3, "cpu_compiler_flags": "-march=native",
             "max_unroll": 64}

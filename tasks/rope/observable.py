@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope import NO_HIT, SAMPLES, WEIGHTS, prepare_case, resample
+from wrenorm.tasks.rope.problem import NO_HIT, SAMPLES, WEIGHTS, prepare_case, resample
 
 
 @dataclass
@@ -46,7 +46,7 @@ def from_reference(ref, name: str = "real") -> CriticalStates:
     try:
         case = prepare_case(name, ref, 3, ref.dt)
     except InputError:
-        from wrenorm.tasks.rope_collision import gap_series
+        from wrenorm.tasks.rope.reference.events import gap_series
 
         gap = gap_series(ref.markers, ref.marker_arclength, ref.length, ref.radius)[0]
         nan = np.full((1, SAMPLES, 3), np.nan)

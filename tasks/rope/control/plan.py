@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wrenorm.tasks import rope_critical as crit
+from wrenorm.tasks.rope import observable as crit
 
 LIMIT_PENALTY = 10.0  # per unit of relative excess over the speed/acceleration limit: above any error
 DEFAULT_REG = 1e-4  # per unit of u squared: a tie-breaker toward the centre, far below the tolerance

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from wrenorm.kernels.rope import GRAVITY, ChainParams, node_w
+from wrenorm.kernels.rope.model import GRAVITY, node_w
+from wrenorm.kernels.rope.sim import ChainParams
 
 _CACHE: dict = {}
 GRAD_FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_quad", "stretch", "mass_slope")

@@ -21,6 +21,8 @@ robot's do.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from wrenorm.kernels import swimmer as kern
@@ -112,6 +114,44 @@ def merge_links(bodies: int = len(LINKS)) -> list:
     return out
 
 
+def ellipsoid_kappa(semi) -> np.ndarray:
+    """kappa_i = int_0^inf r_x r_y r_z / sqrt((r_i^2+l)^3 (r_j^2+l)(r_k^2+l)) dl (Tuckerman)."""
+    from scipy.integrate import quad
+
+    r = np.asarray(semi, dtype=np.float64)
+    out = np.zeros(3)
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+
+        # substitute l = s^2 r_max^2 / (1 - s)^2 ... keep it simple: integrate in log space
+        def f(t, i=i, j=j, k=k):
+            lam = math.exp(t)
+            return lam * r.prod() / math.sqrt((r[i] ** 2 + lam) ** 3 * (r[j] ** 2 + lam) * (r[k] ** 2 + lam))
+
+        lo, hi = math.log(r.min() ** 2) - 40.0, math.log(r.max() ** 2) + 40.0
+        val, _ = quad(f, lo, hi, limit=400, epsabs=1e-13, epsrel=1e-11)
+        out[i] = val
+    return out
+
+
+def virtual_mass_inertia(semi) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's virtual masses and moments of inertia of an ellipsoid, per unit fluid density."""
+    r = np.asarray(semi, dtype=np.float64)
+    kap = ellipsoid_kappa(r)
+    vol = 4.0 / 3.0 * math.pi * r.prod()
+    mass = vol * kap / (2.0 - kap)
+    inertia = np.zeros(3)
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        dj, dk = r[j] ** 2, r[k] ** 2
+        num = (dj - dk) ** 2 * (kap[k] - kap[j])
+        den = 2.0 * (dj - dk) + (dj + dk) * (kap[j] - kap[k])
+        inertia[i] = vol / 5.0 * num / den if abs(den) > 1e-300 else 0.0
+    return mass, inertia
+
+
+
+
 def parts(links=LINKS) -> dict:
     """Per-part constants in kernel order: head fluid parts, head mass lump, then one per link."""
     semi, amass, inert, link, offset = [], [], [], [], []
@@ -119,7 +159,7 @@ def parts(links=LINKS) -> dict:
     def add(r, m, j, lk, d):
         semi.append(r)
         if r[0] > 0:
-            vm, vi = kern.virtual_mass_inertia(r)
+            vm, vi = virtual_mass_inertia(r)
             amass.append((vm[0], vm[1], vi[2]))
         else:
             amass.append((0.0, 0.0, 0.0))

@@ -1,5 +1,5 @@
 """The swimmer step written part by part, as first derived (one 3x3 system assembled from every
-part's inertia and fluid wrench each step, linearly implicit Euler). Kept as the reference the
+part's inertia and fluid wrench each step, linearly implicit Euler). Kept (here, beside the tests) as the reference the
 restructured kernel in swimmer.py is tested against (tests/test_swimmer_sim.py); not used in fits.
 """
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from wrenorm.kernels.swimmer import fluid_planar, geo9
+from wrenorm.kernels.swimmer.fluid import fluid_geometry_kernel, fluid_planar, geo9
 
 wp.config.quiet = True
 
@@ -293,9 +293,16 @@ def run_direct(batch, coef: np.ndarray) -> np.ndarray:
     speed = wp.zeros(n, dtype=float, device=d)
     state = wp.zeros((n, 7), dtype=float, device=d)
     traj = wp.zeros((1, 1, 4), dtype=float, device=d)
+    semi = np.asarray(batch.parts["semi"], np.float32)
+    semi_w = wp.array(semi, dtype=wp.vec3, device=d)
+    geo_all = wp.zeros(len(semi), dtype=geo9, device=d)
+    wp.launch(fluid_geometry_kernel, dim=len(semi), inputs=[semi_w, geo_all], device=d)
+    amass_all = wp.array(np.asarray(batch.parts["amass"], np.float32) * batch.rho, dtype=wp.vec3, device=d)
+    inert = wp.array(np.asarray(batch.parts["inert"], np.float32), dtype=wp.vec2, device=d)
+    part_table = wp.array(np.ascontiguousarray(batch.part_table, np.float32), dtype=float, device=d)
     wp.launch(swim_kernel_direct, dim=n, device=d, inputs=[
-        0, batch.n_cond, wp.array(coef, dtype=float, device=d), batch.part_table, batch.semi, batch.geo_all,
-        batch.amass_all, batch.inert, batch.tab_off, batch.n_per, batch.dt, batch.n_warm, batch.n_meas,
+        0, batch.n_cond, wp.array(coef, dtype=float, device=d), part_table, semi_w, geo_all,
+        amass_all, inert, batch.tab_off, batch.n_per, batch.dt, batch.n_warm, batch.n_meas,
         batch.max_warm, batch.settle_abs, batch.settle_rel, batch.ref_x, batch.rho, batch.mu, batch.virtual_mass,
         0, traj, speed, state])
     return speed.numpy().reshape(coef.shape[0], batch.n_cond).astype(np.float64)

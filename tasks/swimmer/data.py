@@ -262,7 +262,7 @@ def write_builtin(src_dir, out_path=None) -> Path:
                   "Marker tracks of the tendon-driven robotic fish, Michelis, Obayashi, Hughes, Katzschmann, "
                   "'Simple Models, Real Swimming' (arXiv 2602.23283), repository srl-ethz/fishsim, MIT licence "
                   "(LICENSE_fishsim). Converted from markers_f*.csv pixels to metres with the 0.142 m head-marker "
-                  "distance by wrenorm.tasks.swimmer_data.write_builtin.")}
+                  "distance by wrenorm.tasks.swimmer.data.write_builtin.")}
     for r in rates:
         arrays[f"markers_{r.label:.2f}"] = r.markers.astype(np.float32)
     np.savez_compressed(out_path, **arrays)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope_paths import DEFAULT_MAX_ACCELERATION, DEFAULT_MAX_SPEED, HandPath
+from wrenorm.tasks.rope.reference.paths import DEFAULT_MAX_ACCELERATION, DEFAULT_MAX_SPEED, HandPath
 
 POSITION_SCALE = 0.05  # m per unit of u
 VELOCITY_SCALE = 0.5  # m/s per unit of u

@@ -16,8 +16,8 @@ SYSTEM = "rope"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from wrenorm.tasks.rope_correct import DEFAULT_TOLERANCE, FD_STEP
-    from wrenorm.tasks.rope_plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
+    from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
+    from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
@@ -68,7 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _goal_reference(name: str, variant: str, progress):
-    from wrenorm.tasks.rope_reference import builtin_reference_path, generate_reference, load_reference
+    from wrenorm.tasks.rope.reference.generate import builtin_reference_path, generate_reference, load_reference
 
     p = builtin_reference_path(name, variant)
     if p.exists():
@@ -80,13 +80,13 @@ def _goal_reference(name: str, variant: str, progress):
 def run(args) -> int:
     from wrenorm.fit import prepare_out
     from wrenorm.results import versions, write_json
-    from wrenorm.tasks import rope_critical as crit
-    from wrenorm.tasks.rope import RopeProblem
-    from wrenorm.tasks.rope_command import CommandSpace
-    from wrenorm.tasks.rope_correct import (CoarseModel, CoarseRope, NewtonRope, StoredTrials, correct, fit_parameters,
+    from wrenorm.tasks.rope import observable as crit
+    from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.control.correct import (CoarseModel, CoarseRope, NewtonRope, StoredTrials, correct, fit_parameters,
                                             parameters_from_file, trial_rows)
-    from wrenorm.tasks.rope_newton import get_variant
-    from wrenorm.tasks.rope_paths import get_hand_path
+    from wrenorm.tasks.rope.reference.newton import get_variant
+    from wrenorm.tasks.rope.reference.paths import get_hand_path
 
     def progress(msg):
         if not args.quiet:
@@ -225,7 +225,7 @@ def _restore_settings(args) -> None:
 
 
 def _default(name: str, method: str) -> float:
-    from wrenorm.tasks import rope_correct, rope_plan
+    from wrenorm.tasks.rope.control import correct as rope_correct, plan as rope_plan
 
     if name == "radius":
         return rope_correct.DEFAULT_PLAN_RADIUS if method == "plan" else rope_correct.DEFAULT_RADIUS

@@ -1,0 +1,188 @@
+"""Host side of the coarse rope chain: per-chain parameters, rollout results, and `RopeSim`, which picks
+the fastest kernel variant for the device and chain size and launches it over slices of the batch."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from wrenorm.kernels.launch import launch_sliced
+from wrenorm.kernels.rope.generic import rollout_kernel
+from wrenorm.kernels.rope.model import GRAVITY, VMAX
+
+
+@dataclass
+class ChainParams:
+    """Per-chain physical parameters, each (B,) float: masses in kg, k in N m/rad per joint,
+    b in N m s/rad per joint, drag_lin in N s/m^2 and drag_quad in N s^2/m^3 (per unit length),
+    radius in m (collision capsule)."""
+
+    node_mass: np.ndarray
+    lead_mass: np.ndarray
+    bend_k: np.ndarray
+    bend_b: np.ndarray
+    drag_lin: np.ndarray
+    drag_quad: np.ndarray
+    radius: np.ndarray
+    mass_slope: np.ndarray | float = 0.0  # interior mass profile, see node_w (0: uniform)
+    stretch: np.ndarray | float = 0.0  # link compliance in m/N (XPBD; 0: inextensible)
+
+    FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_quad", "radius", "mass_slope",
+              "stretch")
+    DEFAULTS = {"mass_slope": 0.0, "stretch": 0.0}
+
+    def __post_init__(self):
+        arrs = [np.atleast_1d(np.asarray(getattr(self, f), dtype=np.float32)) for f in self.FIELDS]
+        size = max(a.shape[0] for a in arrs)
+        for f, a in zip(self.FIELDS, arrs):
+            setattr(self, f, np.array(np.broadcast_to(a, (size,))))
+
+    @property
+    def batch(self) -> int:
+        return self.node_mass.shape[0]
+
+    @classmethod
+    def uniform(cls, batch: int, **values) -> "ChainParams":
+        return cls(**{f: np.full(batch, values.get(f, cls.DEFAULTS.get(f)), dtype=np.float32) for f in cls.FIELDS})
+
+    def node_masses(self, n: int) -> np.ndarray:
+        """(B, n) masses as the kernels use them (node 0, held by the hand, as inf)."""
+        u = np.linspace(0.0, 1.0, n - 2) if n > 3 else np.array([0.5])
+        interior = self.node_mass[:, None] * (1.0 + self.mass_slope[:, None] * (1.0 - 2.0 * u[None]))
+        return np.concatenate([np.full((self.batch, 1), np.inf), interior, self.lead_mass[:, None]], 1)
+
+
+@dataclass
+class RolloutResult:
+    status: np.ndarray      # (B,) 0 no hit, 1 hit, 2 blew up
+    hit_frame: np.ndarray   # (B,) first frame with a gap <= 0 (-1 if none)
+    hit_alpha: np.ndarray   # (B,) fraction of the step [hit_frame-1, hit_frame] at the crossing
+    hit_time: np.ndarray    # (B,) s, nan if no hit
+    s_a: np.ndarray         # (B,) arc-length fraction of the hit point on the segment nearer the hand
+    s_b: np.ndarray         # (B,) ... on the segment nearer the free end
+    crit_pos: np.ndarray    # (B, N, 3)
+    crit_vel: np.ndarray    # (B, N, 3)
+    clearance: np.ndarray   # (B,) min over frames and pairs of min(gap, margin)
+    final_pos: np.ndarray   # (B, N, 3) state after the last simulated step
+    final_vel: np.ndarray
+    trajectory: np.ndarray | None = None        # (K, B, N, 3) positions every `trajectory_every` steps
+    trajectory_times: np.ndarray | None = None  # (K,) s
+
+
+class RopeSim:
+    """Coarse chains of `n_nodes` masses (node 0 held) with links of `link_length` metres."""
+
+    def __init__(self, n_nodes: int, link_length: float, dt: float = 0.005, device: str = "cpu",
+                 iterations: int = 4, cull: bool = True, margin: float | None = None,
+                 gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True,
+                 lanes: int | None = None):
+        if not (3 <= int(n_nodes) <= 256):
+            raise ValueError(f"n_nodes must be in [3, 256], got {n_nodes}")
+        wp.init()
+        self.n = int(n_nodes)
+        self.link = float(link_length)
+        self.dt = float(dt)
+        self.device = str(device)
+        self.iterations = int(iterations)
+        self.cull = bool(cull)
+        self.margin = float(0.25 * self.link if margin is None else margin)
+        self.gravity = tuple(float(g) for g in gravity)
+        self.workers = workers
+        self.min_sep = max(2, int(min_sep))
+        # fixed: the per-size unrolled kernel (kernels/rope_fast.py), same results, faster on CPU
+        self.kernel = rollout_kernel
+        self.lanes = 0  # chains per thread of the SIMD-lane kernel (kernels/rope_lanes.py); 0: one
+        if fixed:
+            from wrenorm.kernels.rope import fixed as rope_fast, lanes as rope_lanes
+
+            if self.n <= rope_fast.MAX_NODES:
+                self.kernel = rope_fast.fast_kernel(self.n)
+            # lanes fill a CPU's vector units; a GPU runs one chain per thread
+            if lanes is None:
+                lanes = rope_lanes.LANES if self.device.startswith("cpu") and self.n <= rope_lanes.MAX_NODES else 0
+            if lanes:
+                self.kernel = rope_lanes.lanes_kernel(self.n, lanes)
+                self.lanes = int(lanes)
+        self._loaded = False
+
+    def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
+                params: ChainParams, steps: int, t0: float = 0.0, stop_at_hit: bool = True,
+                chunk: int | None = None, trajectory_every: int | None = None) -> RolloutResult:
+        """pos0/vel0 (B, N, 3); hand (P, S, 3) hand samples at t0 + s dt with S > steps."""
+        n, dev = self.n, self.device
+        B = params.batch
+        hand = np.asarray(hand, dtype=np.float32)
+        if hand.ndim != 3 or hand.shape[1] <= steps:
+            raise ValueError(f"hand must be (paths, >{steps}, 3), got {hand.shape}")
+        pos0 = np.broadcast_to(np.asarray(pos0, np.float32), (B, n, 3))
+        vel0 = np.broadcast_to(np.asarray(vel0, np.float32), (B, n, 3))
+        path_index = np.broadcast_to(np.asarray(path_index, np.int32), (B,))
+        f32 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev)  # noqa: E731
+        v3 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=dev)  # noqa: E731
+        pos, vel = v3(pos0), v3(vel0)
+        prev = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        lam_link = wp.zeros((B, n), dtype=float, device=dev)
+        seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
+        hand_w = v3(hand)
+        pidx = wp.array(np.ascontiguousarray(path_index), dtype=wp.int32, device=dev)
+        pa = [f32(getattr(params, f)) for f in ChainParams.FIELDS]
+        status = wp.zeros(B, dtype=wp.int32, device=dev)
+        hit_frame = wp.array(np.full(B, -1, np.int32), dtype=wp.int32, device=dev)
+        hit_alpha = wp.zeros(B, dtype=float, device=dev)
+        hit_s = wp.zeros(B, dtype=wp.vec2, device=dev)
+        crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
+        if not self._loaded:
+            # build before the sliced launch: two threads meeting an unbuilt module both compile it
+            wp.load_module(self.kernel.module, device=dev)
+            self._loaded = True
+        chunk = int(trajectory_every or chunk or steps)
+        frames = [pos.numpy().copy()] if trajectory_every else None
+        wp.synchronize_device(dev)
+        t_kernel = time.perf_counter()
+        for s0 in range(0, steps, chunk):
+            ns = min(chunk, steps - s0)
+
+            def launch(offset, count, s0=s0, ns=ns):
+                inputs = [pos, vel, prev, lam, lam_link, seg, hand_w, pidx, *pa,
+                          n, self.min_sep, self.link, self.dt, wp.vec3(*self.gravity), self.iterations, int(self.cull),
+                          self.margin, VMAX, s0, ns, int(stop_at_hit),
+                          status, hit_frame, hit_alpha, hit_s, crit_pos, crit_vel, clearance, offset]
+                if self.lanes:
+                    wp.launch(self.kernel, dim=-(-count // self.lanes), device=dev, inputs=inputs + [offset + count])
+                else:
+                    wp.launch(self.kernel, dim=count, device=dev, inputs=inputs)
+
+            launch_sliced(launch, B, dev, self.workers)
+            if frames is not None:
+                frames.append(pos.numpy().copy())  # CPU .numpy() is a view
+        wp.synchronize_device(dev)
+        # launches alone, without host<->device copies: what a GPU kernel sustains
+        self.last_kernel_seconds = time.perf_counter() - t_kernel
+        st = status.numpy()
+        hf = hit_frame.numpy()
+        ha = hit_alpha.numpy()
+        hs = hit_s.numpy()
+        hit = st == 1
+        return RolloutResult(
+            status=st, hit_frame=hf, hit_alpha=ha,
+            hit_time=np.where(hit, t0 + (hf - 1 + ha.astype(np.float64)) * self.dt, np.nan),
+            s_a=np.where(hit, hs[:, 0], np.nan), s_b=np.where(hit, hs[:, 1], np.nan),
+            crit_pos=crit_pos.numpy(), crit_vel=crit_vel.numpy(), clearance=clearance.numpy(),
+            final_pos=pos.numpy(), final_vel=vel.numpy(),
+            trajectory=None if frames is None else np.stack(frames),
+            trajectory_times=None if frames is None else t0 + self.dt * np.minimum(
+                np.arange(len(frames)) * chunk, steps))
+
+
+# ---------------------------------------------------------------------------------- helpers
+def hanging_state(hand0: np.ndarray, n_nodes: int, link: float) -> tuple[np.ndarray, np.ndarray]:
+    """A chain hanging straight down from the hand at rest: (N, 3) positions and velocities."""
+    pos = np.asarray(hand0, np.float64)[None, :] + np.outer(np.arange(n_nodes) * link, [0.0, 0.0, 1.0]) * -1.0
+    return pos.astype(np.float32), np.zeros_like(pos, dtype=np.float32)
+
+

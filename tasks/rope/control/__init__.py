@@ -1,0 +1,1 @@
+"""Steering real throws: the command space, planning on the coarse model, correction over trials, sensitivity."""

@@ -1,0 +1,1 @@
+"""Reference ropes: the file format, event detection, fine simulators and hand paths."""
