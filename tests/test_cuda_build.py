@@ -9,11 +9,11 @@ from wrenorm import cuda_check
 
 @pytest.fixture(scope="module")
 def built():
-    return cuda_check.compile_for_cuda(cuda_check.kernel_modules(rope_sizes=(8, 16)), arch=90)
+    return cuda_check.compile_for_cuda(cuda_check.kernel_modules(), arch=90)
 
 
 def test_every_kernel_module_builds_for_sm90(built):
-    assert set(built) == set(cuda_check.kernel_modules(rope_sizes=(8, 16)))
+    assert set(built) == set(cuda_check.kernel_modules())
     for name, res in built.items():
         assert 0 < res["registers"] <= 255, name
         assert res["frame_bytes"] >= 0 and res["cubin_bytes"] > 1000, name

@@ -1,7 +1,6 @@
 """Interrupted fits resume to the same answer; same seed, same bits; runs are never clobbered."""
 import json
 import os
-import pickle
 import signal
 import subprocess
 import sys
@@ -34,13 +33,13 @@ def test_kill_9_then_resume_matches_uninterrupted_run(tmp_path):
     env = dict(os.environ, WRENORM_TEST_SLOW_GENERATION="0.4")
     proc = subprocess.Popen([sys.executable, "-m", "wrenorm", *FIT, "--out", str(out)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    state = out / "search_state.pkl"
+    state = out / "search_state.json"
     deadline = time.time() + 120
     gens = 0
     while time.time() < deadline:
         if state.exists():
             try:
-                gens = len(pickle.loads(state.read_bytes())["history"])
+                gens = len(json.loads(state.read_text())["history"])
             except Exception:
                 gens = 0
             if gens >= 4:
@@ -66,7 +65,12 @@ def test_existing_run_is_not_overwritten_without_force(tmp_path, capsys):
 
 def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
     assert main([*FIT, "--out", str(tmp_path / "nothing"), "--resume"]) == 2
-    assert "search_state.pkl" in capsys.readouterr().err
+    assert "no such run folder" in capsys.readouterr().err
+    out = tmp_path / "run"
+    assert main([*FIT, "--out", str(out)]) == 0
+    (out / "search_state.json").unlink()
+    assert main([*FIT, "--out", str(out), "--resume"]) == 2
+    assert "search_state.json" in capsys.readouterr().err
 
 
 def test_every_candidate_blowing_up_says_so():

@@ -12,7 +12,7 @@ from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct,
 from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector
 from wrenorm.tasks.rope.reference.paths import HandPath, builtin_hand_paths
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
-from wrenorm.tasks.rope.control.sensitivity import central_jacobian, resolvable
+from wrenorm.tasks.rope.control.sensitivity import resolvable
 
 PATHS = builtin_hand_paths()
 
@@ -217,14 +217,6 @@ def test_dead_command_direction_gives_zero_singular_values(problem):
     Uf = np.linalg.svd(F, full_matrices=False)[0]
     _, ok = resolvable(sv, Uf, np.eye(F.shape[0]) * 1e-8, step=1.0, snr=3.0)
     assert ok.sum() <= space.dim - 3 and ok[0]
-
-
-def test_central_jacobian_on_a_known_map():
-    A = np.array([[1.0, 2.0, 0.0], [0.0, -1.0, 0.0]])
-    f = lambda X: X @ A.T + 0.5 * X[:, :1] ** 2  # noqa: E731
-    J, e0, kinds = central_jacobian(f, np.array([0.0, 0.3, 1.0]), 1e-3, np.zeros(3), np.ones(3))
-    assert kinds == ["forward", "central", "backward"]
-    assert np.allclose(J, A + np.array([[0.0005, 0, 0], [0.0005, 0, 0]]), atol=1e-6)
 
 
 def test_parameters_file_errors(problem, tmp_path):

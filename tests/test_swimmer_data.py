@@ -107,7 +107,7 @@ def test_build_problem_from_folder_and_train_labels(tmp_path, rates):
     for r in rates:
         _write_pixels(tmp_path, r)
     args = argparse.Namespace(data=tmp_path, train="1.00, 2.25", dt=0.004, virtual_mass=False)
-    prob = swimmer.build_problem(args, "cpu")
+    prob = swimmer.build_problems(args, "cpu")[0]
     assert [c.name for c in prob.train] == ["f1.00", "f2.25"]
     assert [c.name for c in prob.held_out] == ["f0.50", "f1.25", "f1.75"]
 

@@ -28,11 +28,11 @@ def test_residuals_are_signed_errors(rates):
 
 
 def test_identifiability_says_two_speeds_do_not_pin_five_coefficients(rates):
-    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016, restarts=3)
-    prob.restart_generations = 25
-    ident = prob.identifiability(prob.space.measured)
-    assert ident["unconstrained_directions_at_least"] == 3
-    rs = ident["restarts"]
+    from wrenorm.restarts import identifiability_restarts
+
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
+    rs = identifiability_restarts(prob, prob.space.measured, seeds=[101, 102, 103], popsize=16, generations=25)
+    assert rs["unconstrained_directions_at_least"] == 3
     assert len(rs["optima"]) == 3
     assert all(np.isfinite(o["train_loss"]) and o["train_loss"] < 0.0095 for o in rs["optima"])
     assert set(rs["pinned"]) | set(rs["not_pinned"]) == set(prob.space.names)
@@ -44,7 +44,7 @@ def test_flow_problems_sorted_time_steps_and_bad_input(rates):
                               gait="chain", yaw_weight=0.0, integrator="ros2", command="flow")
     probs = swimmer.flow_problems(args, "cpu")
     assert [p.dt for p in probs] == [0.002, 0.008]
-    assert all(p.resolution["dt"] == p.dt and p.restarts == 0 for p in probs)
+    assert all(p.resolution["dt"] == p.dt for p in probs)
     args.resolutions = [0.5]
     with pytest.raises(InputError, match="dt"):
         swimmer.flow_problems(args, "cpu")

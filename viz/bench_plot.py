@@ -1,5 +1,6 @@
-"""The bench's throughput against batch size, one panel per kernel, and the rope's variants and
-baselines side by side (bench/results.png)."""
+"""The bench's throughput against batch size, one panel per kernel, and each system's variants and
+baselines side by side (bench/results.png). Rows carry `panel`, `series`, `batch`, `value`, `unit`
+(and `comparison` for the side-by-side variants), so this needs no system's names."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,57 +10,43 @@ from wrenorm.viz.plots import _figure, save_figure
 
 def plot_bench(path: Path, res: dict) -> None:
     plt = _figure()
-    gpu = not res["machine"]["device"].startswith("cpu")
-    rope_key = "kernel_chain_steps_per_s" if gpu else "chain_steps_per_s"
-    comparison = [r for r in res.get("rope", []) if r.get("comparison")]
-    panels = (["rope"] if res.get("rope") else []) + (["variants"] if comparison else []) + \
-        [k for k in ("swimmer", "pd") if res.get(k)]
+    rows = [r for name in res.get("systems", []) for r in res.get(name, []) if "panel" in r]
+    panels = list(dict.fromkeys(r["panel"] for r in rows))
     if not panels:
         return
     fig, axes = plt.subplots(1, len(panels), figsize=(4.4 * len(panels), 3.8), squeeze=False)
-    for ax, name in zip(axes[0], panels):
-        if name == "variants":
-            names = [r["variant"] for r in comparison]
-            vals = [r[rope_key] / 1e6 for r in comparison]
-            bars = ax.barh(range(len(vals)), vals, color=["tab:orange" if n == "culled" else "0.6" for n in names])
+    fmt = plt.matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+    for ax, panel in zip(axes[0], panels):
+        sel = [r for r in rows if r["panel"] == panel]
+        unit = sel[0]["unit"]
+        if all(r.get("comparison") for r in sel):
+            names, vals = [r["series"] for r in sel], [r["value"] for r in sel]
+            bars = ax.barh(range(len(vals)), vals, color=["tab:orange" if i == 0 else "0.6" for i in range(len(vals))])
             ax.set_yticks(range(len(vals)), names)
             ax.invert_yaxis()
             ax.set_xscale("log")
-            base = next((r[rope_key] for r in comparison if r["variant"] == "numpy"), None)
-            for b, r in zip(bars, comparison):
-                ax.annotate(f" {r[rope_key] / 1e6:.3g}" + (f" ({r[rope_key] / base:.2g}x numpy)" if base else ""),
-                            (b.get_width(), b.get_y() + b.get_height() / 2), va="center", fontsize=7)
+            slowest = min(vals)
+            for b, v in zip(bars, vals):
+                ax.annotate(f" {v:.3g} ({v / slowest:.2g}x slowest)", (b.get_width(), b.get_y() + b.get_height() / 2),
+                            va="center", fontsize=7)
             ax.set_xlim(right=max(vals) * 30)
-            ax.set_xlabel("M chain-steps / s")
-            ax.set_title(f"rope N = 16, batch {comparison[0]['batch']}, same run", fontsize=10)
+            ax.set_xlabel(unit)
             ax.grid(True, axis="x", which="both", alpha=0.3)
-            continue
-        rows = sorted(res[name], key=lambda r: r["batch"])
-        if name == "rope":
-            main = [r for r in rows if not r.get("comparison")]
-            for n in sorted({r["n_nodes"] for r in main}):
-                sel = [r for r in main if r["n_nodes"] == n]
-                ax.plot([r["batch"] for r in sel], [r[rope_key] / 1e6 for r in sel], "o-", label=f"N = {n}")
-            ax.set_yscale("log")
-            ax.yaxis.set_major_formatter(plt.matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
-            ax.yaxis.set_minor_formatter(plt.matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
-            ax.set_ylabel("M chain-steps / s")
-            ax.set_title("rope, culled" + (" (launches alone)" if gpu else ", all cores"), fontsize=10)
-            ax.legend(fontsize=7, loc="center right")
-        elif name == "swimmer":
-            ax.plot([r["batch"] for r in rows], [r["fish_seconds_per_s"] for r in rows], "o-", color="tab:blue")
-            ax.set_ylabel("fish-seconds simulated / s")
-            ax.set_title("swimmer", fontsize=10)
-            ax.set_ylim(bottom=0)
         else:
-            ax.plot([r["batch"] for r in rows], [r["joint_steps_per_s"] / 1e6 for r in rows], "o-", color="tab:green")
-            ax.set_ylabel("M joint-steps / s")
-            ax.set_title("PD joint", fontsize=10)
-            ax.set_ylim(bottom=0)
-        ax.set_xscale("log", base=2)
-        ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:.0f}"))
-        ax.set_xlabel("batch (models per launch)")
-        ax.grid(True, which="both", alpha=0.3)
+            for series in dict.fromkeys(r["series"] for r in sel):
+                pts = sorted((r["batch"], r["value"]) for r in sel if r["series"] == series)
+                ax.plot([b for b, _ in pts], [v for _, v in pts], "o-", label=series)
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(fmt)
+            ax.yaxis.set_minor_formatter(fmt)
+            ax.set_xscale("log", base=2)
+            ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:.0f}"))
+            ax.set_xlabel("batch (models per launch)")
+            ax.set_ylabel(unit)
+            if len({r["series"] for r in sel}) > 1:
+                ax.legend(fontsize=7, loc="center right")
+            ax.grid(True, which="both", alpha=0.3)
+        ax.set_title(panel, fontsize=10)
     m = res["machine"]
     fig.suptitle(f"{m.get('cpu_model', m['processor'])}, {m['cpu_count']} cores"
                  + (f", {m['gpu']}" if "gpu" in m else "") + f"; {res['date']}", fontsize=9)

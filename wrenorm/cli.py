@@ -1,28 +1,30 @@
-"""Command line: `python -m wrenorm fit pd|rope|swimmer`, `view`, `reference rope`, `bench`,
-`correct rope`, `sensitivity rope`.
+"""Command line, built from the registry of systems (wrenorm.system):
 
-Every user mistake (bad file, bad option value) ends with one line naming the file or option,
-the field and the problem, and exit code 2 — never a traceback.
+    python -m wrenorm fit <system> ...        fit a system's effective parameters
+    python -m wrenorm flow <system> ...       effective parameters against resolution
+    python -m wrenorm <verb> <system> ...     a system's extra commands (e.g. `reference rope`)
+    python -m wrenorm view RUN | bench
+
+Every user mistake (bad file, bad option value) ends with one line naming the file or option, the field
+and the problem, and exit code 2, never a traceback; Ctrl-C ends with exit 130.
 """
 from __future__ import annotations
 
 import argparse
-import importlib
+import json
 import sys
 import time
 from pathlib import Path
 
 from .errors import AllCandidatesFailed, InputError
+from .options import OneLineParser, add_list, add_number
+from .system import resolve, systems
 
-TASKS = ("pd", "rope", "swimmer")
-
-
-def _task_module(name: str):
-    return importlib.import_module(f"wrenorm.tasks.{name}")
+CORE_VERBS = ("fit", "flow", "view", "bench")
 
 
-def _default_out(task: str) -> Path:
-    return Path("runs") / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
+def _default_out(name: str) -> Path:
+    return Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _device(name: str) -> str:
@@ -35,27 +37,94 @@ def _device(name: str) -> str:
     return "cuda:0" if name.startswith("cuda") else "cpu"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
+def _run_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<command>-<time>)")
+    add_number(p, "--seed", default=0, lo=0, hi=2**31 - 1, integer=True, help="random seed")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--force", action="store_true", help="clear a non-empty --out folder that wrenorm wrote")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
+    add_list(p, "--free", default=[], metavar="NAME",
+             help="also fit these parameters (expand the set when the held-out verdict says 'expand')")
+    add_list(p, "--freeze", default=[], metavar="NAME", help="hold these parameters at their measured values")
 
 
-def _parameter_set_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--free", nargs="+", default=[], metavar="NAME",
-                   help="also fit these parameters (expand the set when the held-out verdict says 'expand')")
-    p.add_argument("--freeze", nargs="+", default=[], metavar="NAME",
-                   help="hold these parameters at their measured values")
+def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
+    d = system.search
+    _run_arguments(p)
+    add_number(p, "--generations", default=d.generations, lo=1, hi=100000, integer=True, help="CMA-ES generations")
+    add_number(p, "--popsize", default=d.popsize, lo=4, hi=1_000_000, integer=True,
+               help="CMA-ES population (default: pycma's for the dimension when unset)")
+    add_number(p, "--sigma0", default=d.sigma0, lo=0.0, lo_open=True, hi=1.0,
+               help="initial CMA-ES step in normalised [0, 1] coordinates")
+    add_number(p, "--searches", default=1, lo=1, hi=65536, integer=True,
+               help="seeded CMA-ES searches side by side in one batched evaluation; the best is kept")
+    add_number(p, "--restarts", default=d.restarts, lo=0, hi=1000, integer=True,
+               help="identifiability check after the fit: further seeded searches side by side (0: none; else >= 2)")
+    add_number(p, "--polish", default=d.polish, lo=0, hi=10000, integer=True,
+               help="L-BFGS evaluations on Warp-tape gradients after the search (systems with a tape; 0: none)")
+    system.add_arguments(p)
+
+
+def _flow_arguments(p: argparse.ArgumentParser, system) -> None:
+    _run_arguments(p)
+    p.add_argument("--resolutions", type=float, nargs="+", default=None, help=system.flow.resolutions_help)
+    add_number(p, "--restarts", default=4, lo=2, hi=1000, integer=True,
+               help="seeded CMA-ES searches side by side per resolution (their spread is the uncertainty)")
+    add_number(p, "--generations", default=system.flow.generations, lo=1, hi=100000, integer=True)
+    add_number(p, "--popsize", default=16, lo=4, hi=1_000_000, integer=True, help="CMA-ES population per search")
+    system.flow.add_arguments(p)
+
+
+def _selected(argv: list[str]) -> tuple[str | None, str | None]:
+    words = [a for a in argv if not a.startswith("-")]
+    return (words[0] if words else None), (words[1] if len(words) > 1 else None)
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; only the sub-command named in argv gets its options (so building it stays cheap)."""
+    verb, name = _selected(list(sys.argv[1:] if argv is None else argv))
+    registered = systems()
+    p = OneLineParser(prog="wrenorm", description="Fit effective, resolution-dependent parameters of coarse robot "
+                                                   "models (renormalisation) with batched Warp kernels.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    fit = sub.add_parser("fit", help="fit a system's effective parameters")
+    fit_sub = fit.add_subparsers(dest="system", required=True, parser_class=OneLineParser)
+    for s in registered.values():
+        sp = fit_sub.add_parser(s.name, help=s.help)
+        if verb == "fit" and name == s.name:
+            _fit_arguments(sp, s)
+    flow = sub.add_parser("flow", help="effective parameters as functions of resolution, with uncertainty")
+    flow_sub = flow.add_subparsers(dest="system", required=True, parser_class=OneLineParser)
+    for s in registered.values():
+        if s.flow is not None:
+            sp = flow_sub.add_parser(s.name, help=f"resolution flow of the {s.name} system")
+            if verb == "flow" and name == s.name:
+                _flow_arguments(sp, s)
+    extra: dict[str, argparse._SubParsersAction] = {}
+    for s in registered.values():
+        for c in s.commands:
+            if c.verb not in extra:
+                vp = sub.add_parser(c.verb, help=c.help)
+                extra[c.verb] = vp.add_subparsers(dest="system", required=True, parser_class=OneLineParser)
+            sp = extra[c.verb].add_parser(s.name, help=c.help)
+            if verb == c.verb and name == s.name:
+                resolve(c.add_arguments)(sp)
+    view = sub.add_parser("view", help="open a run's recording in the Rerun viewer")
+    view.add_argument("run", type=Path)
+    bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
+    if verb == "bench":
+        from .bench import add_arguments
+
+        add_arguments(bench)
+    return p
 
 
 def _apply_parameter_set(problems, args) -> None:
     """--free / --freeze: the paper's procedure starts from the smallest set and grows it when
     held-out conditions say the omitted physics was not absorbed."""
-    free, freeze = list(getattr(args, "free", [])), list(getattr(args, "freeze", []))
+    free, freeze = list(args.free), list(args.freeze)
     both = sorted(set(free) & set(freeze))
     if both:
         raise InputError("--free/--freeze", ",".join(both), "named both free and frozen")
@@ -71,90 +140,51 @@ def _apply_parameter_set(problems, args) -> None:
             raise InputError("--freeze", ",".join(freeze), f"leaves no free parameter of {pb.space.names}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="wrenorm", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    fit = sub.add_parser("fit", help="fit a system's effective parameters")
-    fit_sub = fit.add_subparsers(dest="task", required=True)
-    for task in TASKS:
-        tp = fit_sub.add_parser(task, help=f"fit the {task} system")
-        tp.add_argument("--out", type=Path, default=None, help="run folder (default runs/<task>-<time>)")
-        tp.add_argument("--seed", type=_positive_int, default=0)
-        tp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-        tp.add_argument("--resume", action="store_true", help="continue the interrupted fit in --out")
-        tp.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder")
-        tp.add_argument("--quiet", action="store_true", help="no progress lines")
-        tp.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
-        _parameter_set_arguments(tp)
-        try:
-            _task_module(task).add_arguments(tp)
-        except ModuleNotFoundError:
-            tp.set_defaults(_missing=True)
-    flow = sub.add_parser("flow", help="effective parameters as functions of resolution, with uncertainty")
-    flow_sub = flow.add_subparsers(dest="task", required=True)
-    for task in TASKS:
-        fp = flow_sub.add_parser(task, help=f"resolution flow of the {task} system")
-        fp.add_argument("--resolutions", type=float, nargs="+", default=None,
-                        help="pd: f_sim [Hz]; rope: segment counts (--axis dt: steps [s]); "
-                             "swimmer: time steps [s] (--axis bodies: tail bodies)")
-        fp.add_argument("--out", type=Path, default=None)
-        _parameter_set_arguments(fp)
-        fp.add_argument("--seed", type=_positive_int, default=0)
-        fp.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-        fp.add_argument("--force", action="store_true")
-        fp.add_argument("--quiet", action="store_true")
-        fp.add_argument("--no-record", action="store_true")
-        fp.add_argument("--restarts", type=int, default=4, help="seeded CMA-ES searches side by side")
-        fp.add_argument("--resume", action="store_true",
-                        help="continue the interrupted flow in --out after its last finished resolution")
-        fp.add_argument("--generations", type=int, default=None)
-        try:
-            mod = _task_module(task)
-            if hasattr(mod, "add_flow_arguments"):
-                mod.add_flow_arguments(fp)
-        except ModuleNotFoundError:
-            pass
-    view = sub.add_parser("view", help="open a run's recording in the Rerun viewer")
-    view.add_argument("run", type=Path)
-    ref = sub.add_parser("reference", help="generate a reference")
-    ref_sub = ref.add_subparsers(dest="system", required=True)
-    rope_ref = ref_sub.add_parser("rope", help="fine newton rope reference (.npz)")
-    try:
-        importlib.import_module("wrenorm.tasks.rope.reference.generate").add_reference_arguments(rope_ref)
-    except ModuleNotFoundError:
-        pass
-    for command, module, text in (("correct", "wrenorm.tasks.rope.control.correct_cli", "correct a command over real trials"),
-                                  ("sensitivity", "wrenorm.tasks.rope.control.sensitivity",
-                                   "how many command / parameter directions move the observed state")):
-        cp = sub.add_parser(command, help=text)
-        cp_sub = cp.add_subparsers(dest="system", required=True)
-        try:
-            mod = importlib.import_module(module)
-            mod.add_arguments(cp_sub.add_parser(mod.SYSTEM, help=f"{command} for the {mod.SYSTEM} system"))
-        except ModuleNotFoundError:
-            pass
-    bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
-    try:
-        importlib.import_module("wrenorm.bench").add_arguments(bench)
-    except ModuleNotFoundError:
-        pass
-    return p
+def _inputs(args) -> list:
+    """Files and folders the command reads (never cleared by --force)."""
+    out = []
+    for key in ("reference", "validate", "data", "params"):
+        v = getattr(args, key, None)
+        out += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, (str, Path)) and Path(x).exists()]
+    return out
 
 
 def cmd_fit(args) -> int:
-    from .fit import prepare_out, run_fits
+    from .fit import FitSettings, run_fits
+    from .results import versions
+    from .runfolder import prepare_out
 
-    if getattr(args, "_missing", False):
-        raise InputError("fit", args.task, "this system is not available in this build")
+    system = systems()[args.system]
+    if args.restarts == 1:
+        raise InputError("--restarts", "restarts", "needs 0 (none) or at least 2 searches for a spread")
     device = _device(args.device)
-    mod = _task_module(args.task)
-    problems = mod.build_problems(args, device) if hasattr(mod, "build_problems") else [mod.build_problem(args, device)]
+    problems = resolve(system.build)(args, device)
     _apply_parameter_set(problems, args)
-    out = prepare_out(args.out or _default_out(args.task), resume=args.resume, force=args.force)
-    print(f"wrenorm fit {args.task}: writing {out}", file=sys.stderr)
-    result = run_fits(problems, out, args, mod)
+    settings = FitSettings(seed=args.seed, generations=args.generations, popsize=args.popsize, sigma0=args.sigma0,
+                           polish=args.polish, restarts=args.restarts, searches=args.searches)
+    out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
+                      state="search_state.json", inputs=_inputs(args), command=f"fit {args.system}")
+    if not args.quiet:
+        print(f"wrenorm fit {args.system}: writing {out}", file=sys.stderr)
+    identity = {"system_options": _system_options(args), "wrenorm": versions().get("wrenorm")}
+    result = run_fits(problems, out, settings, resume=args.resume, record=not args.no_record, quiet=args.quiet,
+                      identity=identity)
     _print_summary(result, out)
     return 0
+
+
+_ENGINE_OPTIONS = {"command", "system", "out", "resume", "force", "quiet", "no_record", "device", "seed",
+                   "generations", "popsize", "sigma0", "polish", "restarts", "searches"}
+
+
+def _system_options(args) -> dict:
+    """The options that shape the problem itself (a resumed run must keep them), as plain data."""
+    out = {}
+    for k, v in sorted(vars(args).items()):
+        if k in _ENGINE_OPTIONS or k.startswith("_"):
+            continue
+        out[k] = [str(x) for x in v] if isinstance(v, (list, tuple)) else (str(v) if isinstance(v, Path) else v)
+    return json.loads(json.dumps(out, default=str))
 
 
 def _print_summary(result: dict, out: Path) -> None:
@@ -170,28 +200,29 @@ def _print_summary(result: dict, out: Path) -> None:
         print(f"  held-out verdict: {v['verdict']}" + (
             f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g},"
             f" tolerance {v['tolerance']})" if "mean_measured_error" in v else ""))
+        if r.get("restarts", {}).get("held_out_mean_error_range"):
+            lo, hi = r["restarts"]["held_out_mean_error_range"]
+            print(f"  across {len(r['restarts']['seeds'])} further seeds: held-out mean error {lo:.4g} .. {hi:.4g}; "
+                  f"not pinned: {', '.join(r['restarts']['not_pinned']) or 'none'}")
         if r.get("uncertainty", {}).get("warning"):
             print(f"  warning: {r['uncertainty']['warning']}")
-    print(f"\nresult: {out / 'result.json'}" + (f"   view: python -m wrenorm view {out}" if (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd")) else ""))
+    view = (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd"))
+    print(f"\nresult: {out / 'result.json'}" + (f"   view: python -m wrenorm view {out}" if view else ""))
 
 
 def cmd_flow(args) -> int:
-    from .fit import prepare_out
     from .flow import POINTS_FILE, run_flow
+    from .runfolder import prepare_out
 
+    system = systems()[args.system]
     device = _device(args.device)
-    mod = _task_module(args.task)
-    if not hasattr(mod, "flow_problems"):
-        raise InputError("flow", args.task, "this system has no resolution flow yet")
-    if args.restarts < 2:
-        raise InputError("--restarts", "restarts", "need at least 2 searches for a spread")
-    problems = mod.flow_problems(args, device)
+    problems = resolve(system.flow.build)(args, device)
     _apply_parameter_set(problems, args)
-    out = prepare_out(args.out or _default_out(f"flow-{args.task}"), resume=args.resume, force=args.force,
-                      state=POINTS_FILE)
-    flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, quiet=args.quiet, resume=args.resume,
-                    generations=args.generations or getattr(mod, "FLOW_GENERATIONS", 60),
-                    analytic=getattr(mod, "flow_analytic", None), record=not args.no_record)
+    out = prepare_out(args.out or _default_out(f"flow-{args.system}"), resume=args.resume, force=args.force,
+                      state=POINTS_FILE, inputs=_inputs(args), command=f"flow {args.system}")
+    analytic = resolve(system.flow.analytic) if system.flow.analytic else None
+    flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
+                    resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record)
     for pt in flow["points"]:
         line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
                          if not p["frozen"])
@@ -216,28 +247,31 @@ def cmd_view(args) -> int:
     return subprocess.call([sys.executable, "-m", "rerun", *files])
 
 
+def _dispatch(args) -> int:
+    if args.command == "fit":
+        return cmd_fit(args)
+    if args.command == "flow":
+        return cmd_flow(args)
+    if args.command == "view":
+        return cmd_view(args)
+    if args.command == "bench":
+        from .bench import run
+
+        return run(args)
+    command = next(c for c in systems()[args.system].commands if c.verb == args.command)
+    return resolve(command.run)(args)
+
+
 def main(argv=None) -> int:
     import warp as wp
 
     # before any task module initialises Warp: no banner or missing-driver notice in users' output
     wp.config.log_level = wp.LOG_ERROR
-    parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        if args.command == "fit":
-            return cmd_fit(args)
-        if args.command == "flow":
-            return cmd_flow(args)
-        if args.command == "view":
-            return cmd_view(args)
-        if args.command == "reference":
-            return importlib.import_module("wrenorm.tasks.rope.reference.generate").run_reference(args)
-        if args.command == "correct":
-            return importlib.import_module("wrenorm.tasks.rope.control.correct_cli").run(args)
-        if args.command == "sensitivity":
-            return importlib.import_module("wrenorm.tasks.rope.control.sensitivity").run(args)
-        if args.command == "bench":
-            return importlib.import_module("wrenorm.bench").run(args)
+        args = build_parser(argv).parse_args(argv)
+        return _dispatch(args)
+    except SystemExit as e:  # argparse: --help (0) or a bad option (2, already reported on one line)
+        return int(e.code or 0) if isinstance(e.code, int) or e.code is None else 2
     except InputError as e:
         print(f"wrenorm: error: {e}", file=sys.stderr)
         return 2
@@ -247,4 +281,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("\nwrenorm: interrupted; continue with --resume --out <folder>", file=sys.stderr)
         return 130
-    return 1
+    except OSError as e:
+        where = e.filename or "file system"
+        print(f"wrenorm: error: {where}: {e.strerror or e.__class__.__name__}", file=sys.stderr)
+        return 2

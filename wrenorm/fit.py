@@ -1,44 +1,41 @@
-"""One fit, start to finish: search, validation on held-out conditions, results, recording.
+"""One fit, start to finish: search, validation on held-out conditions, uncertainty, identifiability restarts,
+results, recording.
 
-This is the paper's procedure as code: the Problem names the observable and the parameters
-(measured values are the start); the search fits the free ones on the training conditions;
-validation re-runs the held-out conditions with measured and with fitted parameters and says
-whether the omitted physics was absorbed.
+This is the paper's procedure as code: the Problem names the observable and the parameters (measured
+values are the start); the search fits the free ones on the training conditions; validation re-runs the
+held-out conditions with measured and with fitted parameters and says whether the omitted physics was
+absorbed.
 """
 from __future__ import annotations
 
-import shutil
+import json
 import sys
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from . import search as searches
-from .errors import InputError
 from .problem import Problem, finite_or_inf
+from .restarts import identifiability_restarts
 from .results import SCHEMA, versions, write_json
 from .uncertainty import uncertainty
 
-STATE_FILE = "search_state.pkl"
+STATE_FILE = "search_state.json"
 
 
-def prepare_out(out: Path, resume: bool, force: bool, state: str = STATE_FILE) -> Path:
-    """Refuse to clobber an earlier run unless told to (--force), or continue it (--resume): a run
-    to continue must hold its saved `state` file (here or in a sub-run folder)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(str(out), "--out", "exists and is not a folder")
-    existing = out.exists() and any(out.iterdir())
-    if resume:
-        if not (out / state).exists() and not any(out.glob(f"*/{state}")):
-            raise InputError(str(out), "--resume", f"no saved state ({state}) in this folder to resume from")
-    elif existing:
-        if not force:
-            raise InputError(str(out), "--out", "folder exists and is not empty; pass --force to overwrite it or --resume to continue it")
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+@dataclass(frozen=True)
+class FitSettings:
+    """What a fit's search does; saved with the run, and a resumed run must repeat it."""
+
+    seed: int = 0
+    generations: int = 60
+    popsize: int | None = None
+    sigma0: float = 0.2
+    polish: int = 0
+    restarts: int = 0
+    searches: int = 1  # seeded searches side by side in the main fit (width on a wide device)
 
 
 def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> dict:
@@ -68,41 +65,35 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
     }
 
 
-def run_fit(
-    problem: Problem,
-    out: str | Path,
-    seed: int = 0,
-    resume: bool = False,
-    generations: int = 60,
-    popsize: int | None = None,
-    sigma0: float = 0.2,
-    polish: int = 0,
-    start: np.ndarray | None = None,
-    record: bool = True,
-    quiet: bool = False,
-    extra: dict | None = None,
-) -> dict:
-    """Fit `problem`, write OUT/result.json (+ recording.rrd, plots); return the result dict."""
+def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettings(), resume: bool = False,
+            start: np.ndarray | None = None, record: bool = True, quiet: bool = False,
+            identity: dict | None = None) -> dict:
+    """Fit `problem`, write OUT/result.json (+ recording.rrd, plots); return the result dict.
+
+    identity: what else a resumed run must share with the interrupted one (inputs' hashes, versions)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     space = problem.space
     measured = space.measured
     res = searches.cmaes(
-        problem, seed=seed, popsize=popsize, generations=generations, sigma0=sigma0, start=start,
-        checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
+        problem, seed=settings.seed, popsize=settings.popsize, generations=settings.generations,
+        sigma0=settings.sigma0, start=start, checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
+        searches=settings.searches, settings=asdict(settings) | (identity or {}),
     )
+    t_search = time.perf_counter() - t0
     methods = ["cmaes"]
     polish_report = None
     fitted, history = res.best_values, {"cmaes": res.history}
-    if polish and problem.differentiable:
-        g = searches.polish(problem, fitted, iterations=polish, quiet=quiet)
+    if settings.polish and problem.differentiable:
+        g = searches.polish(problem, fitted, iterations=settings.polish, quiet=quiet)
         history["gradient"] = g.history
         methods.append("lbfgs")
         improved = g.best_loss < res.best_loss
         if improved:
             fitted = g.best_values
-        polish_report = {"iterations": polish, "loss_before": res.best_loss, "loss_after": g.best_loss, "kept": improved}
+        polish_report = {"iterations": settings.polish, "loss_before": res.best_loss, "loss_after": g.best_loss,
+                         "kept": improved}
     losses, _ = searches.mean_loss(problem, np.stack([measured, fitted]), problem.train)
     unc = uncertainty(problem, fitted)
     params = {}
@@ -117,6 +108,10 @@ def run_fit(
             "unit": p.unit,
             "ratio_to_measured": float(fitted[i] / p.measured) if p.measured else None,
         }
+        if p.prior is not None:
+            params[p.name]["prior"] = {"centre": p.prior[0], "scale": p.prior[1]}
+            params[p.name]["data_only_std"] = unc.get("data_only_std", {}).get(p.name)
+    t_validate = time.perf_counter()
     result = {
         "schema": SCHEMA,
         "task": problem.task,
@@ -125,28 +120,39 @@ def run_fit(
         "loss": {"measured": float(losses[0]), "fitted": float(losses[1]), "meaning": problem.error_doc},
         "train": [c.name for c in problem.train],
         "validation": _validation(problem, measured, fitted),
-        "uncertainty": {k: v for k, v in unc.items() if k != "std"},
+        "uncertainty": {k: v for k, v in unc.items() if k not in ("std", "data_only_std")},
         "search": {
             "methods": methods,
             "generations": len(res.history),
             "evaluations": res.evaluations,
             "blowups": res.blowups,
             "stop": res.stop,
-            "popsize": popsize,
-            "sigma0": sigma0,
+            "searches": settings.searches,
+            "popsize": settings.popsize,
+            "sigma0": settings.sigma0,
             "gradient_polish": polish_report,
         },
-        "seed": seed,
+        "seed": settings.seed,
         "device": problem.device,
         "versions": versions(),
     }
+    if settings.searches > 1 and res.history and "optima" in res.history[-1]:
+        result["search"]["optima"] = res.history[-1]["optima"]
+    if settings.restarts >= 2:
+        seeds = [settings.seed + 1 + k for k in range(settings.restarts)]
+        if not quiet:
+            print(f"[{problem.task}] identifiability: {len(seeds)} further seeded searches side by side",
+                  file=sys.stderr, flush=True)
+        result["restarts"] = identifiability_restarts(problem, fitted, seeds, popsize=settings.popsize,
+                                                      generations=settings.generations, sigma0=settings.sigma0)
     result.update(problem.report(fitted, measured))
-    if extra:
-        result.update(extra)
+    t_write = time.perf_counter()
     if record:
         _record(problem, out, result, history, fitted, measured, quiet)
     _plot(out, problem, history)
     result["wall_seconds"] = time.perf_counter() - t0
+    result["timing"] = {"search_s": t_search, "validation_s": t_write - t_validate,
+                        "writing_s": time.perf_counter() - t_write, "after_search_s": t_validate - t0 - t_search}
     write_json(out / "result.json", result)
     return result
 
@@ -198,26 +204,25 @@ def _plot(out, problem, history):
     plot_search(out / "search.png", problem, history)
 
 
-def run_fits(problems: list, out: Path, args, module) -> dict:
+def _label(problem: Problem) -> str:
+    return "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in problem.resolution.items()
+                    if k not in ("dt", "integrator"))
+
+
+def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = False, record: bool = True,
+             quiet: bool = False, identity: dict | None = None) -> dict:
     """Fit one problem into OUT, or several (e.g. one per f_sim) into OUT/<label>/ with a combined
     OUT/result.json holding `runs`. Each fit starts from its predecessor's result."""
-    common = dict(
-        seed=args.seed, resume=args.resume, quiet=args.quiet, record=not args.no_record,
-        generations=getattr(args, "generations", 60), popsize=getattr(args, "popsize", None),
-        polish=getattr(args, "polish", 0),
-    )
+    common = dict(settings=settings, resume=resume, quiet=quiet, record=record, identity=identity)
     if len(problems) == 1:
         return run_fit(problems[0], out, **common)
     t0 = time.perf_counter()
     runs, start = [], None
     for prob in problems:
-        label = "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in prob.resolution.items()
-                         if k not in ("dt", "integrator"))
+        label = _label(prob)
         sub = out / label
         done = sub / "result.json"
-        if args.resume and done.exists():
-            import json
-
+        if resume and done.exists():
             r = json.loads(done.read_text())
         else:
             r = run_fit(prob, sub, start=start, **common)
@@ -229,12 +234,10 @@ def run_fits(problems: list, out: Path, args, module) -> dict:
         "task": problems[0].task,
         "resolutions": [p.resolution for p in problems],
         "runs": runs,
-        "seed": args.seed,
+        "seed": settings.seed,
         "device": problems[0].device,
         "versions": versions(),
         "wall_seconds": time.perf_counter() - t0,
     }
-    if hasattr(module, "summarise_runs"):
-        combined.update(module.summarise_runs(runs, out))
     write_json(out / "result.json", combined)
     return combined

@@ -15,7 +15,7 @@ import numpy as np
 
 from .errors import InputError
 from .results import SCHEMA, versions, write_json
-from .search import cmaes_restarts, mean_loss
+from .search import mean_loss, restarts as seeded_searches
 from .uncertainty import uncertainty
 
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
@@ -47,7 +47,7 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
     points, start = _resumed(out, settings) if resume else ([], None)
     for prob in problems[len(points):]:
         seeds = [seed + 1000 * k for k in range(restarts)]
-        res = cmaes_restarts(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
+        res = seeded_searches(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
         best = min(res, key=lambda r: r.best_loss)
         vals = np.array([r.best_values for r in res if np.isfinite(r.best_loss)])
         spread = vals.std(axis=0, ddof=1) if len(vals) > 1 else np.full(len(prob.space.names), np.nan)

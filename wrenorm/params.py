@@ -2,6 +2,9 @@
 
 A search sees only the free parameters, each mapped to [0, 1] (linear or log scale), so one
 step size suits parameters of any magnitude. Frozen parameters keep their measured value.
+A parameter may carry a Gaussian prior (centre, scale): the paper's procedure starts from the
+measured values and lets a parameter move only as far as the data demand; its normalised
+deviation (value - centre) / scale (in log space for log-scale parameters) joins the residuals.
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ class Parameter:
     frozen: bool = False
     unit: str = ""
     doc: str = ""
+    prior: tuple[float, float] | None = None  # (centre, scale); log-scale parameters: scale in natural-log units
 
     def __post_init__(self):
         if self.scale not in ("linear", "log"):
@@ -32,6 +36,12 @@ class Parameter:
             raise InputError("parameters", self.name, f"log-scale bounds must be positive, got lower={self.lower}")
         if not (self.lower <= self.measured <= self.upper):
             raise InputError("parameters", self.name, f"measured value {self.measured} outside bounds [{self.lower}, {self.upper}]")
+        if self.prior is not None:
+            centre, scale = (float(x) for x in self.prior)
+            if not (np.isfinite(centre) and np.isfinite(scale) and scale > 0):
+                raise InputError("parameters", self.name, f"prior needs a finite centre and a scale > 0, got {self.prior}")
+            if self.scale == "log" and centre <= 0:
+                raise InputError("parameters", self.name, f"a log-scale parameter's prior centre must be > 0, got {centre}")
 
 
 @dataclass
@@ -109,6 +119,33 @@ class ParameterSpace:
         v = np.where(log, np.exp(v), v)
         out = np.broadcast_to(self.measured, unit.shape[:-1] + (len(self.parameters),)).copy()
         out[..., self.free_mask] = v
+        return out
+
+    # --- prior ---------------------------------------------------------------
+    @property
+    def priors(self) -> list[Parameter]:
+        """Free parameters that carry a prior (a frozen one does not move, so its prior is moot)."""
+        return [p for p in self.free if p.prior is not None]
+
+    def prior_residuals(self, values: np.ndarray) -> np.ndarray:
+        """(..., n_prior) normalised deviations from the priors' centres; empty when none is set."""
+        values = np.asarray(values, dtype=np.float64)
+        cols = []
+        for p in self.priors:
+            v = values[..., self.index(p.name)]
+            centre, scale = p.prior
+            cols.append((np.log(np.maximum(v, 1e-300)) - np.log(centre) if p.scale == "log" else v - centre) / scale)
+        return np.stack(cols, axis=-1) if cols else np.zeros(values.shape[:-1] + (0,))
+
+    def prior_jacobian_unit(self, values: np.ndarray) -> np.ndarray:
+        """(n_prior, F) d prior residual / d unit coordinate at one full parameter vector."""
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        log, lo, hi = self._lo_hi()
+        out = np.zeros((len(self.priors), len(self.free)))
+        free = self.free_names
+        for r, p in enumerate(self.priors):
+            f = free.index(p.name)
+            out[r, f] = (hi[f] - lo[f]) / p.prior[1]  # linear in unit coordinates on either scale
         return out
 
     def dvalue_dunit(self, values: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
-"""What a system supplies to the engine: parameters, conditions, and a batched error.
+"""What a system supplies to the engine for one fit: parameters, conditions, and a batched observable.
 
-A *condition* is one experiment (a command profile, a motor rate, a hand path). The engine
-fits on `train` conditions and validates on `held_out` ones the search never sees.
+A *condition* is one experiment (a command profile, a motor rate, a hand path). The engine fits on
+`train` conditions and validates on `held_out` ones the search never sees.
 """
 from __future__ import annotations
 
@@ -22,17 +22,18 @@ class Condition:
 
 
 class Problem(ABC):
-    """A system to fit. Subclasses set the attributes in __init__ and implement `errors`.
+    """A system at one resolution, to fit. Subclasses set the attributes in __init__ and implement
+    `errors`, and `residuals` where the observable is a vector of signed differences.
 
     Attributes
     ----------
-    task:        short name ("pd", "rope", "swimmer")
+    task:        the system's registered name ("pd", "rope", "swimmer")
     space:       ParameterSpace (measured values are the search's starting point)
     train:       conditions the search fits
     held_out:    conditions kept back for validation
     tolerance:   held-out error (same units as `errors`) under which the verdict is `absorbed`
     resolution:  what sets the coarse model's resolution, e.g. {"f_sim": 100.0}
-    device:      Warp device string ("cpu" or "cuda")
+    device:      Warp device string ("cpu" or "cuda:0")
     error_doc:   one sentence saying what `errors` measures (goes into result.json)
     """
 
@@ -52,6 +53,16 @@ class Problem(ABC):
         One call simulates every candidate under every condition (batched). A candidate whose
         simulation blows up gets a non-finite error; it must never raise.
         """
+
+    def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+        """values (B, P) -> (B, R) signed residuals whose sum of squares the observable measures (NaN in a
+        row whose candidate has no value there). Systems with a vector observable override this; it gives
+        the Gauss-Newton uncertainty and least-squares searches."""
+        raise NotImplementedError(f"task {self.task!r} exposes no residual vector")
+
+    @property
+    def has_residuals(self) -> bool:
+        return type(self).residuals is not Problem.residuals
 
     def errors_and_grad(self, values: np.ndarray, conditions: Sequence[Condition]):
         """(B, C) errors and (B, C, P) d error / d value, for gradient searches.

@@ -1,14 +1,18 @@
 """Searches over a Problem's free parameters, in normalised [0, 1] coordinates.
 
-- `cmaes`: pycma, seeded and bounded; each generation's whole population is one batched
-  `Problem.errors` call. The search state is saved after every generation so a killed fit
-  resumes to the same result as an uninterrupted one.
-- `gradient`: Adam (torch) on gradients from the system's differentiable kernel (Warp tape).
+- `cmaes`: the engine's batched CMA-ES (wrenorm.cmaes) on the training loss, one search or several seeded
+  ones side by side; each generation of all of them is one batched `Problem.errors` call. With a checkpoint
+  the state is saved after every generation, in plain JSON, so a killed fit resumes to the same result.
+- `restarts`: further seeded searches side by side, for the spread of what the data leave open.
+- `polish` / `gradient`: L-BFGS / Adam (torch) on gradients from the system's differentiable kernel (Warp tape).
+
+The loss of a candidate is the mean of its training errors (inf if any condition blew up), plus the
+sum of squared prior deviations when parameters carry a prior.
 """
 from __future__ import annotations
 
+import json
 import os
-import pickle
 import sys
 import time
 from dataclasses import dataclass, field
@@ -17,12 +21,12 @@ from typing import Callable
 
 import numpy as np
 
+from .cmaes import BatchedCMAES
 from .errors import AllCandidatesFailed, InputError
 from .problem import Problem, finite_or_inf
-from .results import write_atomic
+from .results import write_json
 
-# pycma ranks candidates, so a blown-up candidate only needs to rank last.
-_BLOWUP_LOSS = 1e30
+# fault-injection hook for the kill -9 / --resume tests: seconds to sleep after each generation
 _SLOW = float(os.environ.get("WRENORM_TEST_SLOW_GENERATION", "0") or 0)
 
 
@@ -35,18 +39,29 @@ class SearchResult:
     evaluations: int = 0
     blowups: int = 0
     stop: str = ""
+    seed: int | None = None
 
 
 def mean_loss(problem: Problem, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
-    """(B,) loss = mean error over conditions, inf for any blown-up condition; and (B, C) errors."""
-    errs = finite_or_inf(problem.errors(np.atleast_2d(values), conditions))
+    """(B,) loss = mean error over conditions (inf for any blown-up condition) + prior penalty; and (B, C) errors."""
+    values = np.atleast_2d(values)
+    errs = finite_or_inf(problem.errors(values, conditions))
     with np.errstate(invalid="ignore"):
-        return errs.mean(axis=1), errs
+        loss = errs.mean(axis=1)
+    prior = problem.space.prior_residuals(values)
+    if prior.shape[-1]:
+        loss = loss + np.sum(prior ** 2, axis=-1)
+    return loss, errs
 
 
 def _progress(msg: str, quiet: bool) -> None:
     if not quiet:
         print(msg, file=sys.stderr, flush=True)
+
+
+def _unit_start(problem: Problem, start) -> np.ndarray:
+    space = problem.space
+    return np.clip(space.to_unit(space.measured if start is None else start), 0.0, 1.0)
 
 
 def cmaes(
@@ -59,90 +74,102 @@ def cmaes(
     checkpoint: str | Path | None = None,
     resume: bool = False,
     quiet: bool = False,
-    tolfun: float = 1e-12,
+    searches: int = 1,
+    settings: dict | None = None,
     on_generation: Callable[[dict], None] | None = None,
 ) -> SearchResult:
-    import cma
-
+    """Fit the training loss; `searches` seeded searches side by side (seeds seed, seed + 1000, ...), the
+    best one returned with the others' optima in `history[-1]["optima"]`."""
     space = problem.space
-    nfree = len(space.free)
-    if nfree == 0:
+    if not space.free:
         loss, _ = mean_loss(problem, space.measured[None], problem.train)
-        return SearchResult("cmaes", space.measured.copy(), float(loss[0]), stop="no free parameters")
-    x0 = space.to_unit(space.measured if start is None else start)
-    state = None
+        return SearchResult("cmaes", space.measured.copy(), float(loss[0]), stop="no free parameters", seed=seed)
+    seeds = [seed + 1000 * k for k in range(max(1, int(searches)))]
+    es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
+                      popsize, generations)
+    saved = {"free": space.free_names, "settings": settings or {}}
+    history = []
     if resume and checkpoint and Path(checkpoint).exists():
-        with open(checkpoint, "rb") as f:
-            state = pickle.load(f)
-        saved_free = state.get("free", [p.name for p in space.free])
-        if saved_free != [p.name for p in space.free]:
-            raise InputError(str(checkpoint), "free parameters",
-                             f"the interrupted search fits {saved_free}, this run {[p.name for p in space.free]}; "
-                             "resume with the same --free/--freeze")
-        es, history, counts = state["es"], state["history"], state["counts"]
-        np.random.set_state(state["np_random"])
+        history = _resume(checkpoint, es, saved)
         _progress(f"resuming {problem.task} search at generation {len(history)}", quiet)
-    else:
-        np.random.seed(seed)
-        opts = {
-            "seed": seed + 1,  # pycma treats seed 0 as "random"
-            "bounds": [0.0, 1.0],
-            "maxiter": generations,
-            "tolfun": tolfun,
-            "tolx": 1e-10,
-            "verbose": -9,
-        }
-        if popsize:
-            opts["popsize"] = popsize
-        if nfree == 1:
-            # pycma needs at least 2 dimensions; pad with a dummy coordinate
-            x0 = np.append(x0, 0.5)
-        es = cma.CMAEvolutionStrategy(np.clip(x0, 1e-6, 1 - 1e-6), sigma0, opts)
-        history, counts = [], {"evaluations": 0, "blowups": 0}
-    best = state["best"] if state else (np.inf, space.measured.copy())
     t0 = time.perf_counter()
-    while not es.stop() and len(history) < generations:
-        units = np.asarray(es.ask())
-        values = space.from_unit(units[:, :nfree])
+    while not es.done:
+        U = es.ask()
+        values = space.from_unit(U)
         loss, _ = mean_loss(problem, values, problem.train)
-        failed = ~np.isfinite(loss)
-        counts["evaluations"] += len(loss)
-        counts["blowups"] += int(failed.sum())
-        if failed.all():
-            raise AllCandidatesFailed(
-                f"generation {len(history)}: every one of {len(loss)} candidates blew up (NaN/Inf or runaway). "
-                "Narrow the parameter bounds, lower sigma0, or use a finer resolution (smaller time step)."
-            )
-        es.tell(list(units), list(np.where(failed, _BLOWUP_LOSS, loss)))
-        i = int(np.argmin(loss))
-        if loss[i] < best[0]:
-            best = (float(loss[i]), values[i].copy())
-        rec = {
-            "generation": len(history),
-            "best": float(loss[i]),
-            "median": float(np.median(loss[~failed])),
-            "best_so_far": best[0],
-            "blowups": int(failed.sum()),
-            "sigma": float(es.sigma),
-            "values": values[i].tolist(),
-        }
+        es.tell(loss)
+        rec = _generation_record(es, values, loss)
         history.append(rec)
         if on_generation:
             on_generation(rec)
-        _progress(
-            f"[{problem.task}] gen {rec['generation'] + 1:3d}/{generations}  best {rec['best']:.4e}  "
-            f"median {rec['median']:.4e}  sigma {rec['sigma']:.3g}  blowups {rec['blowups']}  "
-            f"{time.perf_counter() - t0:6.1f}s",
-            quiet,
-        )
+        _progress(f"[{problem.task}] gen {rec['generation'] + 1:3d}/{generations}  best {rec['best']:.4e}  "
+                  f"median {rec['median']:.4e}  sigma {rec['sigma']:.3g}  blowups {rec['blowups']}  "
+                  f"{time.perf_counter() - t0:6.1f}s", quiet)
         if checkpoint:
-            blob = {"es": es, "history": history, "counts": counts, "best": best, "np_random": np.random.get_state(),
-                    "free": [p.name for p in space.free]}
-            write_atomic(checkpoint, pickle.dumps(blob))
-        if _SLOW:  # fault-injection hook for the kill -9 / --resume test
+            write_json(checkpoint, saved | {"search": es.state(), "history": history})
+        if _SLOW:
             time.sleep(_SLOW)
-    stop = ", ".join(f"{k}" for k in es.stop()) or ("generations" if len(history) >= generations else "")
-    return SearchResult("cmaes", best[1], best[0], history, counts["evaluations"], counts["blowups"], stop)
+    found = [s for s in es.finish() if np.isfinite(s.best_loss)]
+    if not found:
+        raise AllCandidatesFailed(
+            f"{es.searches[0].stop or 'no candidate evaluated'}: every candidate blew up (NaN/Inf or runaway). "
+            "Narrow the parameter bounds, lower sigma0, or use a finer resolution (smaller time step).")
+    best = min(found, key=lambda s: s.best_loss)
+    if len(seeds) > 1 and history:
+        history[-1]["optima"] = [{"seed": s.seed, "loss": s.best_loss, "values": space.from_unit(s.best_x).tolist()}
+                                 for s in found]
+    return SearchResult("cmaes", space.from_unit(best.best_x), best.best_loss, history,
+                        sum(s.evaluations for s in es.searches), sum(s.blowups for s in es.searches), best.stop,
+                        best.seed)
+
+
+def _generation_record(es: BatchedCMAES, values: np.ndarray, loss: np.ndarray) -> dict:
+    ok = np.isfinite(loss)
+    i = int(np.argmin(np.where(ok, loss, np.inf)))
+    lead = min(es.searches, key=lambda s: s.best_loss)
+    return {"generation": es.generation - 1, "best": float(loss[i]) if ok.any() else float("inf"),
+            "median": float(np.median(loss[ok])) if ok.any() else float("inf"), "best_so_far": lead.best_loss,
+            "blowups": int((~ok).sum()), "sigma": es.sigma(es.searches.index(lead)), "values": values[i].tolist()}
+
+
+def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
+    src = str(checkpoint)
+    try:
+        state = json.loads(Path(checkpoint).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(src, "file", f"cannot be read as a search state: {e}") from None
+    if not isinstance(state, dict) or "search" not in state or not isinstance(state.get("history"), list):
+        raise InputError(src, "file", "is not a wrenorm search state")
+    if state.get("free") != saved["free"]:
+        raise InputError(src, "free parameters", f"the interrupted search fits {state.get('free')}, this run "
+                                                 f"{saved['free']}; resume with the same --free/--freeze")
+    old, new = state.get("settings") or {}, saved["settings"]
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) != new.get(key):
+            raise InputError(src, key, f"the interrupted fit ran with {old.get(key)!r}, this run with "
+                                       f"{new.get(key)!r}; resume with the same settings")
+    es.replay(state["search"], src)
+    return state["history"]
+
+
+def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations: int = 60, sigma0: float = 0.2,
+             start: np.ndarray | None = None, quiet: bool = False) -> list[SearchResult]:
+    """Independent seeded searches side by side (one batched evaluation per generation for all). The spread
+    of their optima is an honest uncertainty for parameters the observable barely constrains, where a
+    Jacobian-based std can mislead."""
+    space = problem.space
+    es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
+                      popsize, generations)
+    t0 = time.perf_counter()
+    while not es.done:
+        U = es.ask()
+        loss, _ = mean_loss(problem, space.from_unit(U), problem.train)
+        es.tell(loss)
+        _progress(f"[{problem.task}] {len(set(es.owners.tolist()) | set(es.active))} searches, gen "
+                  f"{es.generation:3d}/{generations}  best {min(s.best_loss for s in es.searches):.4e}  "
+                  f"{time.perf_counter() - t0:6.1f}s", quiet)
+    return [SearchResult("cmaes", space.from_unit(s.best_x), s.best_loss, [], s.evaluations, s.blowups, s.stop,
+                         s.seed) for s in es.finish()]
 
 
 def _loss_and_unit_grad(problem: Problem, u: np.ndarray):
@@ -217,57 +244,3 @@ def gradient(
         if it % 10 == 0 or it == iterations - 1:
             _progress(f"[{problem.task}] grad it {it + 1:4d}/{iterations}  loss {loss:.4e}", quiet)
     return SearchResult("gradient", best[1], best[0], history, evaluations, 0, "iterations")
-
-
-def cmaes_restarts(
-    problem: Problem,
-    seeds: list[int],
-    popsize: int = 16,
-    generations: int = 60,
-    sigma0: float = 0.2,
-    start: np.ndarray | None = None,
-    quiet: bool = False,
-) -> list[SearchResult]:
-    """Independent seeded CMA-ES searches side by side: every generation, all their populations
-    are evaluated in ONE batched call. The spread of their optima is an honest uncertainty for
-    parameters the observable barely constrains (where a Jacobian-based std can mislead)."""
-    import cma
-
-    space = problem.space
-    nfree = len(space.free)
-    x0 = np.clip(space.to_unit(space.measured if start is None else start), 1e-6, 1 - 1e-6)
-    pad = nfree == 1
-    ess = []
-    for s in seeds:
-        np.random.seed(s)
-        ess.append(cma.CMAEvolutionStrategy(np.append(x0, 0.5) if pad else x0, sigma0, {
-            "seed": s + 1, "bounds": [0.0, 1.0], "maxiter": generations, "popsize": popsize,
-            "tolfun": 1e-12, "tolx": 1e-10, "verbose": -9}))
-    results = [SearchResult("cmaes", space.measured.copy(), np.inf) for _ in seeds]
-    t0 = time.perf_counter()
-    for gen in range(generations):
-        active = [i for i, es in enumerate(ess) if not es.stop()]
-        if not active:
-            break
-        asked = {i: np.asarray(ess[i].ask()) for i in active}
-        units = np.concatenate([asked[i] for i in active])
-        loss, _ = mean_loss(problem, space.from_unit(units[:, :nfree]), problem.train)
-        start_row = 0
-        for i in active:
-            n = len(asked[i])
-            li = loss[start_row:start_row + n]
-            vals = space.from_unit(asked[i][:, :nfree])
-            start_row += n
-            failed = ~np.isfinite(li)
-            results[i].evaluations += n
-            results[i].blowups += int(failed.sum())
-            if failed.all():
-                continue
-            ess[i].tell(list(asked[i]), list(np.where(failed, _BLOWUP_LOSS, li)))
-            j = int(np.argmin(li))
-            if li[j] < results[i].best_loss:
-                results[i].best_loss, results[i].best_values = float(li[j]), vals[j].copy()
-            results[i].history.append({"generation": gen, "best": float(li[j])})
-        _progress(f"[{problem.task}] {len(active)} searches, gen {gen + 1:3d}/{generations}  best "
-                  f"{min(r.best_loss for r in results):.4e}  {time.perf_counter() - t0:6.1f}s", quiet)
-    return results

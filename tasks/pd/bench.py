@@ -25,3 +25,29 @@ def benchmark(batch: int, steps: int = 1000, device: str = "cpu", repeats: int =
         wp.synchronize_device(device)
         best = min(best, time.perf_counter() - t0)
     return {"batch": batch, "steps": steps, "seconds": best, "joint_steps_per_s": batch * steps / best}
+
+
+def bench(device: str, batches: list[int], quick: bool) -> tuple[list[dict], str]:
+    """Rows for results.json and the PD section of results.md."""
+    rows = []
+    for b in batches:
+        r = benchmark(b, 200 if quick else 1000, device)
+        r.update(device=device, panel="PD joint", series="joint", value=r["joint_steps_per_s"] / 1e6,
+                 unit="M joint-steps/s")
+        rows.append(r)
+        print(f"pd batch {b:6d}: {r['joint_steps_per_s'] / 1e6:8.2f} M joint-steps/s", flush=True)
+    table = ["PD joint:", "", "| batch | M joint-steps/s |", "|---|---|"]
+    table += [f"| {r['batch']} | {r['joint_steps_per_s'] / 1e6:.2f} |" for r in rows]
+    return rows, "\n".join(table)
+
+
+def parity(device: str) -> dict:
+    """Largest relative difference of the PD kernel's errors between the CPU and `device`, same inputs."""
+    steps = 500
+    q_des = np.random.default_rng(0).normal(size=(2, steps)) * 0.1
+    zeros = np.zeros((2, steps))
+    values = np.tile([0.05, 20.0, 0.5, 0.0, 0.0], (32, 1)) * np.linspace(0.9, 1.1, 32)[:, None]
+    errs = {dev: simulate(values, PDCommands(q_des, zeros, zeros, np.full((2, steps + 1), 0.1), np.zeros((2, 2)), dev),
+                          SEMI_IMPLICIT, 1e-3)[0]
+            for dev in ("cpu", device)}
+    return {"error_max_rel": float(np.max(np.abs(errs[device] / errs["cpu"] - 1.0)))}

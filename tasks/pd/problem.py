@@ -11,7 +11,6 @@ measured log (CSV with columns time, q, q_d, qd_d).
 """
 from __future__ import annotations
 
-import argparse
 import csv
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +22,7 @@ from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem
 
-MEASURED = {"J": 0.05, "K_P": 20.0, "K_D": 0.5}
+from wrenorm.tasks.pd.options import FLOW_F_SIM, MEASURED
 DURATION = 3.0
 RAMP = 0.05  # s, rise time of a commanded step
 FADE_IN = 0.3  # s, smooth start of periodic commands
@@ -36,7 +35,6 @@ def _quintic(t, t0, width, height):
     return (height * (10 * s**3 - 15 * s**4 + 6 * s**5),
             np.where(inside, height * (30 * s**2 - 60 * s**3 + 30 * s**4) / width, 0.0),
             np.where(inside, height * (60 * s - 180 * s**2 + 120 * s**3) / width**2, 0.0))
-DEFAULT_F_SIM = [100.0]
 
 # ---- commands: q_d(t), qd_d(t) -------------------------------------------------------
 
@@ -333,22 +331,6 @@ def _check_positive(values: dict) -> None:
             raise InputError("options", name, f"must be a positive finite number, got {v!r}")
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--f-sim", type=float, nargs="+", default=DEFAULT_F_SIM, metavar="HZ",
-                   help="simulation frequency (several: one fit each, result.json holds `runs`)")
-    p.add_argument("--integrator", default="semi-implicit", choices=["semi-implicit", "explicit"])
-    p.add_argument("--J", type=float, default=MEASURED["J"], help="measured joint inertia [kg m^2]")
-    p.add_argument("--K-P", dest="K_P", type=float, default=MEASURED["K_P"], help="real proportional gain [N m/rad]")
-    p.add_argument("--K-D", dest="K_D", type=float, default=MEASURED["K_D"], help="real derivative gain [N m s/rad]")
-    p.add_argument("--reference", default=None, metavar="FILE.csv",
-                   help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
-    p.add_argument("--arm", action="store_true",
-                   help="two-link arm with M(q) and gain matrices: fit the joint-space inertia correction and K_D^sim")
-    p.add_argument("--generations", type=int, default=60)
-    p.add_argument("--popsize", type=int, default=24)
-    p.add_argument("--polish", type=int, default=20, help="L-BFGS evaluations on Warp-tape gradients after CMA-ES (0: none)")
-
-
 def build_problems(args, device: str) -> list[PDProblem]:
     _check_positive({"J": args.J, "K_P": args.K_P, "K_D": args.K_D})
     for f in args.f_sim:
@@ -363,16 +345,8 @@ def build_problems(args, device: str) -> list[PDProblem]:
     return [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
 
 
-# ---- resolution flow ------------------------------------------------------------------
-FLOW_GENERATIONS = 80
-
-
-def add_flow_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--integrator", default="semi-implicit", choices=["semi-implicit", "explicit"])
-
-
 def flow_problems(args, device: str) -> list[PDProblem]:
-    freqs = sorted(args.resolutions or [50.0, 100.0, 200.0, 400.0, 800.0])
+    freqs = sorted(args.resolutions or FLOW_F_SIM)
     for f in freqs:
         _check_positive({"f_sim": f})
     return [PDProblem(f, args.integrator, device) for f in freqs]

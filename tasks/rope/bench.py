@@ -65,3 +65,87 @@ def benchmark(n_nodes: int = 16, batch: int = 4096, steps: int = 200, device: st
             "seconds": best, "chain_steps_per_s": batch * steps / best,
             "kernel_seconds": best_kernel, "kernel_chain_steps_per_s": batch * steps / best_kernel,
             "hit_fraction": float(np.mean(res.status == 1)), "blown_fraction": float(np.mean(res.status == 2))}
+
+
+def bench(device: str, batches: list[int], quick: bool) -> tuple[list[dict], str]:
+    """Throughput over batch sizes for N = 8, 16, 32, then every kernel variant and the numpy / torch peers
+    side by side at one batch (N = 16): rows for results.json and the rope section of results.md."""
+    gpu = not device.startswith("cpu")
+    key = "kernel_chain_steps_per_s" if gpu else "chain_steps_per_s"
+    rows = []
+    steps = 50 if quick else 200
+    for n in (8, 16, 32):
+        for b in batches:
+            r = benchmark(n, b, steps, device, "culled")
+            r.update(panel="rope, culled" + (" (launches alone)" if gpu else ", all cores"), series=f"N = {n}",
+                     value=r[key] / 1e6, unit="M chain-steps/s")
+            rows.append(r)
+            print(f"rope N={n:2d} batch {b:7d}: {r['chain_steps_per_s'] / 1e6:8.3f} M chain-steps/s"
+                  f" (launches alone {r['kernel_chain_steps_per_s'] / 1e6:8.3f})", flush=True)
+    b = 1024 if quick else (4096 if not gpu else 262144)
+    base_steps = 20 if quick else 50
+    peers = ("numpy", "torch")
+    variants = ["culled", "allpairs"] + (["generic"] if gpu else ["culled-1core", "scalar"]) + list(peers)
+    for v in variants:
+        # the numpy and torch peers run on the CPU at a CPU-sized batch wherever the bench runs
+        r = benchmark(16, min(b, 4096) if v in peers else b, base_steps if v in peers else steps,
+                      "cpu" if v in peers else device, v)
+        r.update(comparison=True, panel=f"rope N = 16, batch {b}, same run", series=v, value=r[key] / 1e6,
+                 unit="M chain-steps/s")
+        rows.append(r)
+        print(f"rope N=16 batch {r['batch']} {v:>13}: {r['chain_steps_per_s'] / 1e6:8.3f} M chain-steps/s", flush=True)
+    return rows, _table(rows, gpu)
+
+
+def _table(rows: list[dict], gpu: bool) -> str:
+    key = "kernel_chain_steps_per_s" if gpu else "chain_steps_per_s"
+    what = "launches alone, host copies excluded" if gpu else "whole rollout, all cores"
+    main = [r for r in rows if not r.get("comparison")]
+    batches = sorted({r["batch"] for r in main})
+    lines = [f"Rope (M chain-steps/s, Warp, culled self-collision, {what}):", "",
+             "| N | " + " | ".join(str(b) for b in batches) + " |", "|---|" + "---|" * len(batches)]
+    for n in sorted({r["n_nodes"] for r in main}):
+        row = {r["batch"]: r[key] / 1e6 for r in main if r["n_nodes"] == n}
+        lines.append(f"| {n} | " + " | ".join(f"{row.get(b, float('nan')):.3f}" for b in batches) + " |")
+    comp = [r for r in rows if r.get("comparison")]
+    if comp:
+        numpy = next((r["chain_steps_per_s"] for r in comp if r["variant"] == "numpy"), None)
+        lines += ["", f"Rope N=16, batch {comp[0]['batch']}, same run (numpy and torch on the CPU):", "",
+                  "| variant | M chain-steps/s | launches alone | x numpy |", "|---|---|---|---|"]
+        for r in comp:
+            ratio = f"{r['chain_steps_per_s'] / numpy:.1f}" if numpy else ""
+            lines.append(f"| {r['variant']} | {r['chain_steps_per_s'] / 1e6:.3f} | "
+                         f"{r['kernel_chain_steps_per_s'] / 1e6:.3f} | {ratio} |")
+    return "\n".join(lines)
+
+
+def parity(device: str, batch: int = 512, steps: int = 240) -> dict:
+    """CPU against `device` on the same swung chains: first-contact status and time (the rope after its first
+    self-contact is chaotic, and float32 differs between the two by FMA contraction, so events are compared,
+    not states)."""
+    n, dt = 16, 0.005
+    link = 1.1 / (n - 1)
+    paths = swing_paths(8, steps, dt)
+    pidx = np.arange(batch, dtype=np.int32) % paths.shape[0]
+    rng = np.random.default_rng(3)
+    params = ChainParams(node_mass=np.full(batch, 0.2 / n), lead_mass=np.full(batch, 0.05),
+                         bend_k=rng.uniform(0.5, 2.0, batch) * 1.5e-2, bend_b=np.full(batch, 1e-3),
+                         drag_lin=np.zeros(batch), drag_quad=np.full(batch, 0.02), radius=np.full(batch, 0.01))
+    p0, v0 = hanging_state(paths[0, 0], n, link)
+    pos0 = np.broadcast_to(p0, (batch, n, 3)) + (paths[pidx, 0] - paths[0, 0])[:, None, :]
+    a, b = (RopeSim(n, link, dt, dev).rollout(pos0, v0, paths, pidx, params, steps) for dev in ("cpu", device))
+    both = (a.status == 1) & (b.status == 1)
+    return {"status_agree": float(np.mean(a.status == b.status)),
+            "hit_time_max_abs_s": float(np.max(np.abs(a.hit_time[both] - b.hit_time[both]))) if both.any() else None,
+            "hit_fraction_cpu": float(np.mean(a.status == 1))}
+
+
+def kernel_modules(sizes=(8, 16)) -> dict:
+    """The rope's Warp modules for the ahead-of-time CUDA build (fixed-size kernels for `sizes`)."""
+    from wrenorm.kernels.rope import fixed, generic, grad
+    from wrenorm.tasks.rope.reference import newton
+
+    mods = {"rope": generic, "rope_grad": grad, "rope_newton": newton}
+    for n in sizes:
+        mods[f"rope_fast[N={n}]"] = fixed.fast_kernel(n).module
+    return mods

@@ -55,7 +55,6 @@ the fit goes there too, bend_stiffness follows it down 8x, and the loss moves 0.
 """
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -66,6 +65,7 @@ from wrenorm.errors import InputError
 from wrenorm.kernels.rope import ChainParams, RopeSim
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
+from wrenorm.tasks.rope.options import FLOW_DT, FLOW_SEGMENTS, ITERATIONS
 
 WEIGHTS = {"shape": 1.0, "velocity": 0.1, "time": 1.0, "place": 0.5}
 # 0.1 on the normalised velocity mirrors the flying knot's 5.0 (m) : 0.00375 (m/s) on squared
@@ -78,7 +78,6 @@ MIN_SPEED = 0.1  # m/s
 # newton reference: 1e6 N/m per joint of 1.1/64 m, i.e. EA = 1.7e4 N; a link of length l has compliance l / EA
 STRETCH_EA = 1e6 * 1.1 / 64
 START_AT_REST_BELOW = 0.05  # m/s
-ITERATIONS = 4  # constraint passes per step; see the module docstring (2 fits slightly better)
 
 
 def default_error_weights():
@@ -421,20 +420,8 @@ class RopeProblem(Problem):
         recorder.add_view("summary", ["/summary"], "text")
 
 
-# ------------------------------------------------------------------------------- CLI
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--reference", nargs="+", metavar="FILE", default=None,
-                        help="reference rope trajectories (.npz) to fit; default: the built-in fit paths")
-    parser.add_argument("--validate", nargs="+", metavar="FILE", default=None,
-                        help="held-out references (.npz); default: built-in held-out paths (without --reference)")
-    parser.add_argument("--segments", type=int, default=10,
-                        help="links of the coarse chain; it has segments + 1 point masses (10 = the flying knot's 11)")
-    parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds (flying knot: 0.005)")
-    parser.add_argument("--iterations", type=int, default=ITERATIONS,
-                        help="constraint passes per step (fewer: softer, under-converged links and joints)")
-
-
-def build_problem(args, device: str) -> Problem:
+# ------------------------------------------------------------------------------- building
+def build_problems(args, device: str) -> list[Problem]:
     from wrenorm.tasks.rope.reference.generate import builtin_references, load_reference
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
@@ -450,8 +437,8 @@ def build_problem(args, device: str) -> Problem:
         held, held_names = [], []
     else:
         held, held_names = builtin_references("held_out"), list(HELD_OUT_PATHS)
-    return RopeProblem(train, held, segments=args.segments, dt=args.dt, device=device, names=names,
-                       held_names=held_names, iterations=args.iterations)
+    return [RopeProblem(train, held, segments=args.segments, dt=args.dt, device=device, names=names,
+                        held_names=held_names, iterations=args.iterations)]
 
 
 def _stem(path) -> str:
@@ -460,19 +447,6 @@ def _stem(path) -> str:
 
 
 # ------------------------------------------------------------------------------- flow
-FLOW_GENERATIONS = 60
-FLOW_SEGMENTS = [6, 10, 16]
-FLOW_DT = [0.0025, 0.005, 0.01]
-
-
-def add_flow_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--axis", choices=["segments", "dt"], default="segments",
-                        help="what --resolutions varies: segments (links of the chain) or dt (step [s])")
-    parser.add_argument("--dt", type=float, default=0.005, help="coarse step in seconds at every point of --axis segments")
-    parser.add_argument("--segments", type=int, default=10, help="links of the chain at every point of --axis dt")
-    parser.add_argument("--iterations", type=int, default=ITERATIONS, help="constraint passes per step")
-
-
 def flow_problems(args, device: str) -> list[RopeProblem]:
     """One RopeProblem per resolution on the built-in references: segment counts (--axis segments,
     the default; step --dt) or steps in seconds (--axis dt; --segments links), coarse to fine in

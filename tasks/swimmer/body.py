@@ -26,6 +26,7 @@ import math
 import numpy as np
 
 from wrenorm.kernels import swimmer as kern
+from wrenorm.tasks.swimmer.options import DEFAULT_DT
 
 # head parts: (x centre, semi-axes)
 HEAD_FLUID = [
@@ -387,7 +388,6 @@ def tail_points(g: dict, t: np.ndarray) -> np.ndarray:
     return np.stack(pts, axis=1)
 
 
-DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/test_swimmer_sim.py)
 
 
 def build_batch(rates, device: str = "cpu", dt: float = DEFAULT_DT, warm_seconds: float = 2.0,

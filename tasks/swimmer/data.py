@@ -120,10 +120,12 @@ def load_dir(path) -> list[Rate]:
     return rates
 
 
-def parse_labels(text: str, rates: list[Rate], source: str = "--train") -> list[float]:
+def parse_labels(text, rates: list[Rate], source: str = "--train") -> list[float]:
+    """Training labels, given as a list of numbers or as comma-separated text, matched to the loaded rates."""
     labels = []
-    for item in str(text).split(","):
-        item = item.strip()
+    items = str(text).split(",") if isinstance(text, str) else list(text)
+    for item in items:
+        item = str(item).strip()
         try:
             value = float(item)
         except ValueError:

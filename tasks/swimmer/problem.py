@@ -9,8 +9,6 @@ is held out. Baseline: elongated-body theory with two constants fitted on the tr
 """
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
 
 import numpy as np
 
@@ -19,6 +17,7 @@ from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
 from wrenorm.tasks.swimmer import body
 from wrenorm.tasks.swimmer import data
+from wrenorm.tasks.swimmer.options import FLOW_BODIES, FLOW_DT
 
 PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kutta_lift": 3.84, "magnus_lift": 0.27}
 DEFAULT_TRAIN = "1.00,1.75"
@@ -77,15 +76,14 @@ class SwimmerProblem(Problem):
     def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = body.DEFAULT_DT,
                  warm_seconds: float = 2.0, meas_seconds: float = 3.0, virtual_mass: bool = False,
                  gait_mode: str = "chain", source: str = "built-in", yaw_weight: float = 0.0, scheme: int = 2,
-                 restarts: int = 0, bodies: int = len(body.LINKS)):
+                 bodies: int = len(body.LINKS)):
         self.device = device
         self.bodies = int(bodies)
         self.links = body.merge_links(self.bodies)  # the tail's rigid bodies (all: the robot's five plates + fin)
         self.space = parameter_space()
         self.tolerance = TOLERANCE
         self.dt, self.warm_seconds, self.meas_seconds, self.virtual_mass = dt, warm_seconds, meas_seconds, virtual_mass
-        self.yaw_weight, self.scheme, self.restarts = float(yaw_weight), int(scheme), int(restarts)
-        self.restart_generations = 100
+        self.yaw_weight, self.scheme = float(yaw_weight), int(scheme)
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
                            "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
@@ -165,45 +163,8 @@ class SwimmerProblem(Problem):
                for k in ("fitted", "measured", "ebt")}
         return {"speeds": speeds, "speed_mae": mae, "ebt_constants": {"c1": ebt["c1"], "c2": ebt["c2"]},
                 "data_source": self.source, "yaw_weight": self.yaw_weight,
-                "identifiability": self.identifiability(fitted),
                 "published": {"speed_mae_model": 0.019, "speed_mae_ebt": 0.134,
                               "note": "Michelis et al., eight rates, full MuJoCo model, Bayesian optimisation"}}
-
-    def identifiability(self, fitted) -> dict:
-        """Which coefficients the training data pin: seeded CMA-ES searches side by side (one batched
-        evaluation per generation), each optimum validated. A coefficient is trusted only where every
-        search that fits as well as the best agrees on it; the Gauss-Newton std cannot say this when
-        there are fewer residuals than coefficients (it then scales with a near-zero residual)."""
-        space = self.space
-        n_res = len(self.train) * (2 if self.yaw_weight > 0 else 1)
-        u_fit = space.to_unit(fitted)
-        out = {"residuals": n_res, "free_coefficients": len(space.free),
-               "unconstrained_directions_at_least": max(len(space.free) - n_res, 0),
-               "at_bounds": [p.name for p, u in zip(space.parameters, u_fit) if not p.frozen and min(u, 1 - u) < 1e-3]}
-        if self.restarts < 2:
-            out["restarts"] = None
-            return out
-        from wrenorm.search import cmaes_restarts
-
-        seeds = [101 + k for k in range(self.restarts)]
-        res = cmaes_restarts(self, seeds, popsize=16, generations=self.restart_generations, quiet=True)
-        vals = np.array([r.best_values for r in res])
-        loss = np.array([r.best_loss for r in res])
-        val_err = self.errors(vals, self.held_out).mean(1) if self.held_out else np.full(len(vals), np.nan)
-        good = loss <= max(2.0 * np.nanmin(np.append(loss, self.errors(fitted[None], self.train).mean())), 1e-3)
-        units = space.to_unit(vals[good]) if good.any() else space.to_unit(vals)
-        spread = units.max(0) - units.min(0)
-        out["restarts"] = {
-            "seeds": seeds, "popsize": 16, "generations": self.restart_generations,
-            "optima": [{"values": space.as_dict(v), "train_loss": float(l), "validation_mae": float(e)}
-                       for v, l, e in zip(vals, loss, val_err)],
-            "spread_unit": {p.name: float(d) for p, d in zip(space.parameters, spread) if not p.frozen},
-            "pinned": [p.name for p, d in zip(space.parameters, spread) if not p.frozen and d < 0.05],
-            "not_pinned": [p.name for p, d in zip(space.parameters, spread) if not p.frozen and d >= 0.05],
-            "meaning": ("spread_unit: max - min over the searches whose training loss is within 2x of the best, in "
-                        "normalised [0, 1] coordinates (log scale across the bounds); pinned: < 0.05"),
-        }
-        return out
 
     def record(self, recorder, fitted, measured) -> None:
         """Per rate, one 2-D view of the real markers (grey) with the fish simulated with the fitted
@@ -329,38 +290,7 @@ def real_heading(rate) -> dict:
             "crab_deg": crab}
 
 
-# --- CLI -------------------------------------------------------------------------------------
-
-GENERATIONS = 150
-POPSIZE = 32
-
-
-def _common_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, default=None, metavar="DIR",
-                   help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
-    p.add_argument("--train", default=DEFAULT_TRAIN, help="training rate labels, comma separated (others validate)")
-    p.add_argument("--virtual-mass", action="store_true",
-                   help="add the acceleration-dependent added mass (default: MuJoCo's model, velocity terms only)")
-    p.add_argument("--gait", choices=["chain", "wave"], default="chain",
-                   help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave (wave)")
-    p.add_argument("--yaw-weight", type=float, default=0.0, metavar="M/S/RAD",
-                   help="also fit the head's yaw oscillation amplitude per rate, weighted into a speed-equivalent "
-                        "error (e.g. 0.1: 1 degree counts like 1.7 mm/s); 0: speed only, as in the paper")
-    p.add_argument("--integrator", choices=["ros2", "euler"], default="ros2",
-                   help="ros2: second-order Rosenbrock (default); euler: linearly implicit Euler, first order")
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    _common_arguments(p)
-    p.add_argument("--dt", type=float, default=body.DEFAULT_DT, help="simulation step [s] (fitted to a whole tail beat)")
-    p.add_argument("--bodies", type=int, default=len(body.LINKS),
-                   help=f"tail bodies (2..{len(body.LINKS)}: consecutive plates merged; default: every plate and the fin)")
-    p.add_argument("--generations", type=int, default=GENERATIONS)
-    p.add_argument("--popsize", type=int, default=POPSIZE)
-    p.add_argument("--restarts", type=int, default=4,
-                   help="identifiability check after the fit: this many further seeded searches side by side; "
-                        "result.json says which coefficients they agree on (0: skip)")
-
+# --- building ---------------------------------------------------------------------------------
 
 def _rates(args):
     if getattr(args, "data", None) is None:
@@ -383,31 +313,17 @@ def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LIN
                           virtual_mass=bool(getattr(args, "virtual_mass", False)),
                           gait_mode=getattr(args, "gait", "chain"), source=source, yaw_weight=yw,
                           scheme=1 if getattr(args, "integrator", "ros2") == "euler" else 2,
-                          restarts=int(getattr(args, "restarts", 0)) if getattr(args, "command", "fit") == "fit" else 0,
                           bodies=bodies)
 
 
-def build_problem(args, device: str) -> SwimmerProblem:
+def build_problems(args, device: str) -> list[SwimmerProblem]:
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
-    return _problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)),
-                    _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies"))
+    return [_problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)),
+                     _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies"))]
 
 
 # --- resolution flow ---------------------------------------------------------------------------
-FLOW_GENERATIONS = 80
-FLOW_DT = [0.002, 0.004, 0.008, 0.016]
-FLOW_BODIES = [2, 3, 6]
-
-
-def add_flow_arguments(p: argparse.ArgumentParser) -> None:
-    _common_arguments(p)
-    p.add_argument("--axis", choices=["dt", "bodies"], default="dt",
-                   help="what --resolutions varies: dt, the time step [s]; bodies, the tail's rigid bodies "
-                        f"(2-{len(body.LINKS)}: plates merged, the fin kept; {len(body.LINKS)} is the robot)")
-    p.add_argument("--dt", type=float, default=body.DEFAULT_DT, help="time step [s] at every point of --axis bodies")
-    p.add_argument("--bodies", type=int, default=len(body.LINKS), help="tail bodies at every point of --axis dt")
-
 
 def _check_bodies(n, source: str) -> int:
     if not (float(n).is_integer() and 2 <= n <= len(body.LINKS)):

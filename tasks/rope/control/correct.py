@@ -3,7 +3,7 @@
 Each trial runs the command on the "real" rope (any callable `real(hand_path) -> RopeReference`;
 by default the fine newton rope), measures the critical state Z at its first self-collision, and
 updates the command u by a regularised trust-region step through the COARSE model's sensitivity
-F = dZ/du (weighted units of tasks/rope_critical):
+F = dZ/du (weighted units of tasks/rope/observable.py):
 
     du = argmin |F du + e|^2 + lam |du|^2   s.t.  lo <= u + du <= hi,  |du|_inf <= radius
 
@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.jacobian import jacobian
 from wrenorm.problem import Condition
 from wrenorm.tasks.rope import observable as crit
 from wrenorm.tasks.rope.control.command import CommandSpace
@@ -72,36 +73,15 @@ class CoarseModel:
         A perturbed chain that misses the collision falls back to the one-sided difference of
         the other side; if both miss, the column is 0 (that direction is not trusted).
         """
-        u = np.asarray(u, dtype=np.float64)
-        n = u.shape[0]
-        E = np.eye(n) * h
-        U = np.concatenate([u[None], u + E, u - E])
         t = time.perf_counter()
-        e = goal.residual(self.states(U))
-        wall = time.perf_counter() - t
-        hit = np.all(np.isfinite(e), axis=1)
-        F = np.zeros((e.shape[1], n))
-        kinds = []
-        for i in range(n):
-            p, m = 1 + i, 1 + n + i
-            if hit[p] and hit[m]:
-                F[:, i] = (e[p] - e[m]) / (2 * h)
-                kinds.append("central")
-            elif hit[p] and hit[0]:
-                F[:, i] = (e[p] - e[0]) / h
-                kinds.append("forward")
-            elif hit[m] and hit[0]:
-                F[:, i] = (e[0] - e[m]) / h
-                kinds.append("backward")
-            else:
-                kinds.append("none")
-        return F, {"rollouts": int(U.shape[0]), "wall_s": wall, "centre_hit": bool(hit[0]), "columns": kinds,
-                   "e_centre": e[0]}
+        jac = jacobian(lambda U: goal.residual(self.states(U)), u, h)
+        return jac.J, {"rollouts": jac.evaluations, "wall_s": time.perf_counter() - t,
+                       "centre_hit": bool(np.all(np.isfinite(jac.f0))), "columns": jac.kinds, "e_centre": jac.f0}
 
 
 # ------------------------------------------------------------------------------ real systems
 class NewtonRope:
-    """The fine newton rope (tasks/rope_newton) as the real system; repeated commands are cached."""
+    """The fine newton rope (tasks/rope/reference/newton.py) as the real system; repeated commands are cached."""
 
     def __init__(self, variant: str = "default", segments: int = 64, duration: float = 1.5, device: str = "cpu"):
         from wrenorm.tasks.rope.reference.newton import get_variant

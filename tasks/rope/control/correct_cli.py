@@ -78,7 +78,7 @@ def _goal_reference(name: str, variant: str, progress):
 
 
 def run(args) -> int:
-    from wrenorm.fit import prepare_out
+    from wrenorm.runfolder import prepare_out
     from wrenorm.results import versions, write_json
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.problem import RopeProblem

@@ -6,7 +6,7 @@ The plan minimises the PREDICTED error of the real rope
     J(u) = total( Z_model(u) + d(u) )  +  reg |u - c|^2  +  LIMIT_PENALTY * hand-limit excess
 
 inside the box and the trust region |u - c|_inf <= radius around the centre c, where `total` is
-the correction's own error (rope_critical.Goal.terms, the number held to the tolerance) and
+the correction's own error (observable.Goal.terms, the number held to the tolerance) and
 d(u) = d_c + D (u - c) is the model's offset learned from real trials (model-offset iterative
 learning control): d_c = Z_real(c) - Z_model(c) at the centre trial, D a rank-one (Broyden)
 estimate of how the offset changes, from pairs of trials. With d = 0 this is pure planning on
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wrenorm.cmaes import BatchedCMAES
 from wrenorm.tasks.rope import observable as crit
 
 LIMIT_PENALTY = 10.0  # per unit of relative excess over the speed/acceleration limit: above any error
@@ -121,23 +122,13 @@ def plan(model, goal: crit.Goal, centre: np.ndarray, radius: float, offset: Offs
 
 def _search(model, goal, offset, c, reg, x0s, sigma, lo, hi, popsize, generations, seed, best) -> None:
     """CMA-ES searches side by side, one batched rollout per generation; updates `best` in place."""
-    import cma
-
-    ess = [cma.CMAEvolutionStrategy(np.clip(x, lo, hi), sigma, {
-        "seed": seed * 1000 + i + 1, "bounds": [lo.tolist(), hi.tolist()], "popsize": popsize,
-        "maxiter": generations, "verbose": -9, "tolfun": 1e-9, "tolx": 1e-6}) for i, x in enumerate(x0s)]
-    for _ in range(generations):
-        active = [es for es in ess if not es.stop()]
-        if not active:
-            break
-        asked = [np.asarray(es.ask()) for es in active]
-        U = np.concatenate(asked)
+    es = BatchedCMAES(np.array(x0s), sigma, lo, hi, [seed * 1000 + i + 1 for i in range(len(x0s))], popsize,
+                      generations, tolfun=1e-9, tolx=1e-6)
+    while not es.done:
+        U = es.ask()
         cost, total, alone = predicted_cost(model, goal, U, offset, c, reg)
         best["evaluations"] += len(U)
-        o = 0
-        for es, X in zip(active, asked):
-            es.tell(list(X), list(cost[o:o + len(X)]))
-            o += len(X)
+        es.tell(cost)
         j = int(np.argmin(cost))
         if cost[j] < best["cost"]:
             best.update({"u": U[j].copy(), "cost": float(cost[j]), "predicted_total": float(total[j]),

@@ -3,7 +3,7 @@ changes) can move the rope's critical state above the noise, and what that impli
 number of real trials (and identification experiments).
 
 Sensitivities are central differences of the weighted critical-state residual e (tasks/
-rope_critical; |e| is the correction's objective), all perturbations in one batched rollout:
+observable; |e| is the correction's objective), all perturbations in one batched rollout:
   command     F_u = de/du at u = 0 of the command space around --path (units of u)
   parameters  F_p = de/dx per condition, x = the free parameters' normalised [0, 1] coordinates
 Noise, projected on each left singular vector U_i (n_i = sqrt(U_i^T C U_i)), is the sum of
@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.jacobian import jacobian
 
 SYSTEM = "rope"
 FRAME_TIME = 1.0 / 250.0  # s, the reference's (motion capture's) frame time
@@ -64,36 +65,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ------------------------------------------------------------------------------ building blocks
-def central_jacobian(f, x: np.ndarray, h: float, lo: np.ndarray | None = None, hi: np.ndarray | None = None):
-    """de/dx of a batched map f (B, n) -> (B, m) in ONE call; one-sided where x +- h leaves [lo, hi]
-    or where one side has no state (NaN). Returns (J (m, n), e(x) (m,), kinds)."""
-    x = np.asarray(x, dtype=np.float64)
-    n = x.shape[0]
-    lo = np.full(n, -np.inf) if lo is None else lo
-    hi = np.full(n, np.inf) if hi is None else hi
-    E = np.eye(n) * h
-    X = np.concatenate([x[None], np.minimum(x + E, hi), np.maximum(x - E, lo)])
-    e = f(X)
-    ok = np.all(np.isfinite(e), axis=1)
-    J = np.zeros((e.shape[1], n))
-    kinds = []
-    for i in range(n):
-        p, m = 1 + i, 1 + n + i
-        dp, dm = X[p, i] - x[i], x[i] - X[m, i]
-        if ok[p] and ok[m] and dp > 0 and dm > 0:
-            J[:, i] = (e[p] - e[m]) / (dp + dm)
-            kinds.append("central")
-        elif ok[p] and ok[0] and dp > 0:
-            J[:, i] = (e[p] - e[0]) / dp
-            kinds.append("forward")
-        elif ok[m] and ok[0] and dm > 0:
-            J[:, i] = (e[0] - e[m]) / dm
-            kinds.append("backward")
-        else:
-            kinds.append("none")
-    return J, e[0], kinds
-
-
 def measurement_covariance(goal, marker_noise: float, time_noise: float, frame_time: float = FRAME_TIME):
     """Diagonal covariance of e from marker and timing noise (documented model, see module doc)."""
     from wrenorm.tasks.rope.problem import SAMPLES
@@ -145,7 +116,8 @@ def command_analysis(model, goal, fd_step: float, noise_samples: int, noise_size
     u0 = np.zeros(space.dim)
     f = lambda U: goal.residual(model.states(U))  # noqa: E731
     t = time.perf_counter()
-    F, e0, kinds = central_jacobian(f, u0, fd_step, space.lower, space.upper)
+    jac = jacobian(f, u0, fd_step, space.lower, space.upper)
+    F, e0, kinds = jac.J, jac.f0, jac.kinds
     fd_wall = time.perf_counter() - t
     if not np.all(np.isfinite(e0)):
         raise InputError("--path", "path", "the coarse chain never hits itself under this command; "
@@ -200,7 +172,8 @@ def parameter_analysis(problem, values, goals, names, h: float, step: float, snr
         return np.concatenate(out, axis=1)
 
     x_free = sp.to_unit(values)
-    J, e0, kinds = central_jacobian(f, x_free, h, np.zeros(len(x_free)), np.ones(len(x_free)))
+    jac = jacobian(f, x_free, h, 0.0, 1.0)
+    J, e0, kinds = jac.J, jac.f0, jac.kinds
     m = goals[0].dim
     blocks, covs = [], []
     per = {n: {"coarse_hits": False} for n in names_all}
@@ -237,7 +210,7 @@ def parameter_analysis(problem, values, goals, names, h: float, step: float, snr
 # ------------------------------------------------------------------------------ CLI
 def run(args) -> int:
     from wrenorm.cli import _device
-    from wrenorm.fit import prepare_out
+    from wrenorm.runfolder import prepare_out
     from wrenorm.results import versions, write_json
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.problem import RopeProblem

@@ -1,0 +1,34 @@
+"""The rope system's command-line options (cheap to import: the CLI builds its parser from them)."""
+from __future__ import annotations
+
+import argparse
+
+from wrenorm.options import add_list, add_number
+
+ITERATIONS = 4  # constraint passes per step; see tasks/rope/problem.py (2 fits slightly better)
+SEGMENTS = (3, 63)  # links of the coarse chain
+DT = (1e-4, 0.05)  # s, coarse step
+FLOW_SEGMENTS = [6, 10, 16]
+FLOW_DT = [0.0025, 0.005, 0.01]
+
+
+def add_chain_arguments(p: argparse.ArgumentParser, segments: int = 10) -> None:
+    add_number(p, "--segments", default=segments, lo=SEGMENTS[0], hi=SEGMENTS[1], integer=True,
+               help="links of the coarse chain; it has segments + 1 point masses (10 = the flying knot's 11)")
+    add_number(p, "--dt", default=0.005, lo=DT[0], hi=DT[1], unit="s", help="coarse step (flying knot: 0.005)")
+    add_number(p, "--iterations", default=ITERATIONS, lo=1, hi=64, integer=True,
+               help="constraint passes per step (fewer: softer, under-converged links and joints)")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_list(p, "--reference", default=None, metavar="FILE",
+             help="reference rope trajectories (.npz) to fit; default: the built-in fit paths")
+    add_list(p, "--validate", default=None, metavar="FILE",
+             help="held-out references (.npz); default: built-in held-out paths (without --reference)")
+    add_chain_arguments(p)
+
+
+def add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--axis", choices=["segments", "dt"], default="segments",
+                   help="what --resolutions varies: segments (links of the chain) or dt (step [s])")
+    add_chain_arguments(p)

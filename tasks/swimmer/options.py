@@ -1,0 +1,54 @@
+"""The swimmer's command-line options (cheap to import: the CLI builds its parser from them)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from wrenorm.options import add_list, add_number
+
+DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/test_swimmer_sim.py)
+TAIL_BODIES = 6  # the robot's five plates and the fin (tasks/swimmer/body.py LINKS)
+DEFAULT_TRAIN = [1.00, 1.75]  # the published fit's training rates
+FLOW_DT = [0.002, 0.004, 0.008, 0.016]
+FLOW_BODIES = [2, 3, 6]
+
+
+def _label(text: str) -> float:
+    from wrenorm.options import number
+
+    return number(0.0, 100.0, lo_open=True)(text)
+
+
+def add_common_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, default=None, metavar="DIR",
+                   help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
+    add_list(p, "--train", default=list(DEFAULT_TRAIN), item=_label, metavar="HZ",
+             help="training motor-rate labels (every other rate validates)")
+    p.add_argument("--virtual-mass", action="store_true",
+                   help="add the acceleration-dependent added mass (default: MuJoCo's model, velocity terms only)")
+    p.add_argument("--gait", choices=["chain", "wave"], default="chain",
+                   help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave (wave)")
+    add_number(p, "--yaw-weight", default=0.0, lo=0.0, hi=100.0, unit="m/s/rad", metavar="M/S/RAD",
+               help="also fit the head's yaw oscillation amplitude per rate, weighted into a speed-equivalent "
+                    "error (e.g. 0.1: 1 degree counts like 1.7 mm/s); 0: speed only, as in the paper")
+    p.add_argument("--integrator", choices=["ros2", "euler"], default="ros2",
+                   help="ros2: second-order Rosenbrock (default); euler: linearly implicit Euler, first order")
+
+
+def add_resolution_arguments(p: argparse.ArgumentParser) -> None:
+    add_number(p, "--dt", default=DEFAULT_DT, lo=0.0002, hi=0.02, unit="s",
+               help="simulation step (fitted to a whole tail beat)")
+    add_number(p, "--bodies", default=TAIL_BODIES, lo=2, hi=TAIL_BODIES, integer=True,
+               help="tail bodies (consecutive plates merged; the fin kept)")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_common_arguments(p)
+    add_resolution_arguments(p)
+
+
+def add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    add_common_arguments(p)
+    p.add_argument("--axis", choices=["dt", "bodies"], default="dt",
+                   help="what --resolutions varies: dt, the time step [s]; bodies, the tail's rigid bodies")
+    add_resolution_arguments(p)

@@ -1,0 +1,85 @@
+"""The engine's shared pieces: the one Jacobian, the one batched CMA-ES and its plain-format resume."""
+import json
+
+import numpy as np
+import pytest
+
+from wrenorm.cmaes import BatchedCMAES
+from wrenorm.errors import InputError
+from wrenorm.jacobian import jacobian
+
+
+def test_central_jacobian_on_a_known_map():
+    A = np.array([[1.0, 2.0, 0.0], [0.0, -1.0, 0.0]])
+    f = lambda X: X @ A.T + 0.5 * X[:, :1] ** 2  # noqa: E731
+    jac = jacobian(f, np.array([0.0, 0.3, 1.0]), 1e-3, np.zeros(3), np.ones(3))
+    J, kinds = jac.J, jac.kinds
+    assert kinds == ["forward", "central", "backward"]
+    assert np.allclose(J, A + np.array([[0.0005, 0, 0], [0.0005, 0, 0]]), atol=1e-6)
+    assert jac.evaluations == 7
+
+
+def test_jacobian_falls_back_where_a_side_has_no_value():
+    def f(X):
+        out = X.copy()
+        out[X[:, 0] > 0.5] = np.nan  # the + side of the first coordinate blows up
+        return out
+    jac = jacobian(f, np.array([0.5, 0.5]), 0.1)
+    assert jac.kinds == ["backward", "central"]
+    assert np.allclose(jac.J, np.eye(2))
+
+
+def _sphere(X):
+    return np.sum((X - 0.3) ** 2, axis=1)
+
+
+def test_batched_searches_converge_and_stop_on_their_own():
+    es = BatchedCMAES(np.full((3, 2), 0.8), 0.2, 0.0, 1.0, seeds=[1, 2, 3], popsize=8, max_generations=80)
+    gens = 0
+    while not es.done:
+        X = es.ask()
+        assert X.shape[0] == 8 * len(set(es.owners.tolist()))
+        es.tell(_sphere(X))
+        gens += 1
+    for s in es.finish():
+        assert s.best_loss < 1e-8 and np.allclose(s.best_x, 0.3, atol=1e-4)
+    assert gens <= 80
+
+
+def test_a_search_whose_whole_generation_blows_up_stops_alone():
+    es = BatchedCMAES(np.full((2, 2), 0.5), 0.2, 0.0, 1.0, seeds=[1, 2], popsize=6, max_generations=5)
+    X = es.ask()
+    losses = _sphere(X)
+    losses[es.owners == 0] = np.nan
+    es.tell(losses)
+    assert es.searches[0].failed and es.active == [1]
+    assert "every one of 6 candidates blew up" in es.searches[0].stop
+
+
+def _run(es, gens):
+    for _ in range(gens):
+        X = es.ask()
+        loss = _sphere(X)
+        loss[::5] = np.inf  # blow-ups are part of the state too
+        es.tell(loss)
+
+
+def test_replayed_state_continues_bit_identically_and_refuses_other_settings():
+    make = lambda seeds=(4, 5): BatchedCMAES(np.full((2, 3), 0.7), 0.25, 0.0, 1.0, list(seeds), 10, 40)  # noqa: E731
+    a = make()
+    _run(a, 12)
+    state = json.loads(json.dumps(a.state()))  # survives a plain JSON round trip
+    _run(a, 6)
+    b = make()
+    b.replay(state)
+    _run(b, 6)
+    for sa, sb in zip(a.finish(), b.finish()):
+        assert sa.best_loss == sb.best_loss and np.array_equal(sa.best_x, sb.best_x)
+        assert sa.blowups == sb.blowups and sa.generations == sb.generations
+    with pytest.raises(InputError, match="other seeds"):
+        make((4, 6)).replay(state)
+    state["told"][0][3]["candidates"] = "0" * 16
+    with pytest.raises(InputError, match="other candidates"):
+        make().replay(state)
+    with pytest.raises(InputError, match="not a wrenorm search state"):
+        make().replay({"schema": "something else"})

@@ -1,0 +1,104 @@
+"""Command-line options with their ranges declared where they are declared: every number is checked (finite,
+inside its documented range) before any work starts, lists take commas or spaces alike and refuse repeats,
+and a bad value is one line naming the option and the problem (exit 2)."""
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but an error is one line on stderr (`wrenorm: error: --opt: problem`) and exit code 2."""
+
+    def error(self, message: str):  # noqa: D401 (argparse's signature)
+        m = re.match(r"argument (\S+?)(?:/\S+)?: (.*)$", message, re.S)
+        if m:  # name the option and the field it sets, then the problem
+            flag, problem = m.groups()
+            dest = next((a.dest for a in self._actions if flag in a.option_strings), None)
+            message = f"{flag}: {dest}: {problem}" if dest else f"{flag}: {problem}"
+        print(f"wrenorm: error: {self.prog.split(' ', 1)[-1]}: {' '.join(message.split())}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _fmt(x) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def number(lo=None, hi=None, integer: bool = False, lo_open: bool = False):
+    """An argparse `type` that accepts a finite number (an integer if asked) in [lo, hi] (or (lo, hi] with
+    lo_open)."""
+    def parse(text: str):
+        s = str(text).strip()
+        try:
+            v = int(s) if integer else float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if integer else 'a number'}, got {text!r}") \
+                from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise argparse.ArgumentTypeError(f"must be {'>' if lo_open else '>='} {_fmt(lo)}, got {s}")
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {_fmt(hi)}, got {s}")
+        return v
+
+    parse.__name__ = "integer" if integer else "number"
+    return parse
+
+
+def range_text(lo=None, hi=None, lo_open: bool = False) -> str:
+    if lo is not None and hi is not None:
+        return f"{'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}]"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {_fmt(lo)}"
+    return f"<= {_fmt(hi)}" if hi is not None else "any"
+
+
+class _ListAction(argparse.Action):
+    """nargs='+' whose items may also be comma-separated; every item parsed by `item`; no repeats."""
+
+    def __init__(self, *args, item=str, unique=True, **kw):
+        self.item, self.unique = item, unique
+        super().__init__(*args, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        out = []
+        for v in values:
+            for part in str(v).split(","):
+                part = part.strip()
+                if not part:
+                    continue
+                try:
+                    out.append(self.item(part))
+                except argparse.ArgumentTypeError as e:
+                    parser.error(f"argument {option_string}: {e}")
+        if not out:
+            parser.error(f"argument {option_string}: needs at least one value")
+        if self.unique and len(set(out)) != len(out):
+            seen = [x for i, x in enumerate(out) if x in out[:i]]
+            parser.error(f"argument {option_string}: repeated value {_fmt(seen[0])}")
+        setattr(namespace, self.dest, out)
+
+
+def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=None, integer: bool = False,
+               lo_open: bool = False, help: str = "", unit: str = "", **kw) -> None:
+    """--flag N, range-checked; the range (and unit) appear in --help."""
+    rng = range_text(lo, hi, lo_open)
+    text = f"{help} ({'integer ' if integer else ''}{rng}{' ' + unit if unit else ''}; default {default})".strip()
+    p.add_argument(flag, type=number(lo, hi, integer, lo_open), default=default, help=text, **kw)
+
+
+def add_list(p: argparse.ArgumentParser, flag: str, *, default, item=str, help: str = "", unique: bool = True,
+             **kw) -> None:
+    """--flag A B or --flag A,B: a list (repeats refused unless unique=False)."""
+    p.add_argument(flag, nargs="+", action=_ListAction, item=item, unique=unique, default=default,
+                   help=f"{help} (spaces or commas)".strip(), **kw)
+
+
+def add_numbers(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=None, integer: bool = False,
+                lo_open: bool = False, help: str = "", unit: str = "", **kw) -> None:
+    rng = range_text(lo, hi, lo_open)
+    add_list(p, flag, default=default, item=number(lo, hi, integer, lo_open),
+             help=f"{help} (each {'an integer ' if integer else ''}{rng}{' ' + unit if unit else ''})", **kw)

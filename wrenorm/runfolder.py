@@ -1,0 +1,79 @@
+"""Run folders are owned: wrenorm writes only into a folder it made (or an empty one), marks it, and `--force`
+clears only such a marked folder, never one that holds anything else, the working directory or an input.
+
+Callers validate every option and input first and call `prepare_out` last, so a refused command leaves the
+old run untouched.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+from .errors import InputError
+
+MARKER = ".wrenorm-run"
+
+
+def _is_run(folder: Path) -> bool:
+    return (folder / MARKER).is_file()
+
+
+def _guard(out: Path, inputs) -> None:
+    """Folders --force must never clear: the working directory or one above it, home, the root, and any folder
+    that is or holds one of the command's inputs."""
+    real = out.resolve()
+    cwd = Path.cwd().resolve()
+    if real == cwd or real in cwd.parents:
+        raise InputError(str(out), "--out", "is the working directory or a folder above it: refusing to clear it")
+    if real == Path.home().resolve() or real == Path(real.anchor):
+        raise InputError(str(out), "--out", "is the home or root folder: refusing to clear it")
+    for item in inputs or ():
+        p = Path(item).resolve()
+        if p == real or real in p.parents:
+            raise InputError(str(out), "--out", f"holds an input of this command ({item}): refusing to clear it")
+
+
+def prepare_out(out, resume: bool = False, force: bool = False, state: str | None = None, inputs=(),
+                command: str = "") -> Path:
+    """The run folder, ready to write into. Refuses to clobber an earlier run unless told to (--force), or
+    continues it (--resume): a run to continue must be wrenorm's and hold its saved `state` file (here or in a
+    sub-run folder)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(str(out), "--out", "exists and is not a folder")
+    for parent in out.parents:
+        if parent.exists() and not parent.is_dir():
+            raise InputError(str(out), "--out", f"cannot be created: {parent} is a file")
+    existing = out.exists() and any(out.iterdir())
+    if resume:
+        if not out.exists():
+            raise InputError(str(out), "--resume", "no such run folder to resume")
+        if existing and not _is_run(out):
+            raise InputError(str(out), "--resume", "is not a wrenorm run folder (no .wrenorm-run marker)")
+        if state and not (out / state).exists() and not any(out.glob(f"*/{state}")):
+            raise InputError(str(out), "--resume", f"no saved state ({state}) in this folder to resume from")
+        return out
+    if existing:
+        if not force:
+            raise InputError(str(out), "--out", "folder exists and is not empty; pass --force to overwrite it or "
+                                                "--resume to continue it")
+        if not _is_run(out):
+            raise InputError(str(out), "--force", "the folder is not empty and was not written by wrenorm (no "
+                                                  ".wrenorm-run marker): refusing to clear it")
+        _guard(out, inputs)
+        for child in out.iterdir():
+            if child.is_dir() and not child.is_symlink():
+                shutil.rmtree(child)
+            else:
+                child.unlink()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / MARKER).write_text(json.dumps({"schema": "wrenorm.run/1", "command": command,
+                                              "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "pid": os.getpid()})
+                                  + "\n")
+    except OSError as e:
+        raise InputError(str(out), "--out", f"cannot be written: {e.strerror or e}") from None
+    return out

@@ -1,0 +1,113 @@
+"""The contract between a system (tasks/<name>/) and the engine, and the registry that lists systems.
+
+A system declares, once, in its package's `SYSTEM`:
+  - its name and one line of help;
+  - its fit options and how to build one Problem per resolution from them (`add_arguments`, `build`);
+  - its search defaults (method, generations, population, restarts, polish);
+  - optionally a resolution flow (`flow`), extra commands (`commands`, e.g. `reference rope`), a kernel
+    benchmark (`bench`), its kernel modules for the ahead-of-time CUDA build and a CPU-vs-CUDA parity check.
+The CLI, fit, flow, bench and the CUDA checks read only this. Importing a system's package must stay cheap
+(no Warp kernels, no heavy libraries): those belong in the callables, imported when one runs.
+
+Adding a system: a folder tasks/<name>/ whose __init__.py defines SYSTEM, and one line in tasks/__init__.py.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+from dataclasses import dataclass, field
+from typing import Callable, Union
+
+from .errors import InputError
+
+Ref = Union[Callable, str]  # a callable, or "package.module:name", imported when first called
+
+
+@dataclass(frozen=True)
+class SearchDefaults:
+    """How `fit` searches this system unless told otherwise."""
+
+    method: str = "cmaes"  # "cmaes" (event and contact observables) or "least-squares" (smooth residuals)
+    generations: int = 60
+    popsize: int | None = None  # None: pycma's default for the dimension
+    sigma0: float = 0.2  # initial step in normalised [0, 1] coordinates
+    polish: int = 0  # L-BFGS evaluations on tape gradients after the search (systems with a tape)
+    restarts: int = 0  # identifiability restarts after the fit (further seeded searches side by side)
+
+
+@dataclass(frozen=True)
+class Flow:
+    """The resolution flow theta*(a): one Problem per resolution."""
+
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    build: Ref  # (args, device) -> [Problem], one per resolution
+    resolutions_help: str
+    generations: int = 60
+    analytic: Ref | None = None  # (problem, fitted dict) -> dict of analytic predictions per point
+
+
+@dataclass(frozen=True)
+class ExtraCommand:
+    """A verb beyond fit/flow, e.g. `python -m wrenorm reference rope`."""
+
+    verb: str
+    help: str
+    add_arguments: Ref  # (parser) -> None; called only when this command is the one asked for
+    run: Ref  # (args) -> exit code
+
+
+@dataclass(frozen=True)
+class System:
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    build: Ref  # (args, device) -> [Problem], one per resolution
+    search: SearchDefaults = field(default_factory=SearchDefaults)
+    flow: Flow | None = None
+    commands: tuple[ExtraCommand, ...] = ()
+    bench: Ref | None = None  # (device, batches, quick) -> {"rows": [...], "table": markdown}
+    kernel_modules: Ref | None = None  # () -> {name: Warp module}, for the ahead-of-time CUDA build
+    parity: Ref | None = None  # (device) -> largest CPU-vs-device differences of the kernels' outputs
+
+
+def resolve(ref: Ref) -> Callable:
+    """A callable from a Ref; "pkg.module:name" is imported now (heavy modules load only when used)."""
+    if callable(ref):
+        return ref
+    module, _, name = str(ref).partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+_REGISTRY: dict[str, System] = {}
+_LOADED = False
+
+
+def register(system: System) -> System:
+    """Add a system (the registry line does this through tasks/__init__.py; tests may add toys)."""
+    if not isinstance(system, System):
+        raise TypeError(f"expected a System, got {type(system).__name__}")
+    _REGISTRY[system.name] = system
+    return system
+
+
+def unregister(name: str) -> None:
+    _REGISTRY.pop(name, None)
+
+
+def systems() -> dict[str, System]:
+    """Every registered system by name, in registration order."""
+    global _LOADED
+    if not _LOADED:
+        from wrenorm.tasks import SYSTEMS
+
+        for module in SYSTEMS:
+            register(importlib.import_module(module).SYSTEM)
+        _LOADED = True
+    return dict(_REGISTRY)
+
+
+def get(name: str) -> System:
+    found = systems()
+    if name not in found:
+        raise InputError("system", name, f"unknown system; registered: {', '.join(found)}")
+    return found[name]
