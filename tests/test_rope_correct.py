@@ -100,7 +100,7 @@ def test_offset_prediction_is_exact_at_the_trials(problem, freeze):
     space = CommandSpace(PATHS["flick"])
     real = CoarseRope(problem, shifted(problem))
     model = CoarseModel(problem, problem.space.measured, space)
-    goal = crit.Goal.from_reference(real(PATHS["flick_fast"]))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
     U = np.stack([np.zeros(space.dim), 0.3 * np.ones(space.dim)])
     Zr = [crit.from_reference(real(space.decode(u))) for u in U]
     Zm = model.states(U)
@@ -124,7 +124,7 @@ def test_plan_on_the_model_alone_reaches_a_reachable_goal(problem):
     critical state is within the tolerance of a goal the model can reach."""
     space = CommandSpace(PATHS["flick"])
     model = CoarseModel(problem, problem.space.measured, space)
-    goal = crit.Goal.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
+    goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
     start = goal.terms(model.states(np.zeros((1, space.dim))))["total"][0]
     p = plan(model, goal, np.zeros(space.dim), 2 * space.bound, Offset.zero(space.dim, goal.dim), seed=0,
              popsize=16, generations=30)
@@ -141,7 +141,7 @@ def test_correction_converges_on_a_system_with_known_answer(problem, plan_first)
     space = CommandSpace(PATHS["flick"])
     truth = shifted(problem)
     real = CoarseRope(problem, truth)
-    goal = crit.Goal.from_reference(real(PATHS["flick_fast"]))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
     start = goal.terms(crit.from_reference(real(PATHS["flick"])))["total"][0]
     assert start > 0.3  # the start is far from the goal
     exact = correct(real, CoarseModel(problem, truth, space), goal, np.zeros(space.dim), max_trials=8,
@@ -163,7 +163,7 @@ def test_correction_converges_on_a_system_with_known_answer(problem, plan_first)
 def test_qp_correction_still_improves(problem):
     space = CommandSpace(PATHS["flick"])
     real = CoarseRope(problem, shifted(problem))
-    goal = crit.Goal.from_reference(real(PATHS["flick_fast"]))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
     res = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
                   max_trials=4, method="qp")
     assert res["best_error"] < 0.5 * res["trials"][0].total
@@ -172,7 +172,7 @@ def test_qp_correction_still_improves(problem):
 # ------------------------------------------------------------------------------ sensitivity
 def test_batched_sensitivity_matches_separate_runs(problem):
     space = CommandSpace(PATHS["flick"])
-    goal = crit.Goal.from_reference(problem.train[0].data.ref)
+    goal = crit.Target.from_reference(problem.train[0].data.ref)
     model = CoarseModel(problem, problem.space.measured, space)
     h = 0.05
     F, info = model.sensitivity(np.zeros(space.dim), goal, h)
@@ -204,7 +204,7 @@ def test_dead_command_direction_gives_zero_singular_values(problem):
     late = HandPath.through(np.append(times, [1.2, 1.45]), np.vstack([p, p[-1], p[-1] + [0.1, 0.0, 0.1]]),
                             np.vstack([v, np.zeros((2, 3))]))
     space = CommandSpace(late)
-    goal = crit.Goal.from_reference(problem.train[0].data.ref)
+    goal = crit.Target.from_reference(problem.train[0].data.ref)
     model = CoarseModel(problem, problem.space.measured, space)
     F, info = model.sensitivity(np.zeros(space.dim), goal, 0.1)
     assert info["centre_hit"]
@@ -297,7 +297,7 @@ def test_a_blown_up_real_trial_costs_that_trial_not_the_run(problem, tmp_path):
 
     space = CommandSpace(PATHS["flick"])
     good = CoarseRope(problem, problem.space.measured)
-    goal = crit.Goal.from_reference(load_reference(builtin_reference_path("flick_high")))
+    goal = crit.Target.from_reference(load_reference(builtin_reference_path("flick_high")))
 
     class BlowsUp:
         runs, wall_s = 0, 0.0

@@ -1,15 +1,26 @@
-"""The rope state at its first self-collision ("critical state" Z) as one vector, for the real
-rope (a RopeReference) and for batches of coarse chains, and the weighted residual to a goal.
+"""The rope's one observable: its state at the first self-collision (the flying knot's "critical point"),
+for a reference rope (markers) and for batches of coarse chains, and its error to a target state.
 
-Z = positions and velocities at SAMPLES common arc-length points, the collision time from the
-start, and the two arc-length fractions of the contact. The residual e = W (Z - Z_goal) uses the
-normalisations and weights of tasks/rope.py, block by block:
-  positions  w_shape (x - x_g) / (L sqrt K)        -> |e_pos| = w_shape * RMS / L  (rope.py's shape term)
-  velocities w_vel (v - v_g) / (speed_g sqrt K)    -> |e_vel| = w_vel * velocity term
-  time       w_time (t - t_g) / t_g                -> |e_t|   = w_time * time term
-  place      w_place (s - s_g) / 2                 -> |e_s| <= w_place * place term (L2 <= L1 mean)
-so |e|^2 is the QP's objective (Q = I in these units) and `total` is the fit's error, the number
-the correction drives below its tolerance.
+Z = positions and velocities at SAMPLES common arc-length points, the collision time from the start of the
+motion, and the two arc-length fractions of the contact. The fit (problem.py), the correction and the
+sensitivity (control/) all score through `Target`, so they agree about the same rope.
+
+Error (dimensionless), total = sum of WEIGHTS[term] * term:
+  shape    RMS distance between the two states at the K points, / rope length
+  velocity RMS velocity difference at those points, / the target's RMS speed there (>= MIN_SPEED)
+  time     |t - t_target| / t_target (times from the start of the motion)
+  place    mean |s - s_target| of the two arc-length fractions of the contact
+  Why these weights: 0.1 on velocity mirrors the flying knot's 5.0 (m) : 0.00375 (m/s) on squared errors
+  once shape is divided by ~1 m and velocity by a ~5 m/s speed; at the fitted optimum of the built-in
+  references the four weighted terms are then of one order, so none is ignored and none dominates. place is
+  halved because it double-counts the time error when a contact slides along the rope.
+The residual e = W (Z - Z_target), block by block, has |e_pos| = w_shape * shape, |e_vel| = w_velocity *
+velocity, |e_t| = w_time * time and |e_s| <= w_place * place, so |e|^2 is a least-squares form of the same
+error (the correction's QP objective, the Gauss-Newton uncertainty's residual).
+
+A rope that never hits itself has no critical state: it costs NO_HIT plus its closest approach over a tenth
+of the length, capped at 1 (finite, and smaller the closer it came, so a search is pulled toward a hit); a
+blow-up costs the largest miss. This one rule serves chains and real ropes alike.
 """
 from __future__ import annotations
 
@@ -18,7 +29,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope.problem import NO_HIT, SAMPLES, WEIGHTS, prepare_case, resample
+
+WEIGHTS = {"shape": 1.0, "velocity": 0.1, "time": 1.0, "place": 0.5}
+NO_HIT = 5.0  # above any colliding candidate's error (each term is O(1) at worst)
+SAMPLES = 21
+MIN_SPEED = 0.1  # m/s
+NO_HIT_SCALE = 0.1  # of the rope length: a closest approach this far (or farther) adds 1 to NO_HIT
+
+
+def resample(points: np.ndarray, arclength: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Piecewise-linear resampling of (..., M, 3) along `arclength` (M,) at `samples` (K,)."""
+    points = np.asarray(points, np.float64)
+    idx = np.clip(np.searchsorted(arclength, samples, side="right") - 1, 0, len(arclength) - 2)
+    u = (samples - arclength[idx]) / (arclength[idx + 1] - arclength[idx])
+    return points[..., idx, :] * (1 - u)[:, None] + points[..., idx + 1, :] * u[:, None]
 
 
 @dataclass
@@ -30,60 +54,88 @@ class CriticalStates:
     time: np.ndarray  # (B,) s from the start of the motion
     s: np.ndarray  # (B, 2) arc-length fractions of the contact (held-end side, free-end side)
     hit: np.ndarray  # (B,) bool
-    clearance: np.ndarray  # (B,) m, closest approach of chains that never hit (0 for hits)
+    clearance: np.ndarray  # (B,) m, closest approach of ropes that never hit (0 for hits)
 
     @property
     def batch(self) -> int:
         return self.pos.shape[0]
 
+    def take(self, rows) -> "CriticalStates":
+        rows = np.atleast_1d(rows)
+        return CriticalStates(self.pos[rows], self.vel[rows], self.time[rows], self.s[rows], self.hit[rows],
+                              self.clearance[rows])
+
     def row(self, i: int) -> "CriticalStates":
-        return CriticalStates(self.pos[i:i + 1], self.vel[i:i + 1], self.time[i:i + 1], self.s[i:i + 1],
-                              self.hit[i:i + 1], self.clearance[i:i + 1])
-
-
-def from_reference(ref, name: str = "real") -> CriticalStates:
-    """Critical state of one rope trajectory (the real rope), interpolated as tasks/rope.py does."""
-    try:
-        case = prepare_case(name, ref, 3, ref.dt)
-    except InputError:
-        from wrenorm.tasks.rope.reference.events import gap_series
-
-        gap = gap_series(ref.markers, ref.marker_arclength, ref.length, ref.radius)[0]
-        nan = np.full((1, SAMPLES, 3), np.nan)
-        return CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
-                              np.array([max(float(np.min(gap[1:])), 0.0)]))
-    ev = case.event
-    return CriticalStates(case.ref_pos[None], case.ref_vel[None], np.array([ev.time - ref.time[0]]),
-                          np.array([[ev.s_a, ev.s_b]]), np.ones(1, bool), np.zeros(1))
+        return self.take([i])
 
 
 def from_rollout(res, n_nodes: int, t0: float = 0.0) -> CriticalStates:
-    """Critical states of a batch of coarse chains (kernels.rope.RolloutResult)."""
+    """Critical states of a batch of coarse chains (kernels.rope.RolloutResult), resampled to the K points."""
     s_nodes = np.linspace(0.0, 1.0, n_nodes)
     s_k = np.linspace(0.0, 1.0, SAMPLES)
     hit = res.status == 1
     mask = np.where(hit, 1.0, np.nan)[:, None, None]
+    clearance = np.where(res.status == 2, np.inf, res.clearance.astype(np.float64))
     return CriticalStates(resample(res.crit_pos, s_nodes, s_k) * mask, resample(res.crit_vel, s_nodes, s_k) * mask,
                           np.where(hit, res.hit_time - t0, np.nan), np.stack([res.s_a, res.s_b], 1),
-                          hit, np.where(hit, 0.0, res.clearance.astype(np.float64)))
+                          hit, np.where(hit, 0.0, clearance))
+
+
+def reference_event(ref):
+    """The reference's first self-collision (reference/events.py), or None."""
+    from wrenorm.tasks.rope.reference.generate import first_self_collision
+
+    ev = first_self_collision(ref)
+    return None if ev is None or ev.index == 0 else ev
+
+
+def from_reference(ref, event=None) -> CriticalStates:
+    """Critical state of one rope trajectory (a reference, a real trial), batch of one.
+
+    At the event time t* inside frame interval (k-1, k]: positions interpolated linearly between the two
+    frames, velocity the frame difference over that interval (the rule the chain kernel uses too)."""
+    ev = reference_event(ref) if event is None else event
+    if ev is None:
+        from wrenorm.tasks.rope.reference.events import gap_series
+
+        gap = gap_series(ref.markers, ref.marker_arclength, ref.length, ref.radius)[0]
+        nan = np.full((1, SAMPLES, 3), np.nan)
+        clear = float(np.min(gap[1:])) if len(gap) > 1 and np.isfinite(gap[1:]).any() else np.inf
+        return CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
+                              np.array([max(clear, 0.0)]))
+    t, k = ref.time, ev.index
+    frac = (ev.time - t[k - 1]) / (t[k] - t[k - 1])
+    pos = ref.markers[k - 1] + frac * (ref.markers[k] - ref.markers[k - 1])
+    vel = (ref.markers[k] - ref.markers[k - 1]) / (t[k] - t[k - 1])
+    s_k = np.linspace(0.0, 1.0, SAMPLES)
+    return CriticalStates(resample(pos, ref.marker_arclength, s_k)[None], resample(vel, ref.marker_arclength, s_k)[None],
+                          np.array([ev.time - t[0]]), np.array([[ev.s_a, ev.s_b]]), np.ones(1, bool), np.zeros(1))
+
+
+def no_hit_cost(clearance, length: float) -> np.ndarray:
+    """What a rope that never hits itself costs: NO_HIT + min(clearance, 0.1 L) / (0.1 L); a blow-up (NaN or
+    infinite clearance) costs the largest miss."""
+    c = np.nan_to_num(np.asarray(clearance, np.float64), nan=np.inf)
+    return NO_HIT + np.minimum(np.maximum(c, 0.0), NO_HIT_SCALE * length) / (NO_HIT_SCALE * length)
 
 
 @dataclass
-class Goal:
-    """The critical state to reproduce, with the scales that make residuals dimensionless."""
+class Target:
+    """The critical state to reproduce (a reference's, a goal's), with the scales that make errors
+    dimensionless."""
 
     state: CriticalStates  # batch of one
     length: float  # m
-    speed: float  # m/s, RMS speed of the goal's critical state (>= tasks.rope.MIN_SPEED)
+    speed: float  # m/s, RMS speed of the target's critical state (>= MIN_SPEED)
     weights: dict
 
     @classmethod
-    def from_reference(cls, ref, weights: dict | None = None) -> "Goal":
-        st = from_reference(ref, "goal")
+    def from_reference(cls, ref, event=None, weights: dict | None = None, source: str = "goal") -> "Target":
+        st = from_reference(ref, event)
         if not st.hit[0]:
-            raise InputError("goal", "markers", "the goal rope never hits itself (no critical state to reach)")
-        case = prepare_case("goal", ref, 3, ref.dt)
-        return cls(st, float(ref.length), float(case.speed), dict(WEIGHTS if weights is None else weights))
+            raise InputError(source, "markers", "the rope never hits itself (no critical state to reach)")
+        speed = max(float(np.sqrt(np.mean(np.sum(st.vel[0] ** 2, -1)))), MIN_SPEED)
+        return cls(st, float(ref.length), speed, dict(WEIGHTS if weights is None else weights))
 
     @property
     def dim(self) -> int:
@@ -96,7 +148,7 @@ class Goal:
                 "place": slice(6 * K + 1, 6 * K + 3)}
 
     def residual(self, st: CriticalStates) -> np.ndarray:
-        """(B, dim) weighted residual e = W (Z - Z_goal); NaN rows for chains that never hit."""
+        """(B, dim) weighted residual e = W (Z - Z_target); NaN rows for ropes that never hit."""
         g, w, K = self.state, self.weights, SAMPLES
         B = st.batch
         return np.concatenate([
@@ -107,18 +159,25 @@ class Goal:
         ], axis=1)
 
     def terms(self, st: CriticalStates) -> dict:
-        """rope.py's error terms and their weighted total per row; a miss costs NO_HIT (+ clearance)."""
+        """The error terms and their weighted total per row; a miss costs `no_hit_cost`."""
         g, w = self.state, self.weights
         rms = lambda d: np.sqrt(np.mean(np.sum(d ** 2, -1), -1))  # noqa: E731
-        t = {
-            "shape": rms(st.pos - g.pos) / self.length,
-            "velocity": rms(st.vel - g.vel) / self.speed,
-            "time": np.abs(st.time - g.time) / g.time[0],
-            "place": 0.5 * np.abs(st.s - g.s).sum(-1),
-        }
-        total = sum(w[k] * t[k] for k in t)
-        # clearance is in metres; over a tenth of the length it is O(1), like rope.py's / margin
-        # a rope that blew up (non-finite clearance) costs the largest miss, not NaN
-        clear = np.minimum(np.nan_to_num(np.asarray(st.clearance, np.float64), nan=1.0, posinf=1.0), 1.0)
-        t["total"] = np.where(st.hit, total, NO_HIT + clear / (0.1 * self.length))
+        with np.errstate(invalid="ignore"):
+            t = {
+                "shape": rms(st.pos - g.pos) / self.length,
+                "velocity": rms(st.vel - g.vel) / self.speed,
+                "time": np.abs(st.time - g.time) / g.time[0],
+                "place": 0.5 * np.abs(st.s - g.s).sum(-1),
+            }
+            total = sum(w[k] * t[k] for k in t)
+        t["total"] = np.where(st.hit, total, no_hit_cost(st.clearance, self.length))
         return t
+
+    def state_error(self, pos: np.ndarray, vel: np.ndarray, time: float) -> float:
+        """Shape and velocity error of one rope state (K, 3) at the K points plus the time error of `time`:
+        how a rope that never hit is scored by its state at the target's critical time (no penalty)."""
+        rms = lambda d: float(np.sqrt(np.mean(np.sum(d ** 2, -1))))  # noqa: E731
+        g, w = self.state, self.weights
+        return (w["shape"] * rms(pos - g.pos[0]) / self.length + w["velocity"] * rms(vel - g.vel[0]) / self.speed
+                + w["time"] * abs(time - g.time[0]) / g.time[0])
+

@@ -6,23 +6,9 @@ knot's 11 masses are S = 10), the step `--dt` and the constraint passes per step
 `--iterations`. Each condition is one hand path with one reference trajectory
 (`--reference FILE ...`, default the built-in newton references).
 
-Error of one condition (dimensionless), total = sum of WEIGHTS[term] * term:
-  shape    (weight 1.0) RMS distance between chain and reference at 21 common arc-length points,
-           / rope length
-  velocity (weight 0.1) RMS velocity difference at those points, / the reference's RMS speed
-           there (>= 0.1 m/s)
-  time     (weight 1.0) |t_chain - t_ref| / t_ref (time of the critical point from the start)
-  place    (weight 0.5) mean |s - s_ref| of the two arc-length fractions of the contact
-  Why these weights: 0.1 on velocity mirrors the flying knot's 5.0 (m) : 0.00375 (m/s) on squared
-  errors once shape is divided by ~1 m and velocity by a ~5 m/s speed; with it, at the fitted
-  optimum of the built-in references the four weighted terms are of one order (shape 0.08-0.12,
-  velocity 0.03-0.05, time 0.00-0.04, place 0.01-0.04), so none is ignored and none dominates.
-  place is halved because it double-counts the time error when a contact slides along the rope.
-  The reference state at the critical point is interpolated between the frames bracketing the
-  interpolated collision time, the same rule the kernel uses (positions linear, velocity of the
-  bracketing interval). A chain that never hits itself within the reference horizon costs
-  NO_HIT + clearance / margin (finite, and smaller the closer it came); a blow-up costs inf.
-  report() also scores held-out chains that never hit without that constant (no_hit_bound).
+The observable and its error (shape, velocity, time and place of the first self-collision, one
+no-hit rule) are defined once in observable.py. report() also scores held-out chains that never hit
+by their state at the reference's critical time (no_hit_bound), without the penalty constant.
 
 Parameter mapping from the reference rope (length L, mass M, radius r, EI) to a chain with link
 l = L / S: lumped masses (interior M / S, lead half of that, held node's half goes to the hand),
@@ -65,32 +51,14 @@ from wrenorm.errors import InputError
 from wrenorm.kernels.rope import ChainParams, RopeSim
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
+from wrenorm.tasks.rope.observable import NO_HIT, SAMPLES, WEIGHTS, Target, from_rollout, reference_event, resample
 from wrenorm.tasks.rope.options import FLOW_DT, FLOW_SEGMENTS, ITERATIONS
 
-WEIGHTS = {"shape": 1.0, "velocity": 0.1, "time": 1.0, "place": 0.5}
-# 0.1 on the normalised velocity mirrors the flying knot's 5.0 (m) : 0.00375 (m/s) on squared
-# errors once shape is divided by ~1 m and velocity by a ~5 m/s speed.
-NO_HIT = 5.0  # above any colliding candidate's error (each term is O(1) at worst)
-SAMPLES = 21
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
-MIN_SPEED = 0.1  # m/s
 # newton reference: 1e6 N/m per joint of 1.1/64 m, i.e. EA = 1.7e4 N; a link of length l has compliance l / EA
 STRETCH_EA = 1e6 * 1.1 / 64
 START_AT_REST_BELOW = 0.05  # m/s
-
-
-def default_error_weights():
-    return dict(WEIGHTS)
-
-
-# ---------------------------------------------------------------------------- resampling
-def resample(points: np.ndarray, arclength: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """Piecewise-linear resampling of (..., M, 3) along `arclength` (M,) at `samples` (K,)."""
-    points = np.asarray(points, np.float64)
-    idx = np.clip(np.searchsorted(arclength, samples, side="right") - 1, 0, len(arclength) - 2)
-    u = (samples - arclength[idx]) / (arclength[idx + 1] - arclength[idx])
-    return points[..., idx, :] * (1 - u)[:, None] + points[..., idx + 1, :] * u[:, None]
 
 
 @dataclass
@@ -104,16 +72,12 @@ class RopeCase:
     pos0: np.ndarray  # (N, 3)
     vel0: np.ndarray
     steps: int
-    ref_pos: np.ndarray  # (K, 3) at the critical point
-    ref_vel: np.ndarray
-    speed: float
+    target: Target  # the reference's critical state
 
 
-def prepare_case(name: str, ref, n_nodes: int, dt: float) -> RopeCase:
-    from wrenorm.tasks.rope.reference.generate import first_self_collision
-
-    ev = first_self_collision(ref)
-    if ev is None or ev.index == 0:
+def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None = None) -> RopeCase:
+    ev = reference_event(ref)
+    if ev is None:
         raise InputError(name, "markers", "the reference never hits itself after its first frame "
                                           "(no critical point to fit)")
     t = ref.time
@@ -130,16 +94,8 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float) -> RopeCase:
     # at rest (all built-in paths do) start the chain at rest.
     if np.abs(vel0).max() < START_AT_REST_BELOW:
         vel0[:] = 0.0
-    k = ev.index
-    frac = (ev.time - t[k - 1]) / (t[k] - t[k - 1])
-    crit = ref.markers[k - 1] + frac * (ref.markers[k] - ref.markers[k - 1])
-    vel = (ref.markers[k] - ref.markers[k - 1]) / (t[k] - t[k - 1])
-    s_k = np.linspace(0.0, 1.0, SAMPLES)
-    ref_pos = resample(crit, ref.marker_arclength, s_k)
-    ref_vel = resample(vel, ref.marker_arclength, s_k)
-    speed = max(float(np.sqrt(np.mean(np.sum(ref_vel ** 2, -1)))), MIN_SPEED)
     return RopeCase(name, ref, ev, hand, pos0.astype(np.float32), vel0.astype(np.float32), steps,
-                    ref_pos, ref_vel, speed)
+                    Target.from_reference(ref, ev, weights, source=name))
 
 
 # ------------------------------------------------------------------------------- problem
@@ -162,8 +118,10 @@ class RopeProblem(Problem):
         self.weights = dict(WEIGHTS if weights is None else weights)
         names = list(names or [f"ref{i}" for i in range(len(train_refs))])
         held_names = list(held_names or [f"held{i}" for i in range(len(held_refs))])
-        self.train = [Condition(nm, prepare_case(nm, r, self.n, self.dt)) for nm, r in zip(names, train_refs)]
-        self.held_out = [Condition(nm, prepare_case(nm, r, self.n, self.dt)) for nm, r in zip(held_names, held_refs)]
+        self.train = [Condition(nm, prepare_case(nm, r, self.n, self.dt, self.weights))
+                      for nm, r in zip(names, train_refs)]
+        self.held_out = [Condition(nm, prepare_case(nm, r, self.n, self.dt, self.weights))
+                         for nm, r in zip(held_names, held_refs)]
         ref = train_refs[0]
         for other in list(train_refs[1:]) + list(held_refs):
             if abs(other.length - ref.length) > 1e-6 * ref.length or abs(other.mass - ref.mass) > 1e-6 * ref.mass:
@@ -249,57 +207,27 @@ class RopeProblem(Problem):
         return res
 
     def _critical(self, values: np.ndarray, conditions: Sequence[Condition]):
-        """Rollout, the references' cases, and each chain's critical positions and velocities
-        resampled to the SAMPLES common arc-length points, (B, C, K, 3)."""
+        """Rollout of every candidate under every condition, and the chains' critical states (B * C rows,
+        row b * C + c is candidate b under condition c)."""
         res = self.simulate(values, conditions)
-        B, C = np.atleast_2d(values).shape[0], len(conditions)
-        s_nodes = np.linspace(0.0, 1.0, self.n)
-        s_k = np.linspace(0.0, 1.0, SAMPLES)
-        pos = resample(res.crit_pos, s_nodes, s_k).reshape(B, C, SAMPLES, 3)
-        vel = resample(res.crit_vel, s_nodes, s_k).reshape(B, C, SAMPLES, 3)
-        return res, [c.data for c in conditions], pos, vel
+        return res, from_rollout(res, self.n, float(conditions[0].data.ref.time[0]))
 
     def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
-        """(B, C R) signed, weighted residuals of the critical state (shape and velocity at the K
-        points, time, contact place), for the Gauss-Newton uncertainty; NaN where a chain never
-        hits. Per condition, the norms of the shape and velocity blocks are the loss's RMS terms."""
-        res, cases, pos, vel = self._critical(values, conditions)
-        B, C = pos.shape[:2]
-        w, K = self.weights, SAMPLES
-        hit = (res.status.reshape(B, C) == 1)[:, :, None]
-        ref_pos = np.stack([cs.ref_pos for cs in cases])[None]
-        ref_vel = np.stack([cs.ref_vel for cs in cases])[None]
-        speed = np.array([cs.speed for cs in cases])[None, :, None]
-        t_ref = np.array([cs.event.time - cs.ref.time[0] for cs in cases])[None]
-        blocks = [
-            (w["shape"] / (self.length * np.sqrt(K))) * (pos - ref_pos).reshape(B, C, -1),
-            (w["velocity"] / np.sqrt(K)) * (vel - ref_vel).reshape(B, C, -1) / speed,
-            (w["time"] * (res.hit_time.reshape(B, C) - np.array([cs.event.time for cs in cases])) / t_ref)[..., None],
-            0.5 * w["place"] * np.stack([res.s_a.reshape(B, C) - np.array([cs.event.s_a for cs in cases]),
-                                         res.s_b.reshape(B, C) - np.array([cs.event.s_b for cs in cases])], -1),
-        ]
-        r = np.where(hit, np.concatenate(blocks, axis=-1), np.nan)
-        return r.reshape(B, -1)
+        """(B, C R) signed, weighted residuals of the critical state per condition (observable.Target), for the
+        Gauss-Newton uncertainty; NaN where a chain never hits."""
+        B, C = np.atleast_2d(values).shape[0], len(conditions)
+        _, st = self._critical(values, conditions)
+        r = [c.data.target.residual(st.take(np.arange(B) * C + j)) for j, c in enumerate(conditions)]
+        return np.stack(r, axis=1).reshape(B, -1)
 
     def error_terms(self, values: np.ndarray, conditions: Sequence[Condition]) -> dict:
-        res, cases, pos, vel = self._critical(values, conditions)
-        B, C = pos.shape[:2]
-        ref_pos = np.stack([cs.ref_pos for cs in cases])  # (C, K, 3)
-        ref_vel = np.stack([cs.ref_vel for cs in cases])
-        rms = lambda d: np.sqrt(np.mean(np.sum(d ** 2, -1), -1))  # noqa: E731
-        t_ref = np.array([cs.event.time - cs.ref.time[0] for cs in cases])
-        terms = {
-            "shape": rms(pos - ref_pos) / self.length,
-            "velocity": rms(vel - ref_vel) / np.array([cs.speed for cs in cases]),
-            "time": np.abs(res.hit_time.reshape(B, C) - np.array([cs.event.time for cs in cases])) / t_ref,
-            "place": 0.5 * (np.abs(res.s_a.reshape(B, C) - np.array([cs.event.s_a for cs in cases]))
-                            + np.abs(res.s_b.reshape(B, C) - np.array([cs.event.s_b for cs in cases]))),
-        }
+        """The observable's error terms per (candidate, condition), (B, C) each; blow-ups cost inf."""
+        B, C = np.atleast_2d(values).shape[0], len(conditions)
+        res, st = self._critical(values, conditions)
+        per = [c.data.target.terms(st.take(np.arange(B) * C + j)) for j, c in enumerate(conditions)]
+        terms = {k: np.stack([p[k] for p in per], axis=1) for k in per[0]}
         status = res.status.reshape(B, C)
-        total = sum(self.weights[k] * terms[k] for k in terms)
-        no_hit = NO_HIT + res.clearance.reshape(B, C) / self.margin
-        total = np.where(status == 1, total, np.where(status == 0, no_hit, np.inf))
-        terms["total"] = finite_or_inf(total)
+        terms["total"] = finite_or_inf(np.where(status == 2, np.inf, terms["total"]))
         terms["status"] = status
         terms["hit_time"] = res.hit_time.reshape(B, C)
         terms["s_a"], terms["s_b"] = res.s_a.reshape(B, C), res.s_b.reshape(B, C)
@@ -313,7 +241,8 @@ class RopeProblem(Problem):
 
     # ------------------------------------------------------------------ reporting
     def report(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
-        out = {"weights": self.weights, "no_hit_penalty": NO_HIT, "samples": SAMPLES,
+        out = {"weights": self.weights, "no_hit_penalty": f"{NO_HIT:g} + min(closest approach, 0.1 length) / "
+                                                          "(0.1 length)", "samples": SAMPLES,
                "min_segment_separation": self.min_sep, "critical_points": {}}
         for group in (self.train, self.held_out):
             if not group:
@@ -350,16 +279,14 @@ class RopeProblem(Problem):
         for i, j in zip(*np.nonzero(miss)):
             cs = conditions[j].data
             b = i * C + j
-            x = (cs.event.time - cs.ref.time[0]) / self.dt
+            t_ref = float(cs.target.state.time[0])
+            x = t_ref / self.dt
             k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
             u = min(x - k, 1.0)  # a horizon shorter than t_ref: the last state, never extrapolated
             pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
             vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
-            rms = lambda d: float(np.sqrt(np.mean(np.sum(d ** 2, -1))))  # noqa: E731
-            t_ref = cs.event.time - cs.ref.time[0]
-            out[i, j] = (self.weights["shape"] * rms(resample(pos, s_nodes, s_k) - cs.ref_pos) / self.length
-                         + self.weights["velocity"] * rms(resample(vel, s_nodes, s_k) - cs.ref_vel) / cs.speed
-                         + self.weights["time"] * abs(cs.steps * self.dt - t_ref) / t_ref)
+            out[i, j] = cs.target.state_error(resample(pos, s_nodes, s_k), resample(vel, s_nodes, s_k),
+                                              cs.steps * self.dt)
         return out
 
     def held_out_comparison(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
@@ -400,7 +327,7 @@ class RopeProblem(Problem):
                 recorder.log_lines3d(f"reference/{name}/rope", t, [ref.markers[f]])
                 recorder.log_points3d(f"reference/{name}/markers", t, ref.markers[f], radii=0.004)
                 recorder.log_points3d(f"reference/{name}/hand", t, ref.hand[f][None], radii=0.015)
-            recorder.log_points3d(f"reference/{name}/critical", float(ev.time), c.data.ref_pos, radii=0.008)
+            recorder.log_points3d(f"reference/{name}/critical", float(ev.time), c.data.target.state.pos[0], radii=0.008)
             contact = resample(ref.markers[ev.index], ref.marker_arclength, np.array([ev.s_a, ev.s_b]))
             recorder.log_points3d(f"reference/{name}/contact", float(ev.time), contact, radii=0.025,
                                   colors=(255, 255, 255))

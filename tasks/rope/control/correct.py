@@ -67,7 +67,7 @@ class CoarseModel:
         res = self.rollout(U)
         return crit.from_rollout(res, self.problem.n, float(self.case.ref.time[0]))
 
-    def sensitivity(self, u: np.ndarray, goal: crit.Goal, h: float = FD_STEP) -> tuple[np.ndarray, dict]:
+    def sensitivity(self, u: np.ndarray, goal: crit.Target, h: float = FD_STEP) -> tuple[np.ndarray, dict]:
         """F = de/du (goal.dim, dim) by central differences, all perturbations in one rollout.
 
         A perturbed chain that misses the collision falls back to the one-sided difference of
@@ -216,7 +216,7 @@ class Trial:
         return float(self.terms["total"][0])
 
 
-def correct(real, model: CoarseModel, goal: crit.Goal, u0: np.ndarray, max_trials: int = 10,
+def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int = 10,
             tolerance: float = DEFAULT_TOLERANCE, radius: float | None = None, reg: float | None = None,
             fd_step: float = FD_STEP, secant: bool | None = None, method: str = "plan", plan_first: bool = True,
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
@@ -378,7 +378,7 @@ def _feasible(space: CommandSpace, start: np.ndarray, target: np.ndarray) -> tup
     return space.limit_step(start, np.asarray(target, dtype=np.float64) - start)
 
 
-def _model_total(model: CoarseModel, goal: crit.Goal, u: np.ndarray) -> float:
+def _model_total(model: CoarseModel, goal: crit.Target, u: np.ndarray) -> float:
     return float(goal.terms(model.states(np.asarray(u, dtype=np.float64)[None]))["total"][0])
 
 

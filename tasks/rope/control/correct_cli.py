@@ -134,7 +134,7 @@ def run(args) -> int:
         real = CoarseRope(problem, fitted)
         goal_ref = real(goal_path)
         real_doc = f"coarse chain with the fitted {args.variant} parameters (stand-in for the real rope)"
-    goal = crit.Goal.from_reference(goal_ref)
+    goal = crit.Target.from_reference(goal_ref)
     real = StoredTrials(real, out / "real-trials")
     if real.folder.exists() and any(real.folder.iterdir()):
         progress(f"resuming: {len(list(real.folder.glob('trial-*.npz')))} real trials on record in {real.folder}")

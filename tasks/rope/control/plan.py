@@ -6,7 +6,7 @@ The plan minimises the PREDICTED error of the real rope
     J(u) = total( Z_model(u) + d(u) )  +  reg |u - c|^2  +  LIMIT_PENALTY * hand-limit excess
 
 inside the box and the trust region |u - c|_inf <= radius around the centre c, where `total` is
-the correction's own error (observable.Goal.terms, the number held to the tolerance) and
+the correction's own error (observable.Target.terms, the number held to the tolerance) and
 d(u) = d_c + D (u - c) is the model's offset learned from real trials (model-offset iterative
 learning control): d_c = Z_real(c) - Z_model(c) at the centre trial, D a rank-one (Broyden)
 estimate of how the offset changes, from pairs of trials. With d = 0 this is pure planning on
@@ -74,7 +74,7 @@ class Offset:
         self.centre, self.d = np.asarray(u, dtype=np.float64).copy(), np.asarray(d, dtype=np.float64).copy()
 
 
-def predicted_cost(model, goal: crit.Goal, U: np.ndarray, offset: Offset, centre: np.ndarray, reg: float):
+def predicted_cost(model, goal: crit.Target, U: np.ndarray, offset: Offset, centre: np.ndarray, reg: float):
     """(cost (B,), predicted total (B,), model-alone total (B,)) for a batch of commands: ONE rollout."""
     st = model.states(U)
     if offset.model_place is not None:
@@ -89,7 +89,7 @@ def predicted_cost(model, goal: crit.Goal, U: np.ndarray, offset: Offset, centre
     return total + reg * np.sum((U - centre[None]) ** 2, 1) + LIMIT_PENALTY * excess, total, alone
 
 
-def plan(model, goal: crit.Goal, centre: np.ndarray, radius: float, offset: Offset, seed: int = 0,
+def plan(model, goal: crit.Target, centre: np.ndarray, radius: float, offset: Offset, seed: int = 0,
          popsize: int = DEFAULT_POPSIZE, generations: int = DEFAULT_GENERATIONS, restarts: int = DEFAULT_RESTARTS,
          reg: float = DEFAULT_REG, starts: list | None = None) -> dict:
     """Best command found by `restarts` CMA-ES searches side by side (one rollout per generation).

@@ -67,7 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 # ------------------------------------------------------------------------------ building blocks
 def measurement_covariance(goal, marker_noise: float, time_noise: float, frame_time: float = FRAME_TIME):
     """Diagonal covariance of e from marker and timing noise (documented model, see module doc)."""
-    from wrenorm.tasks.rope.problem import SAMPLES
+    from wrenorm.tasks.rope.observable import SAMPLES
 
     K, w = SAMPLES, goal.weights
     sig_v = np.sqrt(2.0) * marker_noise / frame_time
@@ -249,7 +249,7 @@ def run(args) -> int:
     else:
         values = parameters_from_file(args.params, problem)
     space = CommandSpace(path)
-    goal = crit.Goal.from_reference(ref)
+    goal = crit.Target.from_reference(ref)
     model = CoarseModel(problem, values, space, args.params)
 
     extra_cov, real_info = None, None
@@ -272,7 +272,7 @@ def run(args) -> int:
     names = list(FIT_PATHS) + list(HELD_OUT_PATHS)
     refs = [_goal_reference(n, args.variant, progress) for n in names]
     pproblem = RopeProblem(refs, segments=args.segments, dt=args.dt, device=device, names=names)
-    par = parameter_analysis(pproblem, values, [crit.Goal.from_reference(r) for r in refs], names,
+    par = parameter_analysis(pproblem, values, [crit.Target.from_reference(r) for r in refs], names,
                              args.param_fd_step, args.param_step, args.snr, args.marker_noise, args.time_noise)
 
     top = [{"singular_value": float(cmd["singular_values"][i]), "noise": float(cmd["noise"][i]),
