@@ -319,7 +319,8 @@ def test_builtin_references_ship_and_collide(kind):
 # ----------------------------------------------------------------------------------------- newton run
 
 def test_short_newton_run_follows_hand_and_keeps_length():
-    from wrenorm.tasks.rope.reference.newton import RopeMaterial, simulate
+    from wrenorm.tasks.rope.reference.materials import RopeMaterial
+    from wrenorm.tasks.rope.reference.newton import simulate
 
     # Hand moves 0.1 m sideways in 0.16 s; the rope must be dragged along without stretching.
     path = HandPath.through([0, 0.16], [[0, 0, 1.0], [0.1, 0, 1.0]], [[0, 0, 0], [0, 0, 0]])

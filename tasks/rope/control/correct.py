@@ -84,7 +84,7 @@ class NewtonRope:
     """The fine newton rope (tasks/rope/reference/newton.py) as the real system; repeated commands are cached."""
 
     def __init__(self, variant: str = "default", segments: int = 64, duration: float = 1.5, device: str = "cpu"):
-        from wrenorm.tasks.rope.reference.newton import get_variant
+        from wrenorm.tasks.rope.reference.materials import get_variant
 
         get_variant(variant)
         self.variant, self.segments, self.duration, self.device = variant, int(segments), float(duration), device

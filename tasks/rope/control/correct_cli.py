@@ -85,7 +85,7 @@ def run(args) -> int:
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import (CoarseModel, CoarseRope, NewtonRope, StoredTrials, correct, fit_parameters,
                                             parameters_from_file, trial_rows)
-    from wrenorm.tasks.rope.reference.newton import get_variant
+    from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import get_hand_path
 
     def progress(msg):

@@ -217,7 +217,7 @@ def run(args) -> int:
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
     from wrenorm.tasks.rope.control.correct_cli import _goal_reference
-    from wrenorm.tasks.rope.reference.newton import get_variant
+    from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
 
     def progress(msg):

@@ -221,7 +221,8 @@ def generate_reference(path_name, out=None, segments: int = 64, variant: str = "
     reference's collision detector sees the contact geometry the fine simulation resolved (33
     markers on 64 segments cut corners of the curled tip and called one contact 0.16 s early).
     """
-    from wrenorm.tasks.rope.reference.newton import get_variant, simulate
+    from wrenorm.tasks.rope.reference.materials import get_variant
+    from wrenorm.tasks.rope.reference.newton import simulate
     from wrenorm.tasks.rope.reference.paths import HandPath, get_hand_path
 
     if isinstance(path_name, HandPath):
@@ -301,7 +302,7 @@ def builtin_references(kind: str = "fit", variant: str = "default", progress=Non
 # --------------------------------------------------------------------------------------------------- CLI
 
 def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
-    from wrenorm.tasks.rope.reference.newton import VARIANTS
+    from wrenorm.tasks.rope.reference.materials import VARIANTS
     from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
 
     parser.add_argument("--out", required=True, help="output .npz file (written atomically)")

@@ -14,35 +14,7 @@ import numpy as np
 import warp as wp
 
 from wrenorm.errors import InputError
-
-
-@dataclass(frozen=True)
-class RopeMaterial:
-    length: float = 1.1  # m
-    mass: float = 0.2  # kg
-    radius: float = 0.005  # m
-    bend_stiffness: float = 3e-3  # EI, N m^2
-    twist_stiffness: float = 2.3e-3  # GJ, N m^2 (GJ/EI = 1/(1+nu) for a solid isotropic section)
-    bend_damping_time: float = 2e-3  # s: bend damping = EI/ds * this (internal friction of the braid)
-    stretch_stiffness: float = 1e6  # N/m per joint: nearly inextensible at rope loads of a few N
-    contact_stiffness: float = 2e4  # N/m
-    contact_damping: float = 5.0  # N s/m
-    friction: float = 0.3
-
-
-# Rope variants for command-correction work: same length, different physics.
-VARIANTS: dict[str, RopeMaterial] = {
-    "default": RopeMaterial(),
-    "stiff": RopeMaterial(bend_stiffness=1e-2, twist_stiffness=7.7e-3),
-    "soft": RopeMaterial(bend_stiffness=1e-3, twist_stiffness=7.7e-4),
-    "heavy": RopeMaterial(mass=0.4, radius=0.007),
-}
-
-
-def get_variant(name: str, source: str = "--variant") -> RopeMaterial:
-    if name not in VARIANTS:
-        raise InputError(source, "variant", f"unknown rope variant {name!r}; choose one of {sorted(VARIANTS)}")
-    return VARIANTS[name]
+from wrenorm.tasks.rope.reference.materials import RopeMaterial
 
 
 @dataclass
@@ -111,6 +83,15 @@ def simulate(hand_path, material: RopeMaterial = RopeMaterial(), segments: int =
         builder.body_inv_mass[b] /= scale
         builder.body_inertia[b] = builder.body_inertia[b] * scale
         builder.body_inv_inertia[b] = builder.body_inv_inertia[b] * (1.0 / scale)
+    if m.tip_mass > 0:
+        # a point mass at the free end rides on the last capsule: its mass grows, and its inertia about its
+        # centre by the point's parallel-axis term (half a segment off the centre, across the axis)
+        last = bodies[-1]
+        mass = builder.body_mass[last] + m.tip_mass
+        extra = m.tip_mass * (0.5 * ds) ** 2
+        inertia = builder.body_inertia[last] + wp.mat33(extra, 0.0, 0.0, 0.0, extra, 0.0, 0.0, 0.0, 0.0)
+        builder.body_mass[last], builder.body_inv_mass[last] = mass, 1.0 / mass
+        builder.body_inertia[last], builder.body_inv_inertia[last] = inertia, wp.inverse(inertia)
     # Capsules two apart overlap once the rope bends sharply; that is bending, not contact.
     for a in range(len(bodies) - 2):
         for sa in builder.body_shapes.get(bodies[a], []):
