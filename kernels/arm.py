@@ -87,7 +87,8 @@ def rollout(
         h = geo.m2 * geo.l1 * geo.lc2 * wp.sin(q2)
         t1 = t1 + h * (wp.float64(2.0) * v1 * v2 + v2 * v2)
         t2 = t2 - h * v1 * v1
-        m11 = geo.i1 + geo.i2 + geo.m1 * geo.lc1 * geo.lc1 + geo.m2 * (geo.l1 * geo.l1 + geo.lc2 * geo.lc2 + wp.float64(2.0) * geo.l1 * geo.lc2 * cq) + a11
+        m11 = (geo.i1 + geo.i2 + geo.m1 * geo.lc1 * geo.lc1
+               + geo.m2 * (geo.l1 * geo.l1 + geo.lc2 * geo.lc2 + wp.float64(2.0) * geo.l1 * geo.lc2 * cq) + a11)
         m12 = geo.i2 + geo.m2 * (geo.lc2 * geo.lc2 + geo.l1 * geo.lc2 * cq) + a12
         m22 = geo.i2 + geo.m2 * geo.lc2 * geo.lc2 + a22
         det = m11 * m22 - m12 * m12

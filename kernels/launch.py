@@ -8,8 +8,8 @@ launch covers the whole batch.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
 
 _POOL: ThreadPoolExecutor | None = None
 

@@ -177,7 +177,8 @@ def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt
         wp.launch(init_kernel, dim=S, device=dev, inputs=[cond_w, cmds.init, q, v])
         for k in range(T):
             wp.launch(step_kernel, dim=S, device=dev,
-                      inputs=[k, params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, int(integrator), wp.float64(dt), q, v])
+                      inputs=[k, params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, int(integrator), wp.float64(dt),
+                              q, v])
         wp.launch(sq_error_kernel, dim=(T, S), device=dev, inputs=[q, cond_w, cmds.q_ref, acc])
         wp.launch(rms_kernel, dim=S, device=dev, inputs=[acc, cond_w, cmds.ref_scale, T, err])
     tape.backward(grads={err: wp.ones(S, dtype=wp.float64, device=dev)})

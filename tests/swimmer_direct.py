@@ -8,8 +8,50 @@ import numpy as np
 import warp as wp
 
 from wrenorm.kernels.swimmer.fluid import fluid_geometry_kernel, fluid_planar, geo9
+from wrenorm.kernels.swimmer.kernel import (
+    Schedule,
+    Water,
+    beat_advance,
+    line_speed,
+    line_sums_add,
+    record_pose,
+    slot_coefficients,
+    solve_sym3,
+    vec12d,
+)
 
 wp.config.quiet = True
+
+
+sym6 = wp.types.vector(length=6, dtype=float)  # a symmetric 3x3: a00, a01, a11, a02, a12, a22
+
+
+@wp.func
+def inertia_rows(e00: float, e01: float, e11: float, j_e: float, px: float, py: float):
+    """A part's share of the head's 3x3 mass matrix (translation and yaw about the head origin)."""
+    rx = -py
+    ry = px
+    mrx = e00 * rx + e01 * ry
+    mry = e01 * rx + e11 * ry
+    return sym6(e00, e01, e11, mrx, mry, rx * mrx + ry * mry + j_e)
+
+
+@wp.func
+def part_pose(table: wp.array3d(dtype=float), row: int, e: int):
+    """Part e's position, orientation (cos, sin) and velocity in the head frame at table row `row`."""
+    return table[row, e, 0], table[row, e, 1], table[row, e, 2], table[row, e, 3], table[row, e, 4], table[row, e, 5]
+
+
+@wp.func
+def part_mass(am: wp.vec3, mj: wp.vec2, vm: float, cp: float, sp: float):
+    """A part's effective translational mass in the head frame (its mass plus the rotated added mass), its
+    yaw inertia with added inertia, and the added masses along its axes."""
+    m0 = am[0] * vm
+    m1 = am[1] * vm
+    e00 = mj[0] + m0 * cp * cp + m1 * sp * sp
+    e11 = mj[0] + m0 * sp * sp + m1 * cp * cp
+    e01 = (m0 - m1) * cp * sp
+    return e00, e01, e11, mj[1] + am[2] * vm, m0, m1
 
 
 @wp.kernel
@@ -20,26 +62,16 @@ def swim_kernel_direct(offset: int, n_cond: int,
                 geo: wp.array(dtype=geo9),            # (parts,) fluid_geometry(semi)
                 amass: wp.array(dtype=wp.vec3),       # (parts,) rho * (m_A x, m_A y, I_A z)
                 inert: wp.array(dtype=wp.vec2),       # (parts,) mass, yaw inertia about the part centre
-                tab_off: wp.array(dtype=int), n_per: wp.array(dtype=int), dt_c: wp.array(dtype=float),
-                n_warm: wp.array(dtype=int), n_meas: wp.array(dtype=int), max_warm: wp.array(dtype=int),
-                settle_abs: float, settle_rel: float, ref_x: float, rho: float, mu: float, virtual_mass: int,
+                sched: Schedule, water: Water,
                 rec_stride: int, traj: wp.array3d(dtype=float),   # (n, frames, 4): X, Y, theta, sample
                 speed: wp.array(dtype=float), state: wp.array2d(dtype=float)):
     tid = wp.tid() + offset
-    b = tid / n_cond
-    c = tid - b * n_cond
-    cb = coef[b, 0]
-    cs = coef[b, 1]
-    ca = coef[b, 2]
-    ck = coef[b, 3]
-    cm = coef[b, 4]
-    off = tab_off[c]
-    per = n_per[c]
-    dt = dt_c[c]
-    nw = n_warm[c]
-    nm = n_meas[c]
+    c, cb, cs, ca, ck, cm = slot_coefficients(coef, tid, n_cond)
     n_parts = semi.shape[0]
-    vm = float(virtual_mass)
+    vm = float(water.virtual_mass)
+    rho, mu, ref_x = water.rho, water.mu, water.ref_x
+    off, per, dt = sched.tab_off[c], sched.n_per[c], sched.dt[c]
+    nw, nm = sched.n_warm[c], sched.n_meas[c]
 
     X = float(0.0)
     Y = float(0.0)
@@ -48,71 +80,23 @@ def swim_kernel_direct(offset: int, n_cond: int,
     v = float(0.0)
     w = float(0.0)
 
-    # least-squares sums for the speed (float64: thousands of samples)
-    s_n = wp.float64(0.0)
-    s_t = wp.float64(0.0)
-    s_x = wp.float64(0.0)
-    s_y = wp.float64(0.0)
-    s_tt = wp.float64(0.0)
-    s_tx = wp.float64(0.0)
-    s_ty = wp.float64(0.0)
-    s_xx = wp.float64(0.0)
-    s_yy = wp.float64(0.0)
-    s_xy = wp.float64(0.0)
-    s_c = wp.float64(0.0)
-    s_s = wp.float64(0.0)
+    acc = vec12d()  # running sums of the straight-line speed fit
 
     # start with zero linear and angular momentum (fluid's virtual momentum included): the head
     # moves so that the tail's prescribed velocity at t=0 does not launch the whole fish
-    b00 = float(0.0)
-    b01 = float(0.0)
-    b02 = float(0.0)
-    b11 = float(0.0)
-    b12 = float(0.0)
-    b22 = float(0.0)
-    q0 = float(0.0)
-    q1 = float(0.0)
-    q2 = float(0.0)
+    B = sym6()
+    q = wp.vec3(0.0)
     for e in range(n_parts):
-        px = table[off, e, 0]
-        py = table[off, e, 1]
-        cp = table[off, e, 2]
-        sp = table[off, e, 3]
-        pdx = table[off, e, 4]
-        pdy = table[off, e, 5]
-        am = amass[e]
-        mj = inert[e]
-        m0 = am[0] * vm
-        m1 = am[1] * vm
-        j_e = mj[1] + am[2] * vm
-        e00 = mj[0] + m0 * cp * cp + m1 * sp * sp
-        e11 = mj[0] + m0 * sp * sp + m1 * cp * cp
-        e01 = (m0 - m1) * cp * sp
-        rx = -py
-        ry = px
-        mrx = e00 * rx + e01 * ry
-        mry = e01 * rx + e11 * ry
-        b00 += e00
-        b01 += e01
-        b11 += e11
-        b02 += mrx
-        b12 += mry
-        b22 += rx * mrx + ry * mry + j_e
+        px, py, cp, sp, pdx, pdy = part_pose(table, off, e)
+        e00, e01, e11, j_e, m0, m1 = part_mass(amass[e], inert[e], vm, cp, sp)
+        B = B + inertia_rows(e00, e01, e11, j_e, px, py)
         gx = e00 * pdx + e01 * pdy
         gy = e01 * pdx + e11 * pdy
-        q0 -= gx
-        q1 -= gy
-        q2 -= rx * gx + ry * gy + j_e * table[off, e, 6]
-    d00 = b11 * b22 - b12 * b12
-    d01 = b02 * b12 - b01 * b22
-    d02 = b01 * b12 - b02 * b11
-    d11 = b00 * b22 - b02 * b02
-    d12 = b01 * b02 - b00 * b12
-    d22 = b00 * b11 - b01 * b01
-    det0 = b00 * d00 + b01 * d01 + b02 * d02
-    u = (d00 * q0 + d01 * q1 + d02 * q2) / det0
-    v = (d01 * q0 + d11 * q1 + d12 * q2) / det0
-    w = (d02 * q0 + d12 * q1 + d22 * q2) / det0
+        q = q - wp.vec3(gx, gy, -py * gx + px * gy + j_e * table[off, e, 6])
+    v_start = solve_sym3(B[0], B[1], B[2], B[3], B[4], B[5], q[0], q[1], q[2])
+    u = v_start[0]
+    v = v_start[1]
+    w = v_start[2]
 
     # warm-up: whole beats until the beat-averaged surge settles (at least nw steps, at most
     # max_warm); quadratic drag makes slow candidates creep up to cruising speed for many beats
@@ -120,7 +104,7 @@ def swim_kernel_direct(offset: int, n_cond: int,
     rec_i = int(0)
     step = int(0)
     meas_start = int(-1)
-    mw = max_warm[c]
+    mw = sched.max_warm[c]
     beat_u = float(0.0)
     prev_u = float(1.0e9)
     while meas_start < 0 or step < meas_start + nm:
@@ -128,57 +112,22 @@ def swim_kernel_direct(offset: int, n_cond: int,
         ct = wp.cos(th)
         st = wp.sin(th)
         if meas_start >= 0:
-            hx = wp.float64(X + ct * ref_x)
-            hy = wp.float64(Y + st * ref_x)
-            tt = wp.float64(float(step - meas_start) * dt)
-            s_n += wp.float64(1.0)
-            s_t += tt
-            s_x += hx
-            s_y += hy
-            s_tt += tt * tt
-            s_tx += tt * hx
-            s_ty += tt * hy
-            s_xx += hx * hx
-            s_yy += hy * hy
-            s_xy += hx * hy
-            s_c += wp.float64(ct)
-            s_s += wp.float64(st)
-        if rec_stride > 0:
-            if step % rec_stride == 0:
-                if rec_i < traj.shape[1]:
-                    traj[tid, rec_i, 0] = X
-                    traj[tid, rec_i, 1] = Y
-                    traj[tid, rec_i, 2] = th
-                    traj[tid, rec_i, 3] = float(k)
-                    rec_i += 1
+            acc = line_sums_add(acc, wp.float64(float(step - meas_start) * dt), wp.float64(X + ct * ref_x),
+                                wp.float64(Y + st * ref_x), ct, st)
+        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, X, Y, th, k)
 
         # 3x3 symmetric system A [du, dv, dw] = r
-        a00 = float(0.0)
-        a01 = float(0.0)
-        a02 = float(0.0)
-        a11 = float(0.0)
-        a12 = float(0.0)
-        a22 = float(0.0)
-        r0 = float(0.0)
-        r1 = float(0.0)
-        r2 = float(0.0)
+        A = sym6()
+        r = wp.vec3(0.0)
         for e in range(n_parts):
-            px = table[row, e, 0]
-            py = table[row, e, 1]
-            cp = table[row, e, 2]
-            sp = table[row, e, 3]
-            pdx = table[row, e, 4]
-            pdy = table[row, e, 5]
+            px, py, cp, sp, pdx, pdy = part_pose(table, row, e)
             psid = table[row, e, 6]
             pddx = table[row, e, 7]
             pddy = table[row, e, 8]
             psidd = table[row, e, 9]
             ax = semi[e]
             am = amass[e]
-            mj = inert[e]
-            m0 = am[0] * vm
-            m1 = am[1] * vm
-            j_e = mj[1] + am[2] * vm
+            e00, e01, e11, j_e, m0, m1 = part_mass(am, inert[e], vm, cp, sp)
 
             vx = u - w * py + pdx
             vy = v + w * px + pdy
@@ -200,82 +149,29 @@ def swim_kernel_direct(offset: int, n_cond: int,
                 tz = fl[2]
                 dlin = fl[3]
                 dang = fl[4]
-            # effective translational mass of the part in the head frame
-            mm = mj[0]
-            e00 = mm + m0 * cp * cp + m1 * sp * sp
-            e11 = mm + m0 * sp * sp + m1 * cp * cp
-            e01 = (m0 - m1) * cp * sp
             kx = -w * v - w * w * px - 2.0 * w * pdy + pddx
             ky = w * u - w * w * py + 2.0 * w * pdx + pddy
             mkx = e00 * kx + e01 * ky
             mky = e01 * kx + e11 * ky
             rx = -py
             ry = px
-            mrx = e00 * rx + e01 * ry
-            mry = e01 * rx + e11 * ry
-            a00 += e00
-            a01 += e01
-            a11 += e11
-            a02 += mrx
-            a12 += mry
-            a22 += rx * mrx + ry * mry + j_e
+            A = A + inertia_rows(e00, e01, e11, j_e, px, py)
             # linearly implicit drag: (A + dt C) dV = dt F(V), C from v_e = V + w r_e + pd_e
-            a00 += dt * dlin
-            a11 += dt * dlin
-            a02 += dt * dlin * rx
-            a12 += dt * dlin * ry
-            a22 += dt * (dlin * (rx * rx + ry * ry) + dang)
-            r0 += fx - mkx
-            r1 += fy - mky
-            r2 += px * fy - py * fx + tz - (rx * mkx + ry * mky) - j_e * psidd
+            A = A + sym6(dt * dlin, 0.0, dt * dlin, dt * dlin * rx, dt * dlin * ry,
+                         dt * (dlin * (rx * rx + ry * ry) + dang))
+            r = r + wp.vec3(fx - mkx, fy - mky, px * fy - py * fx + tz - (rx * mkx + ry * mky) - j_e * psidd)
 
-        # Cramer on the symmetric 3x3
-        c00 = a11 * a22 - a12 * a12
-        c01 = a02 * a12 - a01 * a22
-        c02 = a01 * a12 - a02 * a11
-        det = a00 * c00 + a01 * c01 + a02 * c02
-        c11 = a00 * a22 - a02 * a02
-        c12 = a01 * a02 - a00 * a12
-        c22 = a00 * a11 - a01 * a01
-        du = (c00 * r0 + c01 * r1 + c02 * r2) / det
-        dv = (c01 * r0 + c11 * r1 + c12 * r2) / det
-        dw = (c02 * r0 + c12 * r1 + c22 * r2) / det
-
-        u += dt * du
-        v += dt * dv
-        w += dt * dw
+        dV = solve_sym3(A[0], A[1], A[2], A[3], A[4], A[5], r[0], r[1], r[2])
+        u += dt * dV[0]
+        v += dt * dV[1]
+        w += dt * dV[2]
         X += dt * (ct * u - st * v)
         Y += dt * (st * u + ct * v)
         th += dt * w
-        k += 1
-        step += 1
-        if meas_start < 0:
-            beat_u += u
-        if k >= per:
-            k = 0
-            if meas_start < 0:
-                avg = beat_u / float(per)
-                if step >= nw:
-                    if wp.abs(avg - prev_u) <= settle_abs + settle_rel * wp.abs(avg) or step >= mw:
-                        meas_start = step
-                prev_u = avg
-                beat_u = float(0.0)
+        k, step, meas_start, beat_u, prev_u = beat_advance(k, step, per, meas_start, beat_u, prev_u, u, nw, mw,
+                                                           sched.settle_abs, sched.settle_rel)
 
-    # straight-line fit: principal direction of the path, oriented along the mean heading (-x)
-    n = s_n
-    cxx = s_xx / n - (s_x / n) * (s_x / n)
-    cyy = s_yy / n - (s_y / n) * (s_y / n)
-    cxy = s_xy / n - (s_x / n) * (s_y / n)
-    ctx = s_tx / n - (s_t / n) * (s_x / n)
-    cty = s_ty / n - (s_t / n) * (s_y / n)
-    ctt = s_tt / n - (s_t / n) * (s_t / n)
-    ang = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
-    dx = wp.cos(ang)
-    dy = wp.sin(ang)
-    if dx * (-s_c) + dy * (-s_s) < wp.float64(0.0):
-        dx = -dx
-        dy = -dy
-    speed[tid] = float((dx * ctx + dy * cty) / ctt)
+    speed[tid] = line_speed(acc)
     state[tid, 0] = X
     state[tid, 1] = Y
     state[tid, 2] = th
@@ -302,7 +198,6 @@ def run_direct(batch, coef: np.ndarray) -> np.ndarray:
     part_table = wp.array(np.ascontiguousarray(batch.part_table, np.float32), dtype=float, device=d)
     wp.launch(swim_kernel_direct, dim=n, device=d, inputs=[
         0, batch.n_cond, wp.array(coef, dtype=float, device=d), part_table, semi_w, geo_all,
-        amass_all, inert, batch.tab_off, batch.n_per, batch.dt, batch.n_warm, batch.n_meas,
-        batch.max_warm, batch.settle_abs, batch.settle_rel, batch.ref_x, batch.rho, batch.mu, batch.virtual_mass,
+        amass_all, inert, batch.schedule, batch.water,
         0, traj, speed, state])
     return speed.numpy().reshape(coef.shape[0], batch.n_cond).astype(np.float64)

@@ -3,12 +3,13 @@ import json
 
 import numpy as np
 import pytest
+from swimmer_checks import com_drift
 
 from wrenorm.cli import main
-from wrenorm.tasks.swimmer import body as sb, data as sd, problem as swimmer
+from wrenorm.tasks.swimmer import body as sb
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
 from wrenorm.viz.flow_plot import _axis
-
-from swimmer_checks import com_drift
 
 
 @pytest.fixture(scope="module")
@@ -72,29 +73,24 @@ def test_merged_fish_without_water_keeps_its_centre_of_mass(rates):
     assert drift < 5e-4
 
 
-def test_swimmer_flow_over_tail_bodies(tmp_path):
+@pytest.mark.parametrize("system,axis,points,fixed,key,order,bad", [
+    ("swimmer", "bodies", ["2", "6", "--dt", "0.016", "--generations", "3"], ("dt", 0.016), "tail_bodies", [6, 2], "1"),
+    ("rope", "dt", ["0.01", "0.005", "--segments", "6", "--generations", "2"], ("segments", 6), "dt", [0.005, 0.01],
+     "0.2"),
+])
+def test_flow_over_a_second_resolution_axis(tmp_path, system, axis, points, fixed, key, order, bad):
+    """Each system's flow varies the axis asked for, holds the other resolution fixed, orders the points
+    finest first, and refuses a value outside the axis' range."""
     out = tmp_path / "flow"
-    assert main(["flow", "swimmer", "--axis", "bodies", "--resolutions", "2", "6", "--dt", "0.016",
-                 "--out", str(out), "--quiet", "--no-record", "--restarts", "2", "--generations", "3"]) == 0
+    assert main(["flow", system, "--axis", axis, "--resolutions", *points, "--out", str(out), "--quiet", "--no-record",
+                 "--restarts", "2"]) == 0
     flow = json.loads((out / "flow.json").read_text())
-    assert [p["resolution"]["tail_bodies"] for p in flow["points"]] == [6, 2]
-    assert all(p["resolution"]["dt"] == 0.016 for p in flow["points"])
-    key, x = _axis(flow)
-    assert key == "tail_bodies" and x.tolist() == [6.0, 2.0]
+    assert [p["resolution"][key] for p in flow["points"]] == order
+    assert all(p["resolution"][fixed[0]] == fixed[1] for p in flow["points"])
+    got_key, x = _axis(flow)
+    assert got_key == key and x.tolist() == [float(v) for v in order]
     assert (out / "flow.png").stat().st_size > 10_000
-    assert main(["flow", "swimmer", "--axis", "bodies", "--resolutions", "1", "--out", str(tmp_path / "bad")]) == 2
-
-
-def test_rope_flow_over_time_step(tmp_path):
-    out = tmp_path / "flow"
-    assert main(["flow", "rope", "--axis", "dt", "--resolutions", "0.01", "0.005", "--segments", "6",
-                 "--out", str(out), "--quiet", "--no-record", "--restarts", "2", "--generations", "2"]) == 0
-    flow = json.loads((out / "flow.json").read_text())
-    assert [p["resolution"]["dt"] for p in flow["points"]] == [0.005, 0.01]
-    assert all(p["resolution"]["segments"] == 6 for p in flow["points"])
-    key, x = _axis(flow)
-    assert key == "dt" and x.tolist() == [0.005, 0.01]
-    assert main(["flow", "rope", "--axis", "dt", "--resolutions", "0.2", "--out", str(tmp_path / "bad")]) == 2
+    assert main(["flow", system, "--axis", axis, "--resolutions", bad, "--out", str(tmp_path / "bad")]) == 2
 
 
 def test_plot_axis_is_the_varied_key():

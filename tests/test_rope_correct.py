@@ -6,13 +6,13 @@ import pytest
 
 from wrenorm.errors import InputError
 from wrenorm.tasks.rope import observable as crit
-from wrenorm.tasks.rope.problem import RopeProblem
 from wrenorm.tasks.rope.control.command import CommandSpace
 from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
 from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector
-from wrenorm.tasks.rope.reference.paths import HandPath, builtin_hand_paths
-from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
 from wrenorm.tasks.rope.control.sensitivity import resolvable
+from wrenorm.tasks.rope.problem import RopeProblem
+from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
+from wrenorm.tasks.rope.reference.paths import HandPath, builtin_hand_paths
 
 PATHS = builtin_hand_paths()
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from wrenorm.kernels import rope
-from wrenorm.tasks.rope.bench import swing_paths
 from wrenorm.kernels.rope.grad import GRAD_FIELDS, GradRope
+from wrenorm.tasks.rope.bench import swing_paths
 
 N, LINK, DT, STEPS = 6, 0.12, 0.005, 40
 
@@ -38,7 +38,7 @@ def test_tape_gradient_equals_central_differences():
         # The forward pass is float32, so steps of a few % move J by little more than round-off
         # for the weak parameters (drag, damping). Steps of 20 % and 10 % are far above it;
         # Richardson extrapolation of the two central differences cancels their h^2 error.
-        def central(h):
+        def central(h, f=f, base=base):
             vals = []
             for sgn in (1, -1):
                 p = rope.ChainParams(**{k: getattr(params, k).copy() for k in rope.ChainParams.FIELDS})

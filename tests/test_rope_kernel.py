@@ -6,8 +6,8 @@ import pytest
 import warp as wp
 
 from wrenorm.kernels import rope
-from wrenorm.tasks.rope.bench import swing_paths
 from wrenorm.tasks.rope import baselines as rb
+from wrenorm.tasks.rope.bench import swing_paths
 
 
 def _params(batch, **kw):
@@ -149,7 +149,7 @@ def test_numpy_and_torch_baselines_match_the_warp_kernel(profile):
 
 
 def test_fast_culled_kernel_equals_the_plain_all_pairs_kernel():
-    """The per-size unrolled kernel with culling (rope_fast.py) against the generic kernel testing
+    """The per-size unrolled kernel with culling (fixed.py) against the generic kernel testing
     every pair, with non-uniform masses and stretchy links so every code path is used."""
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=256, n=16, steps=240, seed=0)
     params.mass_slope[:] = np.linspace(-0.8, 0.8, params.batch)
@@ -174,12 +174,12 @@ def test_blow_up_is_flagged_not_raised():
 @pytest.mark.parametrize("lanes", [0, 16])
 @pytest.mark.parametrize("n,stop,chunk", [(8, True, None), (16, False, 37), (16, True, 50)])
 def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, lanes):
-    """rope_fast.py skips block pairs whose gap bound (last tested gap minus accumulated relative
+    """collide.py skips block pairs whose gap bound (last tested gap minus accumulated relative
     motion) stays above min(clearance, margin); swung chains that hit, near-miss and stay clear
     must give exactly the all-pairs generic kernel's record (chunked launches restart the bounds)."""
-    from wrenorm.kernels.rope import fixed as rope_fast
+    from wrenorm.kernels.rope import collide
 
-    assert n <= rope_fast.TEMPORAL_MAX_NODES
+    assert n <= collide.TEMPORAL_MAX_NODES
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=192, n=n, steps=220, seed=0)
     params.bend_k[::3] *= 40.0  # stiff chains: many never touch, some pass within the margin
     params.mass_slope[:] = np.linspace(-0.5, 0.5, params.batch)
@@ -198,7 +198,7 @@ def test_temporally_culled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, 
 
 
 def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch():
-    """16 chains per thread (kernels/rope_lanes.py): a batch that is not a multiple of 16, split
+    """16 chains per thread (kernels/rope/lanes.py): a batch that is not a multiple of 16, split
     across threads, with stretchy links and uneven masses, gives the generic all-pairs kernel's
     bits in every output field; blown-up chains stay blown up without disturbing their lane mates."""
     from wrenorm.kernels.rope import lanes as rope_lanes
@@ -223,9 +223,9 @@ def test_lane_kernel_is_the_cpu_default_and_handles_ragged_batches_and_stretch()
 @pytest.mark.parametrize("stop,chunk", [(False, None), (True, 60)])
 def test_lane_kernel_with_spatial_culling_is_bit_identical_to_all_pairs(stop, chunk):
     """Chains longer than TEMPORAL_MAX_NODES cull in space (block and segment spheres), per lane."""
-    from wrenorm.kernels.rope import fixed as rope_fast
+    from wrenorm.kernels.rope import collide
 
-    n = rope_fast.TEMPORAL_MAX_NODES + 1
+    n = collide.TEMPORAL_MAX_NODES + 1
     pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=150, n=n, steps=220, seed=0)
     params.mass_slope[:] = np.linspace(-0.5, 0.5, params.batch)
     kw = dict(stop_at_hit=stop, chunk=chunk)

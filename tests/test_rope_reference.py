@@ -13,10 +13,15 @@ from hypothesis.extra import numpy as hnp
 
 from wrenorm.errors import InputError
 from wrenorm.tasks.rope.reference.events import candidate_pairs, segment_distances
-from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
 from wrenorm.tasks.rope.reference.generate import (
-    RopeReference, builtin_reference_path, builtin_references, first_self_collision, load_reference,
-    save_reference)
+    RopeReference,
+    builtin_reference_path,
+    builtin_references,
+    first_self_collision,
+    load_reference,
+    save_reference,
+)
+from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
 
 L, R, M = 1.1, 0.005, 23
 

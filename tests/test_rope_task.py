@@ -5,8 +5,8 @@ import pytest
 
 from wrenorm.errors import InputError
 from wrenorm.tasks.rope import problem as task
-from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
 from wrenorm.tasks.rope.reference.generate import RopeReference, first_self_collision
+from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
 
 SEG, DT = 10, 0.005
 LENGTH, MASS, RADIUS, EI = 1.1, 0.2, 0.005, 3e-3
@@ -175,7 +175,8 @@ def test_residual_blocks_are_the_weighted_loss_terms(problem_and_truth):
                 assert np.all(np.isnan(r[b, c]))
                 continue
             assert np.linalg.norm(r[b, c, :K3]) == pytest.approx(w["shape"] * terms["shape"][b, c], rel=1e-9)
-            assert np.linalg.norm(r[b, c, K3:2 * K3]) == pytest.approx(w["velocity"] * terms["velocity"][b, c], rel=1e-9)
+            vel = np.linalg.norm(r[b, c, K3:2 * K3])
+            assert vel == pytest.approx(w["velocity"] * terms["velocity"][b, c], rel=1e-9)
             assert abs(r[b, c, 2 * K3]) == pytest.approx(w["time"] * terms["time"][b, c], rel=1e-9, abs=1e-15)
     assert (terms["status"] == 1).sum() >= 4
 

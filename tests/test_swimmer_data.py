@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.swimmer import body as swimmer_body, data as sd, problem as swimmer
+from wrenorm.tasks.swimmer import body as swimmer_body
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,8 @@ def test_tail_beat_frequency_is_three_quarters_of_label(rates):
 def test_tail_frequency_recovers_a_known_sinusoid():
     t = np.arange(600) / sd.FPS
     rng = np.random.default_rng(0)
-    sig = 0.05 * np.sin(2 * np.pi * 1.234 * t + 0.4) + 0.01 * np.sin(2 * np.pi * 2.468 * t) + 0.002 * rng.normal(size=t.size)
+    sig = (0.05 * np.sin(2 * np.pi * 1.234 * t + 0.4) + 0.01 * np.sin(2 * np.pi * 2.468 * t)
+           + 0.002 * rng.normal(size=t.size))
     assert abs(sd.tail_frequency(sig) - 1.234) < 0.005
 
 

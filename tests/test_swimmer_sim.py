@@ -3,11 +3,11 @@
 import cma
 import numpy as np
 import pytest
-
-from wrenorm.tasks.swimmer import body as sb, data as sd, problem as swimmer
-
 from swimmer_checks import PUBLISHED, com_drift
 
+from wrenorm.tasks.swimmer import body as sb
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
 
 
 @pytest.fixture(scope="module")

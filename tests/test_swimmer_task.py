@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.swimmer import data as sd, problem as swimmer
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
 
 
 @pytest.fixture(scope="module")

@@ -109,7 +109,8 @@ class Recorder:
 
     def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time"):
         self._at(t, timeline)
-        self.stream.log(path, self._rr.Points3D(np.asarray(positions, np.float32), colors=colors or _color_for(path), radii=radii))
+        self.stream.log(path, self._rr.Points3D(np.asarray(positions, np.float32), colors=colors or _color_for(path),
+                                                radii=radii))
 
     def log_lines3d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
         self._at(t, timeline)
@@ -130,8 +131,12 @@ class Recorder:
         """A whole scalar time series in one call (columnar), for long trajectories."""
         rr = self._rr
         times = np.asarray(times, np.float64)
-        column = rr.TimeColumn(timeline, sequence=times.astype(np.int64)) if timeline == "generation" else rr.TimeColumn(timeline, duration=times)
-        self.stream.send_columns(path, indexes=[column], columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
+        if timeline == "generation":
+            column = rr.TimeColumn(timeline, sequence=times.astype(np.int64))
+        else:
+            column = rr.TimeColumn(timeline, duration=times)
+        self.stream.send_columns(path, indexes=[column],
+                                 columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
         color = _color_for(path)
         if color is not None:
             self.stream.log(path, rr.SeriesLines(colors=[color], names=[_role(path)]), static=True)

@@ -84,8 +84,10 @@ def _table(res: dict) -> str:
     if res.get("parity"):
         lines += [f"CPU vs CUDA on the same inputs: {json.dumps(res['parity'])}", ""]
     if res.get("fits"):
-        lines += ["Default fits (end to end, incl. start-up and Warp cache load):", "", "| command | wall s |", "|---|---|"]
-        lines += [f"| `{r['command']}` | {r['wall_seconds']:.1f}{'' if r['ok'] else ' (failed)'} |" for r in res["fits"]]
+        lines += ["Default fits (end to end, incl. start-up and Warp cache load):", "", "| command | wall s |",
+                  "|---|---|"]
+        lines += [f"| `{r['command']}` | {r['wall_seconds']:.1f}{'' if r['ok'] else ' (failed)'} |"
+                  for r in res["fits"]]
     return "\n".join(lines).rstrip() + "\n"
 
 

@@ -226,7 +226,8 @@ def cmd_flow(args) -> int:
     for pt in flow["points"]:
         line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
                          if not p["frozen"])
-        print(f"{pt['resolution']}: {line}" + (f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""))
+        und = f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""
+        print(f"{pt['resolution']}: {line}{und}")
     print(f"\nflow: {out / 'flow.json'}  plot: {out / 'flow.png'}")
     return 0
 

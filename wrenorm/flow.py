@@ -15,7 +15,8 @@ import numpy as np
 
 from .errors import InputError
 from .results import SCHEMA, versions, write_json
-from .search import mean_loss, restarts as seeded_searches
+from .search import mean_loss
+from .search import restarts as seeded_searches
 from .uncertainty import uncertainty
 
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from

@@ -31,17 +31,21 @@ class Parameter:
         if self.scale not in ("linear", "log"):
             raise InputError("parameters", self.name, f"scale must be 'linear' or 'log', got {self.scale!r}")
         if not (np.isfinite(self.lower) and np.isfinite(self.upper) and self.lower < self.upper):
-            raise InputError("parameters", self.name, f"bounds must be finite with lower < upper, got [{self.lower}, {self.upper}]")
+            raise InputError("parameters", self.name,
+                             f"bounds must be finite with lower < upper, got [{self.lower}, {self.upper}]")
         if self.scale == "log" and self.lower <= 0:
             raise InputError("parameters", self.name, f"log-scale bounds must be positive, got lower={self.lower}")
         if not (self.lower <= self.measured <= self.upper):
-            raise InputError("parameters", self.name, f"measured value {self.measured} outside bounds [{self.lower}, {self.upper}]")
+            raise InputError("parameters", self.name,
+                             f"measured value {self.measured} outside bounds [{self.lower}, {self.upper}]")
         if self.prior is not None:
             centre, scale = (float(x) for x in self.prior)
             if not (np.isfinite(centre) and np.isfinite(scale) and scale > 0):
-                raise InputError("parameters", self.name, f"prior needs a finite centre and a scale > 0, got {self.prior}")
+                raise InputError("parameters", self.name,
+                                 f"prior needs a finite centre and a scale > 0, got {self.prior}")
             if self.scale == "log" and centre <= 0:
-                raise InputError("parameters", self.name, f"a log-scale parameter's prior centre must be > 0, got {centre}")
+                raise InputError("parameters", self.name,
+                                 f"a log-scale parameter's prior centre must be > 0, got {centre}")
 
 
 @dataclass
@@ -82,7 +86,7 @@ class ParameterSpace:
     def __getitem__(self, name: str) -> Parameter:
         return self.parameters[self._index[name]]
 
-    def with_changes(self, **changes: dict) -> "ParameterSpace":
+    def with_changes(self, **changes: dict) -> ParameterSpace:
         """New space with per-parameter field changes, e.g. with_changes(J={"frozen": True})."""
         out = []
         for p in self.parameters:

@@ -6,8 +6,9 @@ A *condition* is one experiment (a command profile, a motor rate, a hand path). 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,7 @@ class Problem(ABC):
         """Task-specific fields added to result.json (e.g. analytic predictions, speeds)."""
         return {}
 
-    def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:
+    def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:  # noqa: B027 (optional hook)
         """Log reference, measured-parameter and fitted-parameter behaviour to a viz.Recorder."""
 
 

@@ -15,9 +15,9 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -201,7 +201,8 @@ def polish(problem: Problem, start: np.ndarray, iterations: int = 20, quiet: boo
         return torch.tensor(loss if np.isfinite(loss) else 1e30, dtype=torch.float64)
 
     opt.step(closure)
-    _progress(f"[{problem.task}] L-BFGS polish: {len(history)} evaluations, loss {history[0]['loss']:.4e} -> {best[0]:.4e}", quiet)
+    _progress(f"[{problem.task}] L-BFGS polish: {len(history)} evaluations, loss {history[0]['loss']:.4e} -> "
+              f"{best[0]:.4e}", quiet)
     return SearchResult("lbfgs", best[1], best[0], history, len(history), 0, "lbfgs")
 
 

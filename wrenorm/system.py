@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Union
 
 from .errors import InputError
 
-Ref = Union[Callable, str]  # a callable, or "package.module:name", imported when first called
+Ref = Callable | str  # a callable, or "package.module:name", imported when first called
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,18 @@ def resolve(ref: Ref) -> Callable:
         return ref
     module, _, name = str(ref).partition(":")
     return getattr(importlib.import_module(module), name)
+
+
+def from_package(package: str, help: str, search: SearchDefaults = SearchDefaults(), flow: Flow | None = None,
+                 commands: tuple = (), bench: bool = True) -> System:
+    """A system laid out by convention in tasks/<name>/: options.py `add_arguments`, problem.py `build_problems`,
+    and (bench=True) bench.py `bench`, `parity` and `kernel_modules`."""
+    options = importlib.import_module(f"{package}.options")
+    ref = (lambda module, name: f"{package}.{module}:{name}") if bench else (lambda module, name: None)
+    return System(name=package.rsplit(".", 1)[-1], help=help, add_arguments=options.add_arguments,
+                  build=f"{package}.problem:build_problems", search=search, flow=flow, commands=tuple(commands),
+                  bench=ref("bench", "bench"), kernel_modules=ref("bench", "kernel_modules"),
+                  parity=ref("bench", "parity"))
 
 
 _REGISTRY: dict[str, System] = {}

@@ -13,7 +13,16 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from wrenorm.kernels.rope.model import GRAVITY, node_w
+from wrenorm.kernels.rope.model import (
+    GRAVITY,
+    ChainParameters,
+    ChainSettings,
+    bend_project,
+    chain_constants,
+    inverse_masses,
+    link_project,
+    predict,
+)
 from wrenorm.kernels.rope.sim import ChainParams
 
 _CACHE: dict = {}
@@ -37,32 +46,15 @@ def _step_kernel(n: int, iters: int):
         vs: wp.array3d(dtype=wp.vec3),
         hand: wp.array2d(dtype=wp.vec3),
         path_index: wp.array(dtype=wp.int32),
-        node_mass: wp.array(dtype=float),
-        lead_mass: wp.array(dtype=float),
-        bend_k: wp.array(dtype=float),
-        bend_b: wp.array(dtype=float),
-        drag_lin: wp.array(dtype=float),
-        drag_quad: wp.array(dtype=float),
-        stretch: wp.array(dtype=float),
-        mass_slope: wp.array(dtype=float),
-        link: float,
-        dt: float,
-        gravity: wp.vec3,
+        params: ChainParameters,
+        cfg: ChainSettings,
         s: int,
     ):
         b = wp.tid()
-        m = node_mass[b]
-        ml = lead_mass[b]
-        slope = mass_slope[b]
-        k = wp.max(bend_k[b], 1.0e-12)
-        alpha_t = link * link / (k * dt * dt)
-        gamma = bend_b[b] / (k * dt)
-        at_s = stretch[b] / (dt * dt)
-        dl = drag_lin[b]
-        dq = drag_quad[b]
-        W = Vec()
-        for i in range(N):
-            W[i] = node_w(i, N, m, ml, slope)
+        m, ml, slope, alpha_t, gamma, at_s, dl, dq = chain_constants(params, cfg, b)
+        link = cfg.link
+        dt = cfg.dt
+        W = inverse_masses(Vec(), N, m, ml, slope)
         P = Mat()
         Q = Mat()
         L = Mat()
@@ -71,41 +63,29 @@ def _step_kernel(n: int, iters: int):
         P[0] = hand[path_index[b], s + 1]
         for i in range(1, N):
             xi = xs[s, b, i]
-            vi = vs[s, b, i]
             Q[i] = xi
             li = link
             if i == LAST:
                 li = 0.5 * link
-            c = (dl + dq * wp.length(vi)) * li
-            vi = (vi + dt * gravity) * (1.0 / (1.0 + dt * c * W[i]))
-            P[i] = xi + dt * vi
-        for it in range(ITERS):
+            xn, vn = predict(xi, vs[s, b, i], W[i], li, dl, dq, dt, cfg.gravity)
+            P[i] = xn
+        for _ in range(ITERS):
             for kk in range(NBEND):
                 i = wp.static(BEND_ORDER[kk])
-                x0 = P[i - 1]
-                x1 = P[i]
-                x2 = P[i + 1]
-                cv = x0 - 2.0 * x1 + x2
-                dcv = cv - (Q[i - 1] - 2.0 * Q[i] + Q[i + 1])
-                lm = L[i]
-                den_b = (1.0 + gamma) * (W[i - 1] + 4.0 * W[i] + W[i + 1]) + alpha_t
-                dlam = (-cv - alpha_t * lm - gamma * dcv) / den_b
-                L[i] = lm + dlam
-                P[i - 1] = x0 + W[i - 1] * dlam
-                P[i] = x1 - (2.0 * W[i]) * dlam
-                P[i + 1] = x2 + W[i + 1] * dlam
+                inv = 1.0 / ((1.0 + gamma) * (W[i - 1] + 4.0 * W[i] + W[i + 1]) + alpha_t)
+                x0, x1, x2, lm = bend_project(P[i - 1], P[i], P[i + 1], Q[i - 1] - 2.0 * Q[i] + Q[i + 1], L[i],
+                                              W[i - 1], W[i], W[i + 1], inv, alpha_t, gamma)
+                P[i - 1] = x0
+                P[i] = x1
+                P[i + 1] = x2
+                L[i] = lm
             for kk in range(NLINK):
                 i = wp.static(LINK_ORDER[kk])
                 den = W[i] + W[i + 1] + at_s
-                xa = P[i]
-                xb = P[i + 1]
-                d = xb - xa
-                ln = wp.length(d)
-                e = ln - link + at_s * LL[i]
-                LL[i] = LL[i] - e / den
-                corr = d * (e / ln)
-                P[i] = xa + (W[i] / den) * corr
-                P[i + 1] = xb - (W[i + 1] / den) * corr
+                xa, xb, ll = link_project(P[i], P[i + 1], LL[i], link, at_s, W[i] / den, W[i + 1] / den, den)
+                P[i] = xa
+                P[i + 1] = xb
+                LL[i] = ll
         for i in range(N):
             xs[s + 1, b, i] = P[i]
             vs[s + 1, b, i] = (P[i] - Q[i]) / dt
@@ -148,14 +128,18 @@ class GradRope:
         hand_w = wp.array(np.ascontiguousarray(hand, np.float32), dtype=wp.vec3, device=dev)
         pidx = wp.array(np.broadcast_to(np.asarray(path_index, np.int32), (B,)).copy(), dtype=wp.int32, device=dev)
         pa = {f: wp.array(getattr(params, f).astype(np.float32), dtype=float, device=dev, requires_grad=True)
-              for f in GRAD_FIELDS}
+              for f in ChainParams.FIELDS}
+        prm = ChainParameters()
+        for f, a in pa.items():
+            setattr(prm, f, a)
+        cfg = ChainSettings()
+        cfg.n, cfg.link, cfg.dt, cfg.gravity = n, self.link, self.dt, self.gravity
         wts = wp.array(np.ascontiguousarray(np.broadcast_to(weights, (B, n, 3)), np.float32), dtype=wp.vec3, device=dev)
         J = wp.zeros(B, dtype=float, device=dev, requires_grad=True)
         tape = wp.Tape()
         with tape:
             for s in range(steps):
-                wp.launch(self.kernel, dim=B, device=dev, inputs=[
-                    xs, vs, hand_w, pidx, *[pa[f] for f in GRAD_FIELDS], self.link, self.dt, self.gravity, s])
+                wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, s])
             wp.launch(_weighted_sum, dim=(B, n), device=dev, inputs=[xs, wts, steps], outputs=[J])
         tape.backward(grads={J: wp.ones(B, dtype=float, device=dev)})
         grads = {f: pa[f].grad.numpy().copy() for f in GRAD_FIELDS}

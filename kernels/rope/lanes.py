@@ -1,6 +1,6 @@
-"""SIMD-lane variant of kernels/rope_fast.py: LANES chains per thread, one per vector lane.
+"""SIMD-lane variant of fixed.py: LANES chains per thread, one per vector lane.
 
-Same model, same operation order, same arguments (plus `end`), and bit-identical results
+Same model, same operation order, same arguments, and bit-identical results
 (tests/test_rope_kernel.py compares it with the generic kernel testing every pair). A Warp CPU
 launch runs its threads one after another, so a thread that holds one chain leaves the CPU's
 vector units idle; here a thread holds LANES chains and keeps each coordinate of each node as a
@@ -9,20 +9,19 @@ operations that the compiler turns into AVX instructions (measured on this CPU's
 constraint passes of 16 chains take the time of 2). The arithmetic of every lane is exactly the
 scalar kernel's, so the results are the same bits.
 
-The self-collision test stays scalar, lane by lane, as rope_fast.py does it: temporal culling
-with each lane's own bounds up to TEMPORAL_MAX_NODES nodes, spatial culling beyond (it branches
-on the chain's geometry, which lanes do not share). Lanes whose chain is finished (blown up, or
+The self-collision test stays scalar, lane by lane: collide.py's test, shared with fixed.py, with each
+lane's own temporal bounds up to TEMPORAL_MAX_NODES nodes, spatial culling beyond (it branches on the
+chain's geometry, which lanes do not share). Lanes whose chain is finished (blown up, or
 hit with stop_at_hit) are still integrated (their neighbours need the vector width) but write
 nothing more and skip the collision test; a thread returns once all of its lanes are finished.
-Measured (bench, one run, batch 4096, 2 cores): N = 16 2.3x, N = 21 2.0x, N = 32 1.9x the
-one-chain-per-thread kernel.
 """
 from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope.model import node_w, seg_closest
-from wrenorm.kernels.rope.fixed import _OPTIONS, BLOCK, MAX_NODES, TEMPORAL_MAX_NODES
+from wrenorm.kernels.rope.collide import TEMPORAL_MAX_NODES, collide_func, types
+from wrenorm.kernels.rope.fixed import MAX_NODES, OPTIONS
+from wrenorm.kernels.rope.model import bend_lanes, chain_constants, node_w, record_hit, rollout_variant, running
 
 LANES = 16  # 16 float32 = one AVX-512 register; 8 lanes ran the constraint passes a third slower per chain
 _CACHE: dict = {}
@@ -41,65 +40,27 @@ def _build(n: int, lanes: int):
     N = n
     NM1 = n - 1
     L = lanes
-    BS = BLOCK
-    NB = (n - 1 + BLOCK - 1) // BLOCK
-    BLO = [blk * BS for blk in range(NB)]
-    BHI = [min(blk * BS + BS, n - 1) + 1 for blk in range(NB)]
+    t = types(n)
+    NB = t["NB"]
+    Mat, Flags = t["Mat"], t["Flags"]  # one lane's chain and culling state, for the shared collision test
     LV = wp.types.vector(length=L, dtype=wp.float32)  # one value per lane
     LI = wp.types.vector(length=L, dtype=wp.int32)
     LM = wp.types.matrix(shape=(N, L), dtype=wp.float32)  # per node (row), per lane (column)
     LF = wp.types.matrix(shape=(L, NB * NB if n <= TEMPORAL_MAX_NODES else 1), dtype=wp.float32)  # per lane, block pair
-    Mat = wp.types.matrix(shape=(n, 3), dtype=wp.float32)  # one lane's chain, for the pair test
-    Seg = wp.types.matrix(shape=(n, 4), dtype=wp.float32)
-    BVec = wp.types.vector(length=NB, dtype=wp.float32)
-    BMat = wp.types.matrix(shape=(NB, 3), dtype=wp.float32)
-    Flags = wp.types.matrix(shape=(NB, NB), dtype=wp.float32)
-    Blk = wp.types.matrix(shape=(NB, 4), dtype=wp.float32)
+    collide = collide_func(n)
     TEMPORAL = n <= TEMPORAL_MAX_NODES
     NBT = NB * NB if TEMPORAL else 1  # per-lane temporal-culling state (none for spatial culling)
 
-    @wp.kernel(module="unique", module_options=_OPTIONS)
-    def rollout_lanes(
-        pos: wp.array2d(dtype=wp.vec3),
-        vel: wp.array2d(dtype=wp.vec3),
-        prev: wp.array2d(dtype=wp.vec3),
-        lam: wp.array2d(dtype=wp.vec3),
-        lam_link: wp.array2d(dtype=float),
-        seg: wp.array2d(dtype=wp.vec4),
-        hand: wp.array2d(dtype=wp.vec3),
-        path_index: wp.array(dtype=wp.int32),
-        node_mass: wp.array(dtype=float),
-        lead_mass: wp.array(dtype=float),
-        bend_k: wp.array(dtype=float),
-        bend_b: wp.array(dtype=float),
-        drag_lin: wp.array(dtype=float),
-        drag_quad: wp.array(dtype=float),
-        radius: wp.array(dtype=float),
-        mass_slope: wp.array(dtype=float),
-        stretch: wp.array(dtype=float),
-        n: int,
-        min_sep: int,
-        link: float,
-        dt: float,
-        gravity: wp.vec3,
-        iters: int,
-        cull: int,
-        margin: float,
-        vmax: float,
-        step0: int,
-        nsteps: int,
-        stop_at_hit: int,
-        status: wp.array(dtype=wp.int32),
-        hit_frame: wp.array(dtype=wp.int32),
-        hit_alpha: wp.array(dtype=float),
-        hit_s: wp.array(dtype=wp.vec2),
-        crit_pos: wp.array2d(dtype=wp.vec3),
-        crit_vel: wp.array2d(dtype=wp.vec3),
-        clearance: wp.array(dtype=float),
-        offset: int,
-        end: int,
-    ):
+    @rollout_variant(module="unique", module_options=OPTIONS)
+    def rollout_lanes(state, hand, path_index, params, cfg, step0, nsteps, stop_at_hit, events, offset, end):
         base = offset + wp.tid() * L
+        n = cfg.n
+        dt = cfg.dt
+        link = cfg.link
+        margin = cfg.margin
+        min_sep = cfg.min_sep
+        cull = cfg.cull
+        gravity = cfg.gravity
         nl = L + 0 * end  # a runtime bound keeps the per-lane scalar loops rolled (16 copies: minutes to build)
         # ---- per-lane constants, as the scalar kernel computes them per chain
         ACT = LI()  # 1 while the lane's chain runs and writes
@@ -126,40 +87,34 @@ def _build(n: int, lanes: int):
         n_act = int(0)
         for l in range(nl):
             b = wp.min(base + l, end - 1)  # lanes past the end mirror the last chain and never write
-            st = status[b]
+            st = events.status[b]
             ST[l] = st
-            act = int(1)
-            if base + l >= end or st == 2 or (st == 1 and stop_at_hit != 0):
+            act = running(st, stop_at_hit)
+            if base + l >= end:
                 act = 0
             ACT[l] = act
             n_act += act
             PATH[l] = path_index[b]
-            m = node_mass[b]
-            ml = lead_mass[b]
-            slope = mass_slope[b]
-            k = wp.max(bend_k[b], 1.0e-12)
-            alpha_t = link * link / (k * dt * dt)
-            gamma = bend_b[b] / (k * dt)
+            m, ml, slope, alpha_t, gamma, at_s, dl, dq = chain_constants(params, cfg, b)
             ALPHA[l] = alpha_t
             GAMMA[l] = gamma
             for i in range(N):
                 W[i, l] = node_w(i, N, m, ml, slope)
             for i in range(1, NM1):
                 IB[i, l] = 1.0 / ((1.0 + gamma) * (W[i - 1, l] + 4.0 * W[i, l] + W[i + 1, l]) + alpha_t)
-            at_s = stretch[b] / (dt * dt)
             ATS[l] = at_s
             for i in range(NM1):
                 den = W[i, l] + W[i + 1, l] + at_s
                 FA[i, l] = W[i, l] / den
                 FB[i, l] = W[i + 1, l] / den
                 GL[i, l] = den
-            DL[l] = drag_lin[b]
-            DQ[l] = drag_quad[b]
-            TWO_R[l] = 2.0 * radius[b]
-            CL[l] = clearance[b]
+            DL[l] = dl
+            DQ[l] = dq
+            TWO_R[l] = 2.0 * params.radius[b]
+            CL[l] = events.clearance[b]
             for i in range(N):
-                p = pos[b, i]
-                v = vel[b, i]
+                p = state.pos[b, i]
+                v = state.vel[b, i]
                 X[i, l] = p[0]
                 Y[i, l] = p[1]
                 Z[i, l] = p[2]
@@ -168,12 +123,9 @@ def _build(n: int, lanes: int):
                 VZ[i, l] = v[2]
         if n_act == 0:
             return
-        vmax2 = vmax * vmax
+        vmax2 = cfg.vmax * cfg.vmax
         inv_dt = 1.0 / dt
         nm1 = n - 1
-        npair_a = nm1 - min_sep
-        tol_link = 2.0e-3 * link + 1.0e-5
-        chain_len = float(N) * link
         GX = LV(gravity[0])
         GY = LV(gravity[1])
         GZ = LV(gravity[2])
@@ -188,7 +140,7 @@ def _build(n: int, lanes: int):
         CX = LM()  # curvature at the start of the step
         CY = LM()
         CZ = LM()
-        # temporal culling state of every lane (see rope_fast.py), block pair (ba, bb) at ba * NB + bb
+        # temporal culling state of every lane (collide.py), block pair (ba, bb) at ba * NB + bb
         KB = LF()
         CP = LF()
         for l in range(nl):
@@ -198,13 +150,9 @@ def _build(n: int, lanes: int):
         # one lane's chain and the scratch of its pair test
         P = Mat()
         Q = Mat()
-        S = Seg()
-        FAR = Flags()
-        MB = Flags()
-        UB = BMat()
-        DB = BVec()
-        NEED = BVec()
-        CB = Blk()
+        V = Mat()
+        KBl = Flags()
+        CPl = Flags()
         for step in range(step0, step0 + nsteps):
             QX[0] = X[0]
             QY[0] = Y[0]
@@ -249,44 +197,32 @@ def _build(n: int, lanes: int):
                 CX[i] = QX[i - 1] - 2.0 * QX[i] + QX[i + 1]
                 CY[i] = QY[i - 1] - 2.0 * QY[i] + QY[i + 1]
                 CZ[i] = QZ[i - 1] - 2.0 * QZ[i] + QZ[i + 1]
-            for it in range(iters):
+            for _ in range(cfg.iters):
                 # bending in three colours (centre i mod 3), then links in two: the scalar order
                 for c3 in range(3):
                     for i in range(1 + c3, nm1, 3):
-                        x0 = X[i - 1]
-                        y0 = Y[i - 1]
-                        z0 = Z[i - 1]
-                        x1 = X[i]
-                        y1 = Y[i]
-                        z1 = Z[i]
-                        x2 = X[i + 1]
-                        y2 = Y[i + 1]
-                        z2 = Z[i + 1]
-                        cvx = x0 - 2.0 * x1 + x2
-                        cvy = y0 - 2.0 * y1 + y2
-                        cvz = z0 - 2.0 * z1 + z2
-                        lmx = LX[i]
-                        lmy = LY[i]
-                        lmz = LZ[i]
-                        ib = IB[i]
-                        dlx = wp.cw_mul(-cvx - wp.cw_mul(ALPHA, lmx) - wp.cw_mul(GAMMA, cvx - CX[i]), ib)
-                        dly = wp.cw_mul(-cvy - wp.cw_mul(ALPHA, lmy) - wp.cw_mul(GAMMA, cvy - CY[i]), ib)
-                        dlz = wp.cw_mul(-cvz - wp.cw_mul(ALPHA, lmz) - wp.cw_mul(GAMMA, cvz - CZ[i]), ib)
-                        LX[i] = lmx + dlx
-                        LY[i] = lmy + dly
-                        LZ[i] = lmz + dlz
                         w0 = W[i - 1]
-                        w1 = 2.0 * W[i]
+                        w1 = W[i]
                         w2 = W[i + 1]
-                        X[i - 1] = x0 + wp.cw_mul(w0, dlx)
-                        Y[i - 1] = y0 + wp.cw_mul(w0, dly)
-                        Z[i - 1] = z0 + wp.cw_mul(w0, dlz)
-                        X[i] = x1 - wp.cw_mul(w1, dlx)
-                        Y[i] = y1 - wp.cw_mul(w1, dly)
-                        Z[i] = z1 - wp.cw_mul(w1, dlz)
-                        X[i + 1] = x2 + wp.cw_mul(w2, dlx)
-                        Y[i + 1] = y2 + wp.cw_mul(w2, dly)
-                        Z[i + 1] = z2 + wp.cw_mul(w2, dlz)
+                        ib = IB[i]
+                        x0, x1, x2, lx = bend_lanes(X[i - 1], X[i], X[i + 1], CX[i], LX[i], ALPHA, GAMMA, ib, w0, w1,
+                                                    w2)
+                        y0, y1, y2, ly = bend_lanes(Y[i - 1], Y[i], Y[i + 1], CY[i], LY[i], ALPHA, GAMMA, ib, w0, w1,
+                                                    w2)
+                        z0, z1, z2, lz = bend_lanes(Z[i - 1], Z[i], Z[i + 1], CZ[i], LZ[i], ALPHA, GAMMA, ib, w0, w1,
+                                                    w2)
+                        X[i - 1] = x0
+                        X[i] = x1
+                        X[i + 1] = x2
+                        Y[i - 1] = y0
+                        Y[i] = y1
+                        Y[i + 1] = y2
+                        Z[i - 1] = z0
+                        Z[i] = z1
+                        Z[i + 1] = z2
+                        LX[i] = lx
+                        LY[i] = ly
+                        LZ[i] = lz
                 for p2 in range(2):
                     for i in range(p2, nm1, 2):
                         xa = X[i]
@@ -328,7 +264,7 @@ def _build(n: int, lanes: int):
                 VY[i] = vy
                 VZ[i] = vz
                 vv = vv + (wp.cw_mul(vx, vx) + wp.cw_mul(vy, vy) + wp.cw_mul(vz, vz))
-            # ---- per lane: blow-up, then the scalar self-collision test of rope_fast.py
+            # ---- per lane: blow-up, then the scalar self-collision test (collide.py)
             for l in range(nl):
                 if ACT[l] == 0:
                     continue
@@ -336,149 +272,38 @@ def _build(n: int, lanes: int):
                 for i in range(N):
                     P[i] = wp.vec3(X[i, l], Y[i, l], Z[i, l])
                 if not (vv[l] < vmax2):
-                    status[b] = 2
-                    clearance[b] = CL[l]
+                    events.status[b] = 2
+                    events.clearance[b] = CL[l]
                     for i in range(N):
-                        pos[b, i] = P[i]
-                        vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                        state.pos[b, i] = P[i]
+                        state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
                     ACT[l] = 0
                     n_act -= 1
                     continue
                 for i in range(N):
                     Q[i] = wp.vec3(QX[i, l], QY[i, l], QZ[i, l])
-                st = ST[l]
-                cl = CL[l]
-                two_r = TWO_R[l]
-                any_t = int(1)
                 if wp.static(TEMPORAL):
-                    scale = wp.length(P[0]) + chain_len
-                    if cull != 0:
-                        for blk in range(NB):
-                            su = wp.vec3(0.0)
-                            for i in range(wp.static(BLO[blk]), wp.static(BHI[blk])):
-                                su = su + (P[i] - Q[i])
-                            u = su * wp.static(1.0 / float(BHI[blk] - BLO[blk]))
-                            dB = float(0.0)
-                            for i in range(wp.static(BLO[blk]), wp.static(BHI[blk])):
-                                dr = P[i] - Q[i] - u
-                                dB = wp.max(dB, wp.abs(dr[0]) + wp.abs(dr[1]) + wp.abs(dr[2]))
-                            UB[blk] = u
-                            DB[blk] = dB
-                        gmx = float(0.0)
-                        for ba in range(NB):
-                            for bb in range(ba, NB):
-                                du = UB[ba] - UB[bb]
-                                inc = (DB[ba] + DB[bb] + wp.abs(du[0]) + wp.abs(du[1]) + wp.abs(du[2])) * 1.001 + 1.0e-6 * scale
-                                CP[l, ba * NB + bb] = CP[l, ba * NB + bb] + inc
-                                gmx = wp.max(gmx, inc)
-                        G[l] = G[l] + gmx
-                    thr = wp.min(cl, margin)
-                    if st == 0:
-                        thr = wp.max(thr, 0.0)
-                    lim = thr + tol_link + 4.0e-6 * scale + 4.0e-6 * G[l]
-                    any_t = int(0)
-                    for ba in range(NB):
-                        for bb in range(ba, NB):
-                            FAR[ba, bb] = 0.0
-                            if cull != 0 and KB[l, ba * NB + bb] - CP[l, ba * NB + bb] > lim:
-                                FAR[ba, bb] = 1.0
-                            else:
-                                any_t = 1
-                                MB[ba, bb] = 1.0e30
-                                NEED[ba] = 1.0
-                                NEED[bb] = 1.0
-                    for blk in range(NB):
-                        if NEED[blk] > 0.5:
-                            NEED[blk] = 0.0
-                            for a in range(wp.static(BLO[blk]), wp.static(BHI[blk] - 1)):
-                                pa = P[a]
-                                pb = P[a + 1]
-                                mid = 0.5 * (pa + pb)
-                                S[a] = wp.vec4(mid[0], mid[1], mid[2], 0.5 * wp.length(pb - pa))
-                else:
-                    for a in range(nm1):
-                        pa = P[a]
-                        pb = P[a + 1]
-                        mid = 0.5 * (pa + pb)
-                        S[a] = wp.vec4(mid[0], mid[1], mid[2], 0.5 * wp.length(pb - pa))
-                    for blk in range(NB):
-                        cen = wp.vec3(0.0)
-                        cnt = float(0.0)
-                        for a in range(blk * BS, wp.min(blk * BS + BS, nm1)):
-                            cen = cen + wp.vec3(S[a][0], S[a][1], S[a][2])
-                            cnt = cnt + 1.0
-                        cen = cen / cnt
-                        rad = float(0.0)
-                        for a in range(blk * BS, wp.min(blk * BS + BS, nm1)):
-                            rad = wp.max(rad, wp.length(wp.vec3(S[a][0], S[a][1], S[a][2]) - cen) + S[a][3])
-                        CB[blk] = wp.vec4(cen[0], cen[1], cen[2], rad * 1.00001 + 1.0e-6)
-                    for ba in range(NB):
-                        for bb in range(ba, NB):
-                            d = wp.vec3(CB[ba][0] - CB[bb][0], CB[ba][1] - CB[bb][1], CB[ba][2] - CB[bb][2])
-                            reach_b = (CB[ba][3] + CB[bb][3] + two_r + margin) * 1.0001 + 1.0e-5
-                            FAR[ba, bb] = 0.0
-                            if cull != 0 and wp.dot(d, d) > reach_b * reach_b:
-                                FAR[ba, bb] = 1.0
-                best = float(2.0)
-                best_a = int(-1)
-                best_b = int(-1)
-                if cull != 0 and npair_a > 0 and margin < cl:
-                    cl = margin
-                for a in range(npair_a * any_t):
-                    sa = S[a]
-                    blk_a = a // BS
-                    j_first = a + min_sep
-                    for blk in range(j_first // BS, NB):
-                        if FAR[blk_a, blk] > 0.5:
-                            continue
-                        for j in range(wp.max(j_first, blk * BS), wp.min(blk * BS + BS, nm1)):
-                            sb = S[j]
-                            dx = sa[0] - sb[0]
-                            dy = sa[1] - sb[1]
-                            dz = sa[2] - sb[2]
-                            reach = (sa[3] + sb[3] + two_r + margin) * 1.00001 + 1.0e-6
-                            far = dx * dx + dy * dy + dz * dz > reach * reach
-                            if cull == 0 or not far:
-                                res = seg_closest(P[a], P[a + 1], P[j], P[j + 1])
-                                gap = res[0] - two_r
-                                if wp.static(TEMPORAL):
-                                    MB[blk_a, blk] = wp.min(MB[blk_a, blk], gap)
-                                if not far:
-                                    cl = wp.min(cl, wp.min(gap, margin))
-                                if gap <= 0.0 and st == 0:
-                                    r0 = seg_closest(Q[a], Q[a + 1], Q[j], Q[j + 1])
-                                    g0 = r0[0] - two_r
-                                    al = float(0.0)
-                                    if g0 > 0.0:
-                                        al = g0 / (g0 - gap)
-                                    if al < best:
-                                        best = al
-                                        best_a = a
-                                        best_b = j
-                            elif wp.static(TEMPORAL):
-                                MB[blk_a, blk] = wp.min(MB[blk_a, blk], wp.sqrt(dx * dx + dy * dy + dz * dz) - sa[3] - sb[3] - two_r)
+                    for q in range(NBT):
+                        KBl[q // NB, q % NB] = KB[l, q]
+                        CPl[q // NB, q % NB] = CP[l, q]
+                best, best_a, best_b, cl, KBl, CPl, Gl = collide(P, Q, KBl, CPl, G[l], CL[l], ST[l], TWO_R[l], margin,
+                                                                 min_sep, cull, link, nm1)
                 if wp.static(TEMPORAL):
-                    for ba in range(NB):
-                        for bb in range(ba, NB):
-                            if FAR[ba, bb] < 0.5:
-                                KB[l, ba * NB + bb] = MB[ba, bb] + CP[l, ba * NB + bb]
+                    G[l] = Gl
+                    for q in range(NBT):
+                        KB[l, q] = KBl[q // NB, q % NB]
+                        CP[l, q] = CPl[q // NB, q % NB]
                 CL[l] = cl
                 if best_a >= 0:
                     ST[l] = 1
-                    status[b] = 1
-                    hit_frame[b] = step + 1
-                    hit_alpha[b] = best
                     for i in range(N):
-                        p0 = Q[i]
-                        crit_pos[b, i] = p0 + best * (P[i] - p0)
-                        crit_vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
-                    res = seg_closest(P[best_a], P[best_a + 1], P[best_b], P[best_b + 1])
-                    hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(NM1), (float(best_b) + res[2]) / float(NM1))
+                        V[i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                    record_hit(events, b, step, best, best_a, best_b, P, Q, V, NM1)
                     if stop_at_hit != 0:
-                        clearance[b] = cl
+                        events.clearance[b] = cl
                         for i in range(N):
-                            pos[b, i] = P[i]
-                            vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                            state.pos[b, i] = P[i]
+                            state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
                         ACT[l] = 0
                         n_act -= 1
             if n_act == 0:
@@ -486,9 +311,9 @@ def _build(n: int, lanes: int):
         for l in range(nl):
             if ACT[l] != 0:
                 b = base + l
-                clearance[b] = CL[l]
+                events.clearance[b] = CL[l]
                 for i in range(N):
-                    pos[b, i] = wp.vec3(X[i, l], Y[i, l], Z[i, l])
-                    vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                    state.pos[b, i] = wp.vec3(X[i, l], Y[i, l], Z[i, l])
+                    state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
 
     return rollout_lanes

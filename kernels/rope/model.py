@@ -1,12 +1,15 @@
-"""The coarse rope chain's shared definitions: constants, the segment distance and the node masses.
+"""The coarse rope chain's one definition: its state, parameters, settings and first-contact record as Warp
+structs (every rollout variant takes the same four), and the pieces of its step (per-chain constants,
+node prediction, the bending and link projections, segment distance, the first-contact candidate).
 
-Every rollout variant (generic.py, fixed.py, lanes.py, grad.py) uses these, so all of them step the same model.
+Every rollout variant (generic.py, fixed.py, lanes.py, grad.py) steps the model through these, so all of them
+step the same model; the faster variants are tested bit for bit against generic.py.
 """
 from __future__ import annotations
 
-import warp as wp
+from typing import Any
 
-wp.config.quiet = True
+import warp as wp
 
 GRAVITY = (0.0, 0.0, -9.81)  # z up, as in newton
 VMAX = 1.0e3  # m/s; a node faster than this means the step blew up
@@ -71,3 +74,199 @@ def node_w(i: int, n: int, m: float, ml: float, slope: float) -> float:
         w = 1.0 / (m * (1.0 + slope * (1.0 - 2.0 * u)))
     return w
 
+
+
+@wp.struct
+class ChainState:
+    """Per chain and node: positions, velocities, positions at the start of the step, bending and link
+    multipliers, and segment bounding spheres (midpoint, half length)."""
+
+    pos: wp.array2d(dtype=wp.vec3)
+    vel: wp.array2d(dtype=wp.vec3)
+    prev: wp.array2d(dtype=wp.vec3)
+    lam: wp.array2d(dtype=wp.vec3)
+    lam_link: wp.array2d(dtype=float)
+    seg: wp.array2d(dtype=wp.vec4)
+
+
+@wp.struct
+class ChainParameters:
+    """Per chain (see sim.ChainParams for units)."""
+
+    node_mass: wp.array(dtype=float)
+    lead_mass: wp.array(dtype=float)
+    bend_k: wp.array(dtype=float)
+    bend_b: wp.array(dtype=float)
+    drag_lin: wp.array(dtype=float)
+    drag_quad: wp.array(dtype=float)
+    radius: wp.array(dtype=float)
+    mass_slope: wp.array(dtype=float)
+    stretch: wp.array(dtype=float)
+
+
+@wp.struct
+class ChainSettings:
+    """What every chain of a launch shares: the resolution and the collision test's settings."""
+
+    n: int  # nodes
+    min_sep: int  # segment pairs closer than this along the chain are bending, not contact
+    link: float  # m
+    dt: float  # s
+    gravity: wp.vec3
+    iters: int  # constraint passes per step
+    cull: int  # 1: skip pairs that provably cannot touch (results identical to testing all pairs)
+    margin: float  # m, the clearance below which a pair counts toward `clearance`
+    vmax: float  # m/s, faster means the step blew up
+
+
+@wp.struct
+class ChainEvents:
+    """Per chain: status (0 no hit yet, 1 hit, 2 blew up), the first hit's frame, its fraction of the step,
+    arc-length fractions of the hit pair, the state at the hit, and the closest approach so far."""
+
+    status: wp.array(dtype=wp.int32)
+    hit_frame: wp.array(dtype=wp.int32)
+    hit_alpha: wp.array(dtype=float)
+    hit_s: wp.array(dtype=wp.vec2)
+    crit_pos: wp.array2d(dtype=wp.vec3)
+    crit_vel: wp.array2d(dtype=wp.vec3)
+    clearance: wp.array(dtype=float)
+
+
+@wp.func
+def chain_constants(p: ChainParameters, cfg: ChainSettings, b: int):
+    """Per-chain constants of the step: node mass, lead mass, mass slope, XPBD bending compliance / dt^2,
+    bending damping factor, link compliance / dt^2, linear and quadratic drag."""
+    link = cfg.link
+    dt = cfg.dt
+    k = wp.max(p.bend_k[b], 1.0e-12)
+    alpha_t = link * link / (k * dt * dt)
+    gamma = p.bend_b[b] / (k * dt)
+    at_s = p.stretch[b] / (dt * dt)
+    return p.node_mass[b], p.lead_mass[b], p.mass_slope[b], alpha_t, gamma, at_s, p.drag_lin[b], p.drag_quad[b]
+
+
+@wp.func
+def predict(x: wp.vec3, v: wp.vec3, w: float, li: float, dl: float, dq: float, dt: float, gravity: wp.vec3):
+    """Forces (gravity, implicit per-node drag over rope length li, so any drag coefficient is stable) and the
+    predicted position: (x + dt v', v')."""
+    c = (dl + dq * wp.length(v)) * li
+    # one division per node (a vector divide is three)
+    vn = (v + dt * gravity) * (1.0 / (1.0 + dt * c * w))
+    return x + dt * vn, vn
+
+
+@wp.func
+def bend_project(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, c_start: wp.vec3, lm: wp.vec3, w0: float, w1: float,
+                 w2: float, inv: float, alpha_t: float, gamma: float):
+    """One XPBD bending projection of a triplet on its curvature vector C = x0 - 2 x1 + x2, with damping
+    against C's change since the start of the step; inv = 1 / ((1 + gamma)(w0 + 4 w1 + w2) + alpha_t)."""
+    cv = x0 - 2.0 * x1 + x2
+    dcv = cv - c_start
+    dlam = (-cv - alpha_t * lm - gamma * dcv) * inv
+    return x0 + w0 * dlam, x1 - (2.0 * w1) * dlam, x2 + w2 * dlam, lm + dlam
+
+
+@wp.func
+def link_project(xa: wp.vec3, xb: wp.vec3, ll: float, link: float, at_s: float, fa: float, fb: float, den: float):
+    """One XPBD link projection onto |xb - xa| = link (compliance at_s); fa, fb the mass-weighted shares of
+    the correction, den = wa + wb + at_s. Exact, not first-order: a sqrt-free factor diverges once a whipping
+    tip stretches a link past ~2.4 links in one step."""
+    d = xb - xa
+    ln = wp.length(d)
+    e = ln - link + at_s * ll  # C + alpha~ lambda (C alone when inextensible)
+    corr = wp.vec3(0.0)
+    lln = ll
+    if ln > 1.0e-9:
+        corr = d * (e / ln)
+        lln = ll - e / den
+    return xa + fa * corr, xb - fb * corr, lln
+
+
+@wp.func
+def first_contact(gap: float, qa0: wp.vec3, qa1: wp.vec3, qb0: wp.vec3, qb1: wp.vec3, two_r: float, a: int,
+                  j: int, best: float, best_a: int, best_b: int):
+    """A pair (a, j) whose gap closed in this step: its crossing fraction alpha = g0 / (g0 - g1) from the gap
+    at the start of the step (0 if it already touched); the smallest alpha of the step is the first hit."""
+    r0 = seg_closest(qa0, qa1, qb0, qb1)
+    g0 = r0[0] - two_r
+    al = float(0.0)
+    if g0 > 0.0:
+        al = g0 / (g0 - gap)
+    nb = best
+    na = best_a
+    nj = best_b
+    if al < best:
+        nb = al
+        na = a
+        nj = j
+    return nb, na, nj
+
+
+# The one signature of every rollout variant (generic.py, fixed.py, lanes.py): the same launch serves them all.
+ROLLOUT_ARGUMENTS = {
+    "state": ChainState,
+    "hand": wp.array2d(dtype=wp.vec3),  # (paths, steps + 1) hand samples
+    "path_index": wp.array(dtype=wp.int32),  # per chain
+    "params": ChainParameters,
+    "cfg": ChainSettings,
+    "step0": int,  # first step of this launch
+    "nsteps": int,
+    "stop_at_hit": int,
+    "events": ChainEvents,
+    "offset": int,  # first chain of this launch's slice of the batch
+    "end": int,  # one past its last chain
+}
+
+
+def rollout_variant(**kernel_options):
+    """Decorator: a Warp kernel with the rollout signature (ROLLOUT_ARGUMENTS); the variant's Python function
+    names the arguments only."""
+    def wrap(fn):
+        fn.__annotations__ = dict(ROLLOUT_ARGUMENTS)
+        return wp.kernel(fn, **kernel_options)
+
+    return wrap
+
+
+@wp.func
+def running(status: int, stop_at_hit: int) -> int:
+    """1 if a chain with this status still steps in this launch (not blown up, not stopped at its hit)."""
+    out = int(1)
+    if status == 2 or (status == 1 and stop_at_hit != 0):
+        out = 0
+    return out
+
+
+@wp.func
+def record_hit(events: ChainEvents, b: int, step: int, best: float, best_a: int, best_b: int, P: Any, Q: Any, V: Any,
+               nm1: int):
+    """Chain b's first hit in `step`: the state interpolated to the crossing (positions) and the step's velocity,
+    and the arc-length fractions of the hit pair's closest points."""
+    events.status[b] = 1
+    events.hit_frame[b] = step + 1
+    events.hit_alpha[b] = best
+    for i in range(nm1 + 1):
+        p0 = Q[i]
+        events.crit_pos[b, i] = p0 + best * (P[i] - p0)
+        events.crit_vel[b, i] = V[i]
+    res = seg_closest(P[best_a], P[best_a + 1], P[best_b], P[best_b + 1])
+    events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nm1), (float(best_b) + res[2]) / float(nm1))
+
+
+@wp.func
+def inverse_masses(W: Any, n: int, m: float, ml: float, slope: float):
+    """W[i] = node_w(i, ...) for every node: the per-node inverse masses, once per launch."""
+    for i in range(n):
+        W[i] = node_w(i, n, m, ml, slope)
+    return W
+
+
+@wp.func
+def bend_lanes(x0: Any, x1: Any, x2: Any, c_start: Any, lm: Any, alpha_t: Any, gamma: Any, inv: Any, w0: Any, w1: Any,
+               w2: Any):
+    """bend_project for one coordinate of many chains at once (vectors over the lanes), the same arithmetic
+    lane by lane."""
+    cv = x0 - 2.0 * x1 + x2
+    dlam = wp.cw_mul(-cv - wp.cw_mul(alpha_t, lm) - wp.cw_mul(gamma, cv - c_start), inv)
+    return x0 + wp.cw_mul(w0, dlam), x1 - wp.cw_mul(2.0 * w1, dlam), x2 + wp.cw_mul(w2, dlam), lm + dlam

@@ -10,7 +10,7 @@ import warp as wp
 
 from wrenorm.kernels.launch import launch_sliced
 from wrenorm.kernels.rope.generic import rollout_kernel
-from wrenorm.kernels.rope.model import GRAVITY, VMAX
+from wrenorm.kernels.rope.model import GRAVITY, VMAX, ChainEvents, ChainParameters, ChainSettings, ChainState
 
 
 @dataclass
@@ -44,7 +44,7 @@ class ChainParams:
         return self.node_mass.shape[0]
 
     @classmethod
-    def uniform(cls, batch: int, **values) -> "ChainParams":
+    def uniform(cls, batch: int, **values) -> ChainParams:
         return cls(**{f: np.full(batch, values.get(f, cls.DEFAULTS.get(f)), dtype=np.float32) for f in cls.FIELDS})
 
     def node_masses(self, n: int) -> np.ndarray:
@@ -91,20 +91,22 @@ class RopeSim:
         self.gravity = tuple(float(g) for g in gravity)
         self.workers = workers
         self.min_sep = max(2, int(min_sep))
-        # fixed: the per-size unrolled kernel (kernels/rope_fast.py), same results, faster on CPU
+        # fixed: a per-size kernel (fixed.py, or lanes.py on the CPU), same results as the generic one, faster.
+        # Only the kernel that runs is built: building one costs a second or more per process.
         self.kernel = rollout_kernel
-        self.lanes = 0  # chains per thread of the SIMD-lane kernel (kernels/rope_lanes.py); 0: one
+        self.lanes = 0  # chains per thread of the SIMD-lane kernel; 0: one
         if fixed:
-            from wrenorm.kernels.rope import fixed as rope_fast, lanes as rope_lanes
+            from wrenorm.kernels.rope import fixed as fixed_kernels
+            from wrenorm.kernels.rope import lanes as lane_kernels
 
-            if self.n <= rope_fast.MAX_NODES:
-                self.kernel = rope_fast.fast_kernel(self.n)
             # lanes fill a CPU's vector units; a GPU runs one chain per thread
             if lanes is None:
-                lanes = rope_lanes.LANES if self.device.startswith("cpu") and self.n <= rope_lanes.MAX_NODES else 0
+                lanes = lane_kernels.LANES if self.device.startswith("cpu") and self.n <= lane_kernels.MAX_NODES else 0
             if lanes:
-                self.kernel = rope_lanes.lanes_kernel(self.n, lanes)
+                self.kernel = lane_kernels.lanes_kernel(self.n, lanes)
                 self.lanes = int(lanes)
+            elif self.n <= fixed_kernels.MAX_NODES:
+                self.kernel = fixed_kernels.fast_kernel(self.n)
         self._loaded = False
 
     def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
@@ -121,21 +123,30 @@ class RopeSim:
         path_index = np.broadcast_to(np.asarray(path_index, np.int32), (B,))
         f32 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev)  # noqa: E731
         v3 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=dev)  # noqa: E731
-        pos, vel = v3(pos0), v3(vel0)
-        prev = wp.zeros((B, n), dtype=wp.vec3, device=dev)
-        lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
-        lam_link = wp.zeros((B, n), dtype=float, device=dev)
-        seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
+        state = ChainState()
+        state.pos, state.vel = v3(pos0), v3(vel0)
+        state.prev = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        state.lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        state.lam_link = wp.zeros((B, n), dtype=float, device=dev)
+        state.seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
         hand_w = v3(hand)
         pidx = wp.array(np.ascontiguousarray(path_index), dtype=wp.int32, device=dev)
-        pa = [f32(getattr(params, f)) for f in ChainParams.FIELDS]
-        status = wp.zeros(B, dtype=wp.int32, device=dev)
-        hit_frame = wp.array(np.full(B, -1, np.int32), dtype=wp.int32, device=dev)
-        hit_alpha = wp.zeros(B, dtype=float, device=dev)
-        hit_s = wp.zeros(B, dtype=wp.vec2, device=dev)
-        crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
-        crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
-        clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
+        prm = ChainParameters()
+        for f in ChainParams.FIELDS:
+            setattr(prm, f, f32(getattr(params, f)))
+        cfg = ChainSettings()
+        cfg.n, cfg.min_sep, cfg.link, cfg.dt = n, self.min_sep, self.link, self.dt
+        cfg.gravity, cfg.iters, cfg.cull = wp.vec3(*self.gravity), self.iterations, int(self.cull)
+        cfg.margin, cfg.vmax = self.margin, VMAX
+        ev = ChainEvents()
+        ev.status = wp.zeros(B, dtype=wp.int32, device=dev)
+        ev.hit_frame = wp.array(np.full(B, -1, np.int32), dtype=wp.int32, device=dev)
+        ev.hit_alpha = wp.zeros(B, dtype=float, device=dev)
+        ev.hit_s = wp.zeros(B, dtype=wp.vec2, device=dev)
+        ev.crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        ev.crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        ev.clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
+        pos = state.pos
         if not self._loaded:
             # build before the sliced launch: two threads meeting an unbuilt module both compile it
             wp.load_module(self.kernel.module, device=dev)
@@ -148,14 +159,9 @@ class RopeSim:
             ns = min(chunk, steps - s0)
 
             def launch(offset, count, s0=s0, ns=ns):
-                inputs = [pos, vel, prev, lam, lam_link, seg, hand_w, pidx, *pa,
-                          n, self.min_sep, self.link, self.dt, wp.vec3(*self.gravity), self.iterations, int(self.cull),
-                          self.margin, VMAX, s0, ns, int(stop_at_hit),
-                          status, hit_frame, hit_alpha, hit_s, crit_pos, crit_vel, clearance, offset]
-                if self.lanes:
-                    wp.launch(self.kernel, dim=-(-count // self.lanes), device=dev, inputs=inputs + [offset + count])
-                else:
-                    wp.launch(self.kernel, dim=count, device=dev, inputs=inputs)
+                threads = -(-count // self.lanes) if self.lanes else count
+                wp.launch(self.kernel, dim=threads, device=dev, inputs=[
+                    state, hand_w, pidx, prm, cfg, s0, ns, int(stop_at_hit), ev, offset, offset + count])
 
             launch_sliced(launch, B, dev, self.workers)
             if frames is not None:
@@ -163,17 +169,17 @@ class RopeSim:
         wp.synchronize_device(dev)
         # launches alone, without host<->device copies: what a GPU kernel sustains
         self.last_kernel_seconds = time.perf_counter() - t_kernel
-        st = status.numpy()
-        hf = hit_frame.numpy()
-        ha = hit_alpha.numpy()
-        hs = hit_s.numpy()
+        st = ev.status.numpy()
+        hf = ev.hit_frame.numpy()
+        ha = ev.hit_alpha.numpy()
+        hs = ev.hit_s.numpy()
         hit = st == 1
         return RolloutResult(
             status=st, hit_frame=hf, hit_alpha=ha,
             hit_time=np.where(hit, t0 + (hf - 1 + ha.astype(np.float64)) * self.dt, np.nan),
             s_a=np.where(hit, hs[:, 0], np.nan), s_b=np.where(hit, hs[:, 1], np.nan),
-            crit_pos=crit_pos.numpy(), crit_vel=crit_vel.numpy(), clearance=clearance.numpy(),
-            final_pos=pos.numpy(), final_vel=vel.numpy(),
+            crit_pos=ev.crit_pos.numpy(), crit_vel=ev.crit_vel.numpy(), clearance=ev.clearance.numpy(),
+            final_pos=state.pos.numpy(), final_vel=state.vel.numpy(),
             trajectory=None if frames is None else np.stack(frames),
             trajectory_times=None if frames is None else t0 + self.dt * np.minimum(
                 np.arange(len(frames)) * chunk, steps))

@@ -7,7 +7,7 @@ import warp as wp
 
 from wrenorm.kernels.launch import launch_sliced
 from wrenorm.kernels.swimmer.fluid import fluid_geometry_kernel, geo9
-from wrenorm.kernels.swimmer.kernel import ROW, swim_kernel
+from wrenorm.kernels.swimmer.kernel import ROW, Schedule, Water, swim_kernel
 
 
 def reduce_table(table: np.ndarray, tab_off, n_per, parts: dict, rho: float, virtual_mass: bool):
@@ -87,14 +87,16 @@ class SwimBatch:
                   inputs=[wp.array(semi[fluid], dtype=wp.vec3, device=d), self.geo])
         self.amass = wp.array(amass[fluid], dtype=wp.vec3, device=d)
         self.part_table, self.parts = table, parts  # per-part inputs, for reference implementations
-        self.tab_off = wp.array(np.asarray(tab_off, np.int32), dtype=int, device=d)
-        self.n_per = wp.array(np.asarray(n_per, np.int32), dtype=int, device=d)
-        self.dt = wp.array(np.asarray(dt, np.float32), dtype=float, device=d)
-        self.n_warm = wp.array(np.asarray(n_warm, np.int32), dtype=int, device=d)
-        self.n_meas = wp.array(np.asarray(n_meas, np.int32), dtype=int, device=d)
-        max_warm = np.asarray(n_warm if max_warm is None else max_warm, np.int32)
-        self.max_warm = wp.array(max_warm, dtype=int, device=d)
-        self.settle_abs, self.settle_rel = float(settle_abs), float(settle_rel)
+        sched = Schedule()
+        ints = lambda a: wp.array(np.asarray(a, np.int32), dtype=int, device=d)  # noqa: E731
+        sched.tab_off, sched.n_per, sched.n_warm, sched.n_meas = ints(tab_off), ints(n_per), ints(n_warm), ints(n_meas)
+        sched.dt = wp.array(np.asarray(dt, np.float32), dtype=float, device=d)
+        sched.max_warm = ints(n_warm if max_warm is None else max_warm)
+        sched.settle_abs, sched.settle_rel = float(settle_abs), float(settle_rel)
+        self.schedule = sched
+        self.water = Water()
+        self.water.rho, self.water.mu, self.water.virtual_mass, self.water.ref_x = (self.rho, self.mu,
+                                                                                    self.virtual_mass, self.ref_x)
         self.steps = np.asarray(n_warm) + np.asarray(n_meas)  # at least; warm-up may run longer
         self.sim_seconds = self.steps * np.asarray(dt, np.float64)
 
@@ -111,8 +113,7 @@ class SwimBatch:
         def launch(offset, count):
             wp.launch(swim_kernel, dim=count, device=d, inputs=[
                 offset, self.n_cond, coef_wp, self.tab, self.n_fluid, self.geo, self.amass, self.v0,
-                self.tab_off, self.n_per, self.dt, self.n_warm, self.n_meas, self.max_warm,
-                self.settle_abs, self.settle_rel, self.ref_x, self.rho, self.mu, self.virtual_mass, self.scheme,
+                self.schedule, self.water, self.scheme,
                 int(rec_stride), traj, speed, yaw, state])
 
         launch_sliced(launch, n, d)

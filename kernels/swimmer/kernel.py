@@ -123,6 +123,108 @@ def solve_sym3(a00: float, a01: float, a11: float, a02: float, a12: float, a22: 
 ROS2_GAMMA = 1.7071067811865475
 
 
+@wp.struct
+class Schedule:
+    """Per condition (motor rate): its rows in the table, samples per tail beat, step, warm-up (at least,
+    at most) and measured steps; and when the warm-up counts as settled (beat-averaged surge change
+    below settle_abs + settle_rel |surge|)."""
+
+    tab_off: wp.array(dtype=int)
+    n_per: wp.array(dtype=int)
+    dt: wp.array(dtype=float)
+    n_warm: wp.array(dtype=int)
+    n_meas: wp.array(dtype=int)
+    max_warm: wp.array(dtype=int)
+    settle_abs: float
+    settle_rel: float
+
+
+@wp.struct
+class Water:
+    """The fluid (density, viscosity), whether the added mass acts through accelerations too, and the head
+    point whose speed is measured (x in the head frame)."""
+
+    rho: float
+    mu: float
+    virtual_mass: int
+    ref_x: float
+
+
+vec12d = wp.types.vector(length=12, dtype=wp.float64)
+
+
+@wp.func
+def line_sums_add(acc: vec12d, tt: wp.float64, hx: wp.float64, hy: wp.float64, ct: float, st: float):
+    """Running sums for the straight-line speed fit (float64: thousands of samples): n, t, x, y, tt, tx, ty,
+    xx, yy, xy and the heading's cos, sin."""
+    return acc + vec12d(wp.float64(1.0), tt, hx, hy, tt * tt, tt * hx, tt * hy, hx * hx, hy * hy, hx * hy,
+                        wp.float64(ct), wp.float64(st))
+
+
+@wp.func
+def line_speed(acc: vec12d) -> float:
+    """Slope of the head's position along the principal direction of its path, oriented along the mean
+    heading (-x of the head frame): the forward speed as measured on the real fish."""
+    n = acc[0]
+    cxx = acc[7] / n - (acc[2] / n) * (acc[2] / n)
+    cyy = acc[8] / n - (acc[3] / n) * (acc[3] / n)
+    cxy = acc[9] / n - (acc[2] / n) * (acc[3] / n)
+    ctx = acc[5] / n - (acc[1] / n) * (acc[2] / n)
+    cty = acc[6] / n - (acc[1] / n) * (acc[3] / n)
+    ctt = acc[4] / n - (acc[1] / n) * (acc[1] / n)
+    ang = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
+    dx = wp.cos(ang)
+    dy = wp.sin(ang)
+    if dx * (-acc[10]) + dy * (-acc[11]) < wp.float64(0.0):
+        dx = -dx
+        dy = -dy
+    return float((dx * ctx + dy * cty) / ctt)
+
+
+@wp.func
+def beat_advance(k: int, step: int, per: int, meas_start: int, beat_u: float, prev_u: float, u: float, nw: int,
+                 mw: int, settle_abs: float, settle_rel: float):
+    """One step along the tail beat. Warm-up runs whole beats until the beat-averaged surge settles (at least
+    nw steps, at most mw; quadratic drag makes slow candidates creep up to cruising speed for many beats),
+    then the measurement starts. Returns (k, step, meas_start, beat_u, prev_u)."""
+    k += 1
+    step += 1
+    if meas_start < 0:
+        beat_u += u
+    if k >= per:
+        k = 0
+        if meas_start < 0:
+            avg = beat_u / float(per)
+            if step >= nw:
+                if wp.abs(avg - prev_u) <= settle_abs + settle_rel * wp.abs(avg) or step >= mw:
+                    meas_start = step
+            prev_u = avg
+            beat_u = float(0.0)
+    return k, step, meas_start, beat_u, prev_u
+
+
+@wp.func
+def record_pose(traj: wp.array3d(dtype=float), tid: int, rec_i: int, step: int, rec_stride: int, X: float, Y: float,
+                th: float, k: int) -> int:
+    """Every rec_stride steps, the head pose and tail phase sample into traj[tid]; returns the next slot."""
+    out = rec_i
+    if rec_stride > 0:
+        if step % rec_stride == 0 and rec_i < traj.shape[1]:
+            traj[tid, rec_i, 0] = X
+            traj[tid, rec_i, 1] = Y
+            traj[tid, rec_i, 2] = th
+            traj[tid, rec_i, 3] = float(k)
+            out = rec_i + 1
+    return out
+
+
+@wp.func
+def slot_coefficients(coef: wp.array2d(dtype=float), tid: int, n_cond: int):
+    """Slot tid = candidate b x condition c: (c, the candidate's five coefficients)."""
+    b = tid / n_cond
+    return tid - b * n_cond, coef[b, 0], coef[b, 1], coef[b, 2], coef[b, 3], coef[b, 4]
+
+
 @wp.kernel
 def swim_kernel(offset: int, n_cond: int,
                 coef: wp.array2d(dtype=float),        # (B, 5)
@@ -131,26 +233,21 @@ def swim_kernel(offset: int, n_cond: int,
                 geo: wp.array(dtype=geo9),            # (fluid parts,) fluid_geometry(semi)
                 amass: wp.array(dtype=wp.vec3),       # (fluid parts,) rho * (m_A x, m_A y, I_A z)
                 v0: wp.array(dtype=wp.vec3),          # (conditions,) zero-momentum start velocity
-                tab_off: wp.array(dtype=int), n_per: wp.array(dtype=int), dt_c: wp.array(dtype=float),
-                n_warm: wp.array(dtype=int), n_meas: wp.array(dtype=int), max_warm: wp.array(dtype=int),
-                settle_abs: float, settle_rel: float, ref_x: float, rho: float, mu: float, virtual_mass: int,
+                sched: Schedule, water: Water,
                 scheme: int,
                 rec_stride: int, traj: wp.array3d(dtype=float),   # (n, frames, 4): X, Y, theta, sample
                 speed: wp.array(dtype=float), yaw: wp.array(dtype=float), state: wp.array2d(dtype=float)):
     tid = wp.tid() + offset
-    b = tid / n_cond
-    c = tid - b * n_cond
-    cb = coef[b, 0]
-    cs = coef[b, 1]
-    ca = coef[b, 2]
-    ck = coef[b, 3]
-    cm = coef[b, 4]
-    off = tab_off[c]
-    per = n_per[c]
-    dt = dt_c[c]
-    nw = n_warm[c]
-    nm = n_meas[c]
-    vm = float(virtual_mass)
+    c, cb, cs, ca, ck, cm = slot_coefficients(coef, tid, n_cond)
+    off = sched.tab_off[c]
+    per = sched.n_per[c]
+    dt = sched.dt[c]
+    nw = sched.n_warm[c]
+    nm = sched.n_meas[c]
+    rho = water.rho
+    mu = water.mu
+    ref_x = water.ref_x
+    vm = float(water.virtual_mass)
     gam = float(ROS2_GAMMA)
 
     X = float(0.0)
@@ -161,19 +258,7 @@ def swim_kernel(offset: int, n_cond: int,
     v = vel0[1]
     w = vel0[2]
 
-    # least-squares sums for the speed (float64: thousands of samples)
-    s_n = wp.float64(0.0)
-    s_t = wp.float64(0.0)
-    s_x = wp.float64(0.0)
-    s_y = wp.float64(0.0)
-    s_tt = wp.float64(0.0)
-    s_tx = wp.float64(0.0)
-    s_ty = wp.float64(0.0)
-    s_xx = wp.float64(0.0)
-    s_yy = wp.float64(0.0)
-    s_xy = wp.float64(0.0)
-    s_c = wp.float64(0.0)
-    s_s = wp.float64(0.0)
+    acc = vec12d()  # running sums of the straight-line speed fit
     # first harmonic of the yaw rate at the beat frequency (the head's yaw oscillation)
     s_wc = float(0.0)
     s_ws = float(0.0)
@@ -184,7 +269,7 @@ def swim_kernel(offset: int, n_cond: int,
     rec_i = int(0)
     step = int(0)
     meas_start = int(-1)
-    mw = max_warm[c]
+    mw = sched.max_warm[c]
     beat_u = float(0.0)
     prev_u = float(1.0e9)
     while meas_start < 0 or step < meas_start + nm:
@@ -193,29 +278,9 @@ def swim_kernel(offset: int, n_cond: int,
         if meas_start >= 0:
             s_wc += w * tab[off + k, 15]
             s_ws += w * tab[off + k, 16]
-            hx = wp.float64(X + ct * ref_x)
-            hy = wp.float64(Y + st * ref_x)
-            tt = wp.float64(float(step - meas_start) * dt)
-            s_n += wp.float64(1.0)
-            s_t += tt
-            s_x += hx
-            s_y += hy
-            s_tt += tt * tt
-            s_tx += tt * hx
-            s_ty += tt * hy
-            s_xx += hx * hx
-            s_yy += hy * hy
-            s_xy += hx * hy
-            s_c += wp.float64(ct)
-            s_s += wp.float64(st)
-        if rec_stride > 0:
-            if step % rec_stride == 0:
-                if rec_i < traj.shape[1]:
-                    traj[tid, rec_i, 0] = X
-                    traj[tid, rec_i, 1] = Y
-                    traj[tid, rec_i, 2] = th
-                    traj[tid, rec_i, 3] = float(k)
-                    rec_i += 1
+            acc = line_sums_add(acc, wp.float64(float(step - meas_start) * dt), wp.float64(X + ct * ref_x),
+                                wp.float64(Y + st * ref_x), ct, st)
+        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, X, Y, th, k)
 
         s1 = fish_rhs(tab, off + k, n_fluid, u, v, w, geo, amass, cb, cs, ca, ck, cm, rho, mu, vm)
         if scheme == 1:
@@ -262,35 +327,10 @@ def swim_kernel(offset: int, n_cond: int,
             u += dt * (1.5 * k1[0] + 0.5 * k2[0])
             v += dt * (1.5 * k1[1] + 0.5 * k2[1])
             w += dt * (1.5 * k1[2] + 0.5 * k2[2])
-        k += 1
-        step += 1
-        if meas_start < 0:
-            beat_u += u
-        if k >= per:
-            k = 0
-            if meas_start < 0:
-                avg = beat_u / float(per)
-                if step >= nw:
-                    if wp.abs(avg - prev_u) <= settle_abs + settle_rel * wp.abs(avg) or step >= mw:
-                        meas_start = step
-                prev_u = avg
-                beat_u = float(0.0)
+        k, step, meas_start, beat_u, prev_u = beat_advance(k, step, per, meas_start, beat_u, prev_u, u, nw, mw,
+                                                           sched.settle_abs, sched.settle_rel)
 
-    # straight-line fit: principal direction of the path, oriented along the mean heading (-x)
-    n = s_n
-    cxx = s_xx / n - (s_x / n) * (s_x / n)
-    cyy = s_yy / n - (s_y / n) * (s_y / n)
-    cxy = s_xy / n - (s_x / n) * (s_y / n)
-    ctx = s_tx / n - (s_t / n) * (s_x / n)
-    cty = s_ty / n - (s_t / n) * (s_y / n)
-    ctt = s_tt / n - (s_t / n) * (s_t / n)
-    ang = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
-    dx = wp.cos(ang)
-    dy = wp.sin(ang)
-    if dx * (-s_c) + dy * (-s_s) < wp.float64(0.0):
-        dx = -dx
-        dy = -dy
-    speed[tid] = float((dx * ctx + dy * cty) / ctt)
+    speed[tid] = line_speed(acc)
     yaw[tid] = 2.0 * wp.sqrt(s_wc * s_wc + s_ws * s_ws) / (float(nm) * 2.0 * 3.14159265358979 / (float(per) * dt))
     state[tid, 0] = X
     state[tid, 1] = Y

@@ -37,6 +37,10 @@ def _name(pair):
     return f"{pair[0].name}+{pair[1].name}"
 
 
+def _rel(fit, pred, scale):
+    return float(np.linalg.norm(fit - pred) / np.linalg.norm(scale))
+
+
 class ArmProblem(Problem):
     task = "pd"
     error_doc = "mean over the two joints of RMS(q_sim - q_ref) / RMS(q_ref) (per condition)"
@@ -128,8 +132,8 @@ class ArmProblem(Problem):
             "K_D_sim_first_order": KD_pred.tolist(),
             "A_fitted": A_fit.tolist(),
             "K_D_sim_fitted": KD_fit.tolist(),
-            "A_relative_error_first_order": float(np.linalg.norm(A_fit - (A_pred + A_pred.T) / 2) / np.linalg.norm(A_pred)),
-            "A_relative_error_second_order": float(np.linalg.norm(A_fit - (A_second + A_second.T) / 2) / np.linalg.norm(A_second)),
+            "A_relative_error_first_order": _rel(A_fit, (A_pred + A_pred.T) / 2, A_pred),
+            "A_relative_error_second_order": _rel(A_fit, (A_second + A_second.T) / 2, A_second),
         }
 
     def report(self, fitted, measured):

@@ -51,3 +51,9 @@ def parity(device: str) -> dict:
                           SEMI_IMPLICIT, 1e-3)[0]
             for dev in ("cpu", device)}
     return {"error_max_rel": float(np.max(np.abs(errs[device] / errs["cpu"] - 1.0)))}
+
+
+def kernel_modules() -> dict:
+    from wrenorm.kernels import arm, pd
+
+    return {"pd": pd, "arm": arm}

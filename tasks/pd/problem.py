@@ -21,8 +21,8 @@ from scipy.integrate import solve_ivp
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem
-
 from wrenorm.tasks.pd.options import FLOW_F_SIM, MEASURED
+
 DURATION = 3.0
 RAMP = 0.05  # s, rise time of a commanded step
 FADE_IN = 0.3  # s, smooth start of periodic commands
@@ -65,7 +65,8 @@ class Command:
             k = (self.f1 - self.f0) / DURATION
             phase = 2 * np.pi * (self.f0 * t + 0.5 * k * t * t)
             w = 2 * np.pi * (self.f0 + k * t)
-            base = (A * np.sin(phase), A * np.cos(phase) * w, A * (-np.sin(phase) * w * w + np.cos(phase) * 2 * np.pi * k))
+            base = (A * np.sin(phase), A * np.cos(phase) * w,
+                    A * (-np.sin(phase) * w * w + np.cos(phase) * 2 * np.pi * k))
         elif self.kind == "multisine":
             fs = (self.f0, self.f1, self.f0 + self.f1)
             ws = [2 * np.pi * f for f in fs]
@@ -200,7 +201,8 @@ class PDProblem(Problem):
 
         _check_positive({"f_sim": f_sim, "J": J, "K_P": KP, "K_D": KD})
         if integrator not in kpd.INTEGRATORS:
-            raise InputError("--integrator", "integrator", f"unknown {integrator!r}; choose from {list(kpd.INTEGRATORS)}")
+            raise InputError("--integrator", "integrator",
+                             f"unknown {integrator!r}; choose from {list(kpd.INTEGRATORS)}")
         self.kpd = kpd
         self.f_sim, self.dt = float(f_sim), 1.0 / float(f_sim)
         self.integrator_name, self.integrator = integrator, kpd.INTEGRATORS[integrator]
@@ -222,8 +224,8 @@ class PDProblem(Problem):
         t = np.arange(n + 1) * self.dt
         q_d, qd_d, qdd_d = cmd(t[:-1])
         q_ref = continuous_reference(cmd, self.true["J"], self.true["K_P"], self.true["K_D"], t)
-        return Condition(cmd.name, {"t": t, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "q_ref": q_ref, "init": (0.0, 0.0)},
-                         {"command": cmd.__dict__})
+        data = {"t": t, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "q_ref": q_ref, "init": (0.0, 0.0)}
+        return Condition(cmd.name, data, {"command": cmd.__dict__})
 
     def _log_conditions(self, log: MeasuredLog):
         """First 2/3 of the log fits, the last 1/3 validates; each part starts from the logged state."""
@@ -312,16 +314,21 @@ class PDProblem(Problem):
                 # the residual is what differs; overlaid trajectories hide it at this scale
                 rec.log_series(f"measured/residual/{split}/{c.name}", t, traj[0, j] - c.data["q_ref"][: len(t)])
                 rec.log_series(f"fitted/residual/{split}/{c.name}", t, traj[1, j] - c.data["q_ref"][: len(t)])
-                rec.add_view(f"{split}: {c.name} q", [f"/{who}/{split}/{c.name}/**" for who in ("reference", "measured", "fitted")])
-                rec.add_view(f"{split}: {c.name} q - q_ref", [f"/{who}/residual/{split}/{c.name}" for who in ("measured", "fitted")])
+                rec.add_view(f"{split}: {c.name} q",
+                             [f"/{who}/{split}/{c.name}/**" for who in ("reference", "measured", "fitted")])
+                rec.add_view(f"{split}: {c.name} q - q_ref",
+                             [f"/{who}/residual/{split}/{c.name}" for who in ("measured", "fitted")])
         rec.add_view("summary", ["/summary"], "text")
 
 
 # Effective delay of each integrator, derived on the staggered grid each scheme implies
 # (see README, "PD: what the fit measures"); the fit measures it independently.
 ANALYTIC_DELAY = {
-    "semi-implicit": {"K_D": 0.0, "J": 0.5, "why": "semi-implicit Euler: v_k is the mean velocity over the previous step (lags by dt/2); q_k is current"},
-    "explicit": {"K_D": 1.0, "J": 0.5, "why": "explicit Euler: the force from (q_k, v_k) acts at t_k + dt; q lags by dt, v by dt/2"},
+    "semi-implicit": {"K_D": 0.0, "J": 0.5,
+                      "why": "semi-implicit Euler: v_k is the mean velocity over the previous step (lags by dt/2); "
+                             "q_k is current"},
+    "explicit": {"K_D": 1.0, "J": 0.5,
+                 "why": "explicit Euler: the force from (q_k, v_k) acts at t_k + dt; q lags by dt, v by dt/2"},
 }
 
 

@@ -6,14 +6,11 @@ reference/     reference ropes: file format, event detection, the fine newton ro
 control/       steering real throws: command space, planning, correction over trials, sensitivity
 bench.py       kernel throughput; baselines.py: the numpy / torch peers of the chain step
 """
-from wrenorm.system import ExtraCommand, Flow, SearchDefaults, System
+from wrenorm.system import ExtraCommand, Flow, SearchDefaults, from_package
 from wrenorm.tasks.rope import options
 
-SYSTEM = System(
-    name="rope",
-    help="a coarse rope chain matched to a reference rope at its first self-collision (the flying knot)",
-    add_arguments=options.add_arguments,
-    build="wrenorm.tasks.rope.problem:build_problems",
+SYSTEM = from_package(
+    __name__, "a coarse rope chain matched to a reference rope at its first self-collision (the flying knot)",
     search=SearchDefaults(generations=60),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.rope.problem:flow_problems",
               "segment counts (--axis dt: steps [s])", generations=60),
@@ -22,12 +19,9 @@ SYSTEM = System(
                      "wrenorm.tasks.rope.reference.generate:add_reference_arguments",
                      "wrenorm.tasks.rope.reference.generate:run_reference"),
         ExtraCommand("correct", "correct a throw's command over real trials toward a goal critical state",
-                     "wrenorm.tasks.rope.control.correct_cli:add_arguments", "wrenorm.tasks.rope.control.correct_cli:run"),
+                     "wrenorm.tasks.rope.control.correct_cli:add_arguments",
+                     "wrenorm.tasks.rope.control.correct_cli:run"),
         ExtraCommand("sensitivity", "how many command / parameter directions move the critical state",
                      "wrenorm.tasks.rope.control.sensitivity:add_arguments",
                      "wrenorm.tasks.rope.control.sensitivity:run"),
-    ),
-    bench="wrenorm.tasks.rope.bench:bench",
-    kernel_modules="wrenorm.tasks.rope.bench:kernel_modules",
-    parity="wrenorm.tasks.rope.bench:parity",
-)
+    ))

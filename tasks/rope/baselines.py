@@ -82,7 +82,8 @@ def seg_closest(xp, p1, q1, p2, q2):
     a_safe = xp.where(a > eps, a, 1.0)
     e_safe = xp.where(e > eps, e, 1.0)
     denom = a * e - bb * bb
-    s_gen = xp.where(denom > 1.0e-10 * a * e, xp.clip((bb * f - c * e) / xp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0 * a)
+    s_gen = xp.where(denom > 1.0e-10 * a * e, xp.clip((bb * f - c * e) / xp.where(denom > 0, denom, 1.0), 0.0, 1.0),
+                     0.0 * a)
     t_gen = (bb * s_gen + f) / e_safe
     s_lo = xp.clip(-c / a_safe, 0.0, 1.0)
     s_hi = xp.clip((bb - c) / a_safe, 0.0, 1.0)

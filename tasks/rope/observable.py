@@ -60,12 +60,12 @@ class CriticalStates:
     def batch(self) -> int:
         return self.pos.shape[0]
 
-    def take(self, rows) -> "CriticalStates":
+    def take(self, rows) -> CriticalStates:
         rows = np.atleast_1d(rows)
         return CriticalStates(self.pos[rows], self.vel[rows], self.time[rows], self.s[rows], self.hit[rows],
                               self.clearance[rows])
 
-    def row(self, i: int) -> "CriticalStates":
+    def row(self, i: int) -> CriticalStates:
         return self.take([i])
 
 
@@ -108,7 +108,8 @@ def from_reference(ref, event=None) -> CriticalStates:
     pos = ref.markers[k - 1] + frac * (ref.markers[k] - ref.markers[k - 1])
     vel = (ref.markers[k] - ref.markers[k - 1]) / (t[k] - t[k - 1])
     s_k = np.linspace(0.0, 1.0, SAMPLES)
-    return CriticalStates(resample(pos, ref.marker_arclength, s_k)[None], resample(vel, ref.marker_arclength, s_k)[None],
+    s = ref.marker_arclength
+    return CriticalStates(resample(pos, s, s_k)[None], resample(vel, s, s_k)[None],
                           np.array([ev.time - t[0]]), np.array([[ev.s_a, ev.s_b]]), np.ones(1, bool), np.zeros(1))
 
 
@@ -130,7 +131,7 @@ class Target:
     weights: dict
 
     @classmethod
-    def from_reference(cls, ref, event=None, weights: dict | None = None, source: str = "goal") -> "Target":
+    def from_reference(cls, ref, event=None, weights: dict | None = None, source: str = "goal") -> Target:
         st = from_reference(ref, event)
         if not st.hit[0]:
             raise InputError(source, "markers", "the rope never hits itself (no critical state to reach)")

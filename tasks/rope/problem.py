@@ -18,32 +18,14 @@ linear drag 0; collision radius r; link compliance l / EA (newton's stretch stif
 mass is frozen: scaling mass, k, b and drag together leaves the motion unchanged, so only the
 ratios are identifiable.
 
-What earned its place (built-in references, S = 10, dt = 5 ms, CMA-ES, seeds 0-3 agree):
-  - wider bounds for lead_fraction, bend_stiffness, bend_damping, drag_quad (the optimum sat on
-    the old ones): training loss 0.225 -> 0.200.
-  - `--iterations 2` instead of the default 4: 0.200 -> 0.185, held-out 0.31 -> 0.28 (mean), and
-    half the work; not the default because the command-correction tests are tuned to the
-    4-pass chain. Finer steps go the wrong way (dt = 2.5 ms: held-out flick_high 0.48 -> 1.44):
-    the under-converged, slightly soft chain is the better coarse model of this reference.
-  - stretch (link compliance) lowers the training loss to 0.172 but raises held-out flick_high
-    from 0.48 to 0.68-0.91: it over-fits, so it stays frozen at its measured value.
-  - mass_slope (a linear interior mass profile) changes nothing (0.200 -> 0.199): frozen.
-What the coarse model cannot match: the reference's free end curls into a loop a few cm across
-before the contact; a 0.11 m link cannot bend that tightly, so the chain's shape and velocity
-differ from ~0.4 s on (RMS 1-6 cm at 0.4 s, 5-25 cm at 0.6 s) at every parameter value, and
-even a 63-segment chain at dt = 0.5 ms with measured parameters is 2.5-6 cm off at 0.4 s (the
-newton rod's capsule inertia and implicit solver are not the chain's physics). The fit leans on the
-remaining freedom (lead mass -> its lower bound, bend damping -> ~0, drag -> ~0; the newton
-reference has no air drag at all) to get the timing right instead. lead_fraction ends on its
-lower bound (lead/25) at 6, 10 and 16 segments, but the loss is flat below it: with lead/250
-the fit goes there too, bend_stiffness follows it down 8x, and the loss moves 0.200 -> 0.199
-(held-out 0.314 -> 0.321): a near-massless tip is all the fit asks for, not a particular value.
+Why this parameter set, and what the coarse model cannot match: README, "Rope: how the parameter set was
+chosen".
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -191,7 +173,9 @@ class RopeProblem(Problem):
         B, C = values.shape[0], len(conditions)
         cases = [c.data for c in conditions]
         steps = max(cs.steps for cs in cases)
-        hand = np.stack([np.concatenate([cs.hand[:steps + 1], np.repeat(cs.hand[-1:], steps + 1 - min(len(cs.hand), steps + 1), 0)])
+        # every condition's hand samples to the longest horizon, the shorter ones held at their last sample
+        hand = np.stack([np.concatenate([cs.hand[:steps + 1],
+                                         np.repeat(cs.hand[-1:], steps + 1 - min(len(cs.hand), steps + 1), 0)])
                          for cs in cases])
         p = self.chain_params(values)
         rep = ChainParams(**{f: np.repeat(getattr(p, f), C) for f in ChainParams.FIELDS})
@@ -378,8 +362,8 @@ def flow_problems(args, device: str) -> list[RopeProblem]:
     """One RopeProblem per resolution on the built-in references: segment counts (--axis segments,
     the default; step --dt) or steps in seconds (--axis dt; --segments links), coarse to fine in
     segments, fine to coarse in dt."""
-    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
     from wrenorm.tasks.rope.reference.generate import builtin_references
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
     by_dt = getattr(args, "axis", "segments") == "dt"
     points = []

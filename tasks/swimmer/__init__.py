@@ -5,18 +5,11 @@ data.py      the real marker tracks (fishsim format) and what is measured from t
 body.py      the robot's parts, its tail gait from the markers, the simulation batch
 bench.py     kernel throughput
 """
-from wrenorm.system import Flow, SearchDefaults, System
+from wrenorm.system import Flow, SearchDefaults, from_package
 from wrenorm.tasks.swimmer import options
 
-SYSTEM = System(
-    name="swimmer",
-    help="a real robotic fish's five stateless fluid coefficients, fitted to its swimming speed",
-    add_arguments=options.add_arguments,
-    build="wrenorm.tasks.swimmer.problem:build_problems",
+SYSTEM = from_package(
+    __name__, "a real robotic fish's five stateless fluid coefficients, fitted to its swimming speed",
     search=SearchDefaults(generations=150, popsize=32, restarts=4),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.swimmer.problem:flow_problems",
-              "time steps [s] (--axis bodies: tail bodies)", generations=80),
-    bench="wrenorm.tasks.swimmer.bench:bench",
-    kernel_modules="wrenorm.tasks.swimmer.bench:kernel_modules",
-    parity="wrenorm.tasks.swimmer.bench:parity",
-)
+              "time steps [s] (--axis bodies: tail bodies)", generations=80))

@@ -15,7 +15,8 @@ def benchmark(batch: int = 2048, seconds: float = 2.0, device: str = "cpu", dt: 
     machine may be shared: wall time then undercounts what the kernel can do)."""
     import resource
 
-    from wrenorm.tasks.swimmer import body as swimmer_body, data as swimmer_data
+    from wrenorm.tasks.swimmer import body as swimmer_body
+    from wrenorm.tasks.swimmer import data as swimmer_data
 
     rates = swimmer_data.load_builtin()
     rate = min(rates, key=lambda r: abs(r.label - 1.0))
@@ -34,7 +35,8 @@ def benchmark(batch: int = 2048, seconds: float = 2.0, device: str = "cpu", dt: 
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     steps = int(sim.steps[0])
     fish_seconds = batch * float(sim.sim_seconds[0])
-    return {"batch": batch, "sim_seconds": float(sim.sim_seconds[0]), "steps": steps, "dt": float(sim.sim_seconds[0] / steps),
+    return {"batch": batch, "sim_seconds": float(sim.sim_seconds[0]), "steps": steps,
+            "dt": float(sim.sim_seconds[0] / steps),
             "scheme": "ros2" if scheme == 2 else "implicit-euler", "wall_s": wall, "cpu_s": cpu,
             "fish_seconds_per_s": fish_seconds / wall, "fish_steps_per_s": batch * steps / wall,
             "fish_seconds_per_cpu_s": fish_seconds / cpu if cpu > 0 else None,
@@ -56,7 +58,8 @@ def bench(device: str, batches: list[int], quick: bool) -> tuple[list[dict], str
 
 def parity(device: str) -> dict:
     """Largest relative difference of simulated speeds between the CPU and `device`, same coefficients."""
-    from wrenorm.tasks.swimmer import body as swimmer_body, data as swimmer_data
+    from wrenorm.tasks.swimmer import body as swimmer_body
+    from wrenorm.tasks.swimmer import data as swimmer_data
 
     rates = swimmer_data.load_builtin()
     rate = min(rates, key=lambda r: abs(r.label - 1.0))

@@ -27,7 +27,8 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--virtual-mass", action="store_true",
                    help="add the acceleration-dependent added mass (default: MuJoCo's model, velocity terms only)")
     p.add_argument("--gait", choices=["chain", "wave"], default="chain",
-                   help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave (wave)")
+                   help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave "
+                        "(wave)")
     add_number(p, "--yaw-weight", default=0.0, lo=0.0, hi=100.0, unit="m/s/rad", metavar="M/S/RAD",
                help="also fit the head's yaw oscillation amplitude per rate, weighted into a speed-equivalent "
                     "error (e.g. 0.1: 1 degree counts like 1.7 mm/s); 0: speed only, as in the paper")

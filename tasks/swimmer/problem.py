@@ -9,14 +9,12 @@ is held out. Baseline: elongated-body theory with two constants fitted on the tr
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
-from wrenorm.tasks.swimmer import body
-from wrenorm.tasks.swimmer import data
+from wrenorm.tasks.swimmer import body, data
 from wrenorm.tasks.swimmer.options import FLOW_BODIES, FLOW_DT
 
 PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kutta_lift": 3.84, "magnus_lift": 0.27}
@@ -222,7 +220,8 @@ class SwimmerProblem(Problem):
             pts = np.stack([x, -10.0 * np.asarray(vals, float)], 1)
             key = name.split(" ")[0].lower()
             recorder.log_lines2d(f"plot/{key}/line", 0.0, [pts], colors=color, radii=0.01)
-            labels = [("train " if c in self.train else "") + f"{v:.3f}" if name == "real" else "" for c, v in zip(conds, vals)]
+            labels = [("train " if c in self.train else "") + f"{v:.3f}" if name == "real" else ""
+                      for c, v in zip(conds, vals)]
             recorder.log_points2d(f"plot/{key}/points", 0.0, pts, colors=color, radii=0.025,
                                   labels=labels if name == "real" else None)
             recorder.log_points2d(f"plot/{key}/legend", 0.0, [[x_lo + 0.7, -y_top + 0.35 * k]], colors=color,
@@ -234,9 +233,10 @@ class SwimmerProblem(Problem):
 
         align_path: turn the run about its start so that it travels in the real head path's net
         direction (start to end). The real robot turns by up to 16 deg over a clip and its net path
-        departs from its mean head axis by up to 27 deg (`real_heading`, in result.json); the model is left-right symmetric and swims straight along its
-        mean body axis, so started at the real head pose it drifts off the real path by that much,
-        which hides the speed comparison the view is for. Off: the real starting head pose."""
+        departs from its mean head axis by up to 27 deg (`real_heading`, in result.json); the model is
+        left-right symmetric and swims straight along its mean body axis, so started at the real head pose
+        it drifts off the real path by that much, which hides the speed comparison the view is for. Off:
+        the real starting head pose."""
         rate = self.rates[cond.name]
         g = self.gaits[cond.name]
         period = 1.0 / g["freq"]

@@ -443,8 +443,8 @@ def fit_parameters(variant: str, segments: int, dt: float, seed: int, generation
     paths (the fine rope's reference throws, cached; these are experiments, reported as such)."""
     from wrenorm.search import cmaes
     from wrenorm.tasks.rope.problem import RopeProblem
-    from wrenorm.tasks.rope.reference.paths import FIT_PATHS
     from wrenorm.tasks.rope.reference.generate import builtin_references
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS
 
     refs = builtin_references("fit", variant, progress=progress)
     problem = RopeProblem(refs, segments=segments, dt=dt, device=device, names=list(FIT_PATHS))

@@ -78,13 +78,21 @@ def _goal_reference(name: str, variant: str, progress):
 
 
 def run(args) -> int:
-    from wrenorm.runfolder import prepare_out
     from wrenorm.results import versions, write_json
+    from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
-    from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.control.command import CommandSpace
-    from wrenorm.tasks.rope.control.correct import (CoarseModel, CoarseRope, NewtonRope, StoredTrials, correct, fit_parameters,
-                                            parameters_from_file, trial_rows)
+    from wrenorm.tasks.rope.control.correct import (
+        CoarseModel,
+        CoarseRope,
+        NewtonRope,
+        StoredTrials,
+        correct,
+        fit_parameters,
+        parameters_from_file,
+        trial_rows,
+    )
+    from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import get_hand_path
 
@@ -181,12 +189,15 @@ def run(args) -> int:
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
         "settings": {"method": args.method, "plan_first": not args.no_plan_first,
                      "radius": args.radius if args.radius is not None else _default("radius", args.method),
-                     "reg": args.reg if args.reg is not None else _default("reg", args.method), "fd_step": args.fd_step, "seed": args.seed, "secant": args.secant if args.secant is not None else args.method == "plan",
+                     "reg": args.reg if args.reg is not None else _default("reg", args.method),
+                     "fd_step": args.fd_step, "seed": args.seed,
+                     "secant": args.secant if args.secant is not None else args.method == "plan",
                      "popsize": args.popsize, "generations": args.generations,
                      "place_from": "coarse model" if args.model_place else "trials"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
                  for label, r in runs.items()},
-        "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored, "real_wall_s": real.wall_s,
+        "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored,
+        "real_wall_s": real.wall_s,
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
     }
     write_json(out / "correct.json", result)
@@ -225,7 +236,8 @@ def _restore_settings(args) -> None:
 
 
 def _default(name: str, method: str) -> float:
-    from wrenorm.tasks.rope.control import correct as rope_correct, plan as rope_plan
+    from wrenorm.tasks.rope.control import correct as rope_correct
+    from wrenorm.tasks.rope.control import plan as rope_plan
 
     if name == "radius":
         return rope_correct.DEFAULT_PLAN_RADIUS if method == "plan" else rope_correct.DEFAULT_RADIUS

@@ -57,7 +57,7 @@ class Offset:
     model_place: np.ndarray | None = None  # (2,) the model's contact place at the centre (frozen-place mode)
 
     @classmethod
-    def zero(cls, n: int, m: int, centre=None) -> "Offset":
+    def zero(cls, n: int, m: int, centre=None) -> Offset:
         return cls(np.zeros(n) if centre is None else np.asarray(centre, dtype=np.float64), np.zeros(m),
                    np.zeros((m, n)))
 

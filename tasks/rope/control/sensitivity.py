@@ -210,13 +210,13 @@ def parameter_analysis(problem, values, goals, names, h: float, step: float, snr
 # ------------------------------------------------------------------------------ CLI
 def run(args) -> int:
     from wrenorm.cli import _device
-    from wrenorm.runfolder import prepare_out
     from wrenorm.results import versions, write_json
+    from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
-    from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
     from wrenorm.tasks.rope.control.correct_cli import _goal_reference
+    from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
 
@@ -258,8 +258,8 @@ def run(args) -> int:
         real = NewtonRope(args.variant, duration=min(float(ref.time[-1]), float(goal.state.time[0]) + 0.3),
                           device=device)
         rng = np.random.default_rng(args.seed + 1)
-        es = np.stack([goal.residual(crit.from_reference(real(space.decode(rng.normal(size=space.dim) * args.noise_size))))[0]
-                       for _ in range(args.real_repeats)])
+        offsets = rng.normal(size=(args.real_repeats, space.dim)) * args.noise_size
+        es = np.stack([goal.residual(crit.from_reference(real(space.decode(d))))[0] for d in offsets])
         es = es[np.all(np.isfinite(es), axis=1)]
         if len(es) >= 2:
             extra_cov = np.cov(es.T)

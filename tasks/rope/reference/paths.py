@@ -45,7 +45,7 @@ class HandPath:
         object.__setattr__(self, "durations", d)
 
     @classmethod
-    def through(cls, times, points, velocities) -> "HandPath":
+    def through(cls, times, points, velocities) -> HandPath:
         """Cubic Hermite segments through waypoints (t_i, p_i, v_i), written as Bezier control points."""
         t = np.asarray(times, dtype=np.float64)
         p = np.asarray(points, dtype=np.float64)
