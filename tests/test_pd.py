@@ -67,7 +67,9 @@ def test_cmaes_and_gradient_search_agree():
     gfit = p.space.as_dict(g.best_values)
     for name in ("J", "K_D"):
         assert gfit[name] == pytest.approx(fit[name], rel=0.01), name
-    assert g.best_loss < 1.5 * r.best_loss
+    # the same loss for both (CMA-ES minimised the residuals' sum of squares, Adam the mean error)
+    loss = search.mean_loss(p, np.stack([g.best_values, r.best_values]), p.train)[0]
+    assert loss[0] < 1.5 * loss[1]
 
 
 def test_held_out_error_drops_with_fitted_parameters():

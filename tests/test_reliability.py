@@ -11,7 +11,7 @@ import pytest
 
 from wrenorm.cli import main
 
-FIT = ["fit", "pd", "--quiet", "--no-record", "--generations", "25", "--seed", "7"]
+FIT = ["fit", "pd", "--search", "cmaes", "--quiet", "--no-record", "--generations", "25", "--seed", "7"]
 
 
 def _fitted(out):
@@ -82,6 +82,9 @@ def test_every_candidate_blowing_up_says_so():
         def errors(self, values, conditions):
             return np.full((len(values), len(conditions)), np.nan)
 
+        def residuals(self, values, conditions):
+            return np.full((len(values), 3), np.nan)
+
     with pytest.raises(AllCandidatesFailed, match="every one of"):
         search.cmaes(Exploding(100.0), generations=3, quiet=True)
 
@@ -95,6 +98,11 @@ def test_blowups_are_counted_not_fatal():
             e = super().errors(values, conditions)
             e[::3] = np.inf  # a third of the candidates blow up
             return e
+
+        def residuals(self, values, conditions):
+            r = super().residuals(values, conditions)
+            r[::3] = np.nan
+            return r
 
     r = search.cmaes(Flaky(100.0), generations=5, popsize=12, quiet=True)
     assert r.blowups == 5 * 4

@@ -27,16 +27,19 @@ def save_figure(fig, path: Path) -> None:
 def plot_search(path: Path, problem, history: dict) -> None:
     """Loss per generation and each free parameter relative to its measured value."""
     plt = _figure()
-    hist = history.get("cmaes", [])
+    cm = history.get("cmaes", [])
+    hist = cm + [{"generation": len(cm) + h["iteration"], "best": h["cost"], "values": h["values"]}
+                 for h in history.get("least_squares", [])]
     if not hist:
         return
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8))
     gens = [h["generation"] for h in hist]
     ax0.semilogy(gens, [max(h["best"], 1e-300) for h in hist], label="best")
-    ax0.semilogy(gens, [max(h["median"], 1e-300) for h in hist], label="median", alpha=0.6)
-    ax0.set_xlabel("generation")
-    ax0.set_ylabel("training loss")
-    ax0.set_title(f"{problem.task}: CMA-ES")
+    if cm:
+        ax0.semilogy(gens[:len(cm)], [max(h["median"], 1e-300) for h in cm], label="median", alpha=0.6)
+    ax0.set_xlabel("generation / iteration")
+    ax0.set_ylabel("search objective")
+    ax0.set_title(f"{problem.task}: " + " then ".join(k.replace("_", " ") for k in history))
     ax0.legend()
     vals = np.array([h["values"] for h in hist])
     for i, p in enumerate(problem.space.parameters):

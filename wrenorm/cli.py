@@ -21,6 +21,7 @@ from .options import OneLineParser, add_list, add_number
 from .system import resolve, systems
 
 CORE_VERBS = ("fit", "flow", "view", "bench")
+SEARCHES = ("cmaes", "least-squares", "cmaes+least-squares")
 
 
 def _default_out(name: str) -> Path:
@@ -53,6 +54,10 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
 def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
     d = system.search
     _run_arguments(p)
+    p.add_argument("--search", choices=list(SEARCHES), default=d.method,
+                   help=f"how the parameters are searched (this system's default: {d.method}): cmaes for event and "
+                        "contact observables, least-squares (Levenberg-Marquardt) for smooth residuals, "
+                        "cmaes+least-squares for a global search polished locally")
     add_number(p, "--generations", default=d.generations, lo=1, hi=100000, integer=True, help="CMA-ES generations")
     add_number(p, "--popsize", default=d.popsize, lo=4, hi=1_000_000, integer=True,
                help="CMA-ES population (default: pycma's for the dimension when unset)")
@@ -160,8 +165,10 @@ def cmd_fit(args) -> int:
     device = _device(args.device)
     problems = resolve(system.build)(args, device)
     _apply_parameter_set(problems, args)
+    if args.search != "cmaes" and not all(p.has_residuals for p in problems):
+        raise InputError("--search", "search", f"{args.search} needs residuals, which {args.system} does not expose")
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=args.popsize, sigma0=args.sigma0,
-                           polish=args.polish, restarts=args.restarts, searches=args.searches)
+                           polish=args.polish, restarts=args.restarts, searches=args.searches, method=args.search)
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
                       state="search_state.json", inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:
@@ -174,7 +181,7 @@ def cmd_fit(args) -> int:
 
 
 _ENGINE_OPTIONS = {"command", "system", "out", "resume", "force", "quiet", "no_record", "device", "seed",
-                   "generations", "popsize", "sigma0", "polish", "restarts", "searches"}
+                   "generations", "popsize", "sigma0", "polish", "restarts", "searches", "search"}
 
 
 def _system_options(args) -> dict:

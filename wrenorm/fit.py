@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import search as searches
+from .jacobian import Jacobian
 from .problem import Problem, finite_or_inf
 from .restarts import identifiability_restarts
 from .results import SCHEMA, versions, write_json
@@ -36,6 +37,7 @@ class FitSettings:
     polish: int = 0
     restarts: int = 0
     searches: int = 1  # seeded searches side by side in the main fit (width on a wide device)
+    method: str = "cmaes"  # "cmaes", "least-squares" or "cmaes+least-squares" (a global search, then polished)
 
 
 def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> dict:
@@ -76,15 +78,31 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     t0 = time.perf_counter()
     space = problem.space
     measured = space.measured
-    res = searches.cmaes(
-        problem, seed=settings.seed, popsize=settings.popsize, generations=settings.generations,
-        sigma0=settings.sigma0, start=start, checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
-        searches=settings.searches, settings=asdict(settings) | (identity or {}),
-    )
+    saved = asdict(settings) | (identity or {})
+    jac, history, methods = None, {}, []
+    if settings.method.startswith("cmaes"):
+        res = searches.cmaes(
+            problem, seed=settings.seed, popsize=settings.popsize, generations=settings.generations,
+            sigma0=settings.sigma0, start=start, checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
+            searches=settings.searches, settings=saved)
+        history["cmaes"], methods = res.history, ["cmaes"]
+    else:
+        searches.check_resume(out / STATE_FILE, problem, saved, resume)
+    if settings.method.endswith("least-squares"):
+        from .least_squares import levenberg_marquardt
+
+        first = res.best_values if methods else (space.measured if start is None else start)
+        lsq, r, J = levenberg_marquardt(problem, first, quiet=quiet)
+        history["least_squares"] = lsq.history
+        methods.append("least-squares")
+        if not methods[:-1] or lsq.best_loss <= res.best_loss:
+            n_data = len(r) - len(space.priors)
+            jac = Jacobian(J[:n_data], r[:n_data], ["central"] * len(space.free), 0)
+            lsq.evaluations += res.evaluations if methods[:-1] else 0
+            res = lsq
     t_search = time.perf_counter() - t0
-    methods = ["cmaes"]
     polish_report = None
-    fitted, history = res.best_values, {"cmaes": res.history}
+    fitted = res.best_values
     if settings.polish and problem.differentiable:
         g = searches.polish(problem, fitted, iterations=settings.polish, quiet=quiet)
         history["gradient"] = g.history
@@ -95,7 +113,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         polish_report = {"iterations": settings.polish, "loss_before": res.best_loss, "loss_after": g.best_loss,
                          "kept": improved}
     losses, _ = searches.mean_loss(problem, np.stack([measured, fitted]), problem.train)
-    unc = uncertainty(problem, fitted)
+    unc = uncertainty(problem, fitted, jac=jac)
     params = {}
     for i, p in enumerate(space.parameters):
         params[p.name] = {
@@ -123,7 +141,9 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         "uncertainty": {k: v for k, v in unc.items() if k not in ("std", "data_only_std")},
         "search": {
             "methods": methods,
-            "generations": len(res.history),
+            "generations": len(history.get("cmaes", [])),
+            "least_squares_iterations": len(history.get("least_squares", [])) - 1 if "least_squares" in history
+            else None,
             "evaluations": res.evaluations,
             "blowups": res.blowups,
             "stop": res.stop,
@@ -182,11 +202,14 @@ def _record(problem, out, result, history, fitted, measured, quiet):
     try:
         rec.log_text("summary", _summary_markdown(result))
         names = problem.space.names
-        for h in history.get("cmaes", []):
-            g = h["generation"]
-            rec.log_scalar("search/loss/best", g, h["best"], timeline="generation")
-            rec.log_scalar("search/loss/median", g, h["median"], timeline="generation")
-            for name, v, m in zip(names, h["values"], problem.space.measured):
+        steps = [(h["generation"], h["best"], h.get("median"), h["values"]) for h in history.get("cmaes", [])]
+        # least-squares iterations continue the search's timeline after any CMA-ES generations
+        steps += [(len(steps) + h["iteration"], h["cost"], None, h["values"]) for h in history.get("least_squares", [])]
+        for g, best, median, values in steps:
+            rec.log_scalar("search/loss/best", g, best, timeline="generation")
+            if median is not None:
+                rec.log_scalar("search/loss/median", g, median, timeline="generation")
+            for name, v, m in zip(names, values, problem.space.measured):
                 if not problem.space[name].frozen:
                     rec.log_scalar(f"search/parameters/{name}", g, v / m if m else v, timeline="generation")
         problem.record(rec, fitted, measured)

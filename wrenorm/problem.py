@@ -36,6 +36,10 @@ class Problem(ABC):
     resolution:  what sets the coarse model's resolution, e.g. {"f_sim": 100.0}
     device:      Warp device string ("cpu" or "cuda:0")
     error_doc:   one sentence saying what `errors` measures (goes into result.json)
+    least_squares: the search minimises the sum of squared residuals (and prior residuals) instead of the
+                 mean error; set it where the residuals are the observable (a Gaussian likelihood)
+    noise_normalised: the residuals are in units of their measurement noise, so the uncertainty takes the
+                 noise as given (sigma = 1) rather than estimating it from the misfit
     """
 
     task: str
@@ -46,6 +50,8 @@ class Problem(ABC):
     resolution: dict
     device: str = "cpu"
     error_doc: str = ""
+    least_squares: bool = False
+    noise_normalised: bool = False
 
     @abstractmethod
     def errors(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .problem import Problem, finite_or_inf
-from .search import mean_loss, restarts
+from .search import objective, restarts
 
 PINNED_SPREAD = 0.05  # max - min of a parameter's normalised value across the good searches
 GOOD_LOSS_FACTOR = 2.0  # a search "fits as well" when its training loss is within this factor of the best
@@ -23,7 +23,7 @@ def identifiability_restarts(problem: Problem, fitted: np.ndarray, seeds: list[i
     res = restarts(problem, seeds, popsize=popsize, generations=generations, sigma0=sigma0, quiet=quiet)
     vals = np.array([r.best_values for r in res])
     loss = np.array([r.best_loss for r in res])
-    fitted_loss = float(mean_loss(problem, fitted[None], problem.train)[0][0])
+    fitted_loss = float(objective(problem, fitted[None])[0])
     if problem.held_out:
         held = finite_or_inf(problem.errors(np.concatenate([fitted[None], vals]), problem.held_out))
         held_fit, held = held[0], held[1:]

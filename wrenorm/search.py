@@ -54,6 +54,19 @@ def mean_loss(problem: Problem, values: np.ndarray, conditions) -> tuple[np.ndar
     return loss, errs
 
 
+def objective(problem: Problem, values: np.ndarray) -> np.ndarray:
+    """(B,) what the searches minimise on the training conditions: the mean error plus the prior penalty, or,
+    for a least-squares problem, the sum of squared residuals and prior residuals (inf where not finite)."""
+    values = np.atleast_2d(values)
+    if not problem.least_squares:
+        return mean_loss(problem, values, problem.train)[0]
+    r = np.concatenate([np.asarray(problem.residuals(values, problem.train), np.float64),
+                        problem.space.prior_residuals(values)], axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        cost = np.sum(r * r, axis=1)
+    return np.where(np.isfinite(cost), cost, np.inf)
+
+
 def _progress(msg: str, quiet: bool) -> None:
     if not quiet:
         print(msg, file=sys.stderr, flush=True)
@@ -82,7 +95,7 @@ def cmaes(
     best one returned with the others' optima in `history[-1]["optima"]`."""
     space = problem.space
     if not space.free:
-        loss, _ = mean_loss(problem, space.measured[None], problem.train)
+        loss = objective(problem, space.measured[None])
         return SearchResult("cmaes", space.measured.copy(), float(loss[0]), stop="no free parameters", seed=seed)
     seeds = [seed + 1000 * k for k in range(max(1, int(searches)))]
     es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
@@ -96,7 +109,7 @@ def cmaes(
     while not es.done:
         U = es.ask()
         values = space.from_unit(U)
-        loss, _ = mean_loss(problem, values, problem.train)
+        loss = objective(problem, values)
         es.tell(loss)
         rec = _generation_record(es, values, loss)
         history.append(rec)
@@ -132,13 +145,15 @@ def _generation_record(es: BatchedCMAES, values: np.ndarray, loss: np.ndarray) -
             "blowups": int((~ok).sum()), "sigma": es.sigma(es.searches.index(lead)), "values": values[i].tolist()}
 
 
-def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
+def _saved_state(checkpoint, saved: dict) -> dict:
+    """The state a run in progress left, after checking that it was made with the same parameter set and
+    settings as this run (naming the first that differs)."""
     src = str(checkpoint)
     try:
         state = json.loads(Path(checkpoint).read_text())
     except (OSError, UnicodeDecodeError, ValueError) as e:
         raise InputError(src, "file", f"cannot be read as a search state: {e}") from None
-    if not isinstance(state, dict) or "search" not in state or not isinstance(state.get("history"), list):
+    if not isinstance(state, dict) or not isinstance(state.get("history"), list):
         raise InputError(src, "file", "is not a wrenorm search state")
     if state.get("free") != saved["free"]:
         raise InputError(src, "free parameters", f"the interrupted search fits {state.get('free')}, this run "
@@ -148,8 +163,24 @@ def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
         if old.get(key) != new.get(key):
             raise InputError(src, key, f"the interrupted fit ran with {old.get(key)!r}, this run with "
                                        f"{new.get(key)!r}; resume with the same settings")
-    es.replay(state["search"], src)
+    return state
+
+
+def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
+    state = _saved_state(checkpoint, saved)
+    if "search" not in state:
+        raise InputError(str(checkpoint), "file", "holds no CMA-ES state to continue")
+    es.replay(state["search"], str(checkpoint))
     return state["history"]
+
+
+def check_resume(checkpoint, problem: Problem, settings: dict, resume: bool) -> None:
+    """A search without per-generation state (least squares, a second or so): check a resumed run's settings,
+    then record this run's, so that a later --resume can check them in turn."""
+    saved = {"free": problem.space.free_names, "settings": settings}
+    if resume and Path(checkpoint).exists():
+        _saved_state(checkpoint, saved)
+    write_json(checkpoint, saved | {"history": []})
 
 
 def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations: int = 60, sigma0: float = 0.2,
@@ -163,8 +194,7 @@ def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations:
     t0 = time.perf_counter()
     while not es.done:
         U = es.ask()
-        loss, _ = mean_loss(problem, space.from_unit(U), problem.train)
-        es.tell(loss)
+        es.tell(objective(problem, space.from_unit(U)))
         _progress(f"[{problem.task}] {len(set(es.owners.tolist()) | set(es.active))} searches, gen "
                   f"{es.generation:3d}/{generations}  best {min(s.best_loss for s in es.searches):.4e}  "
                   f"{time.perf_counter() - t0:6.1f}s", quiet)

@@ -23,7 +23,21 @@ def _std(J: np.ndarray, sigma2: float):
     return cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), JtJ
 
 
-def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dict:
+DETERMINED = 0.3  # a parameter is determined by the data when its data-only std is below this share of its value
+
+
+def _relative(space, fitted: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """std as a share of the value: e-folds for log-scale parameters, std / |value| for linear ones."""
+    free = space.free
+    v = np.asarray(fitted, np.float64)[space.free_mask]
+    log = np.array([p.scale == "log" for p in free])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(log, std / np.maximum(np.abs(v), 1e-300), std / np.maximum(np.abs(v), 1e-300))
+
+
+def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=None) -> dict:
+    """jac: a wrenorm.jacobian.Jacobian of the training residuals in unit coordinates at `fitted` (a
+    least-squares search has one at its optimum), else computed here in one batched evaluation."""
     space = problem.space
     out = {"method": None, "std": {}, "correlation": None, "undetermined": [], "warning": None}
     free = space.free
@@ -32,7 +46,8 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         return out
     u0 = np.clip(space.to_unit(fitted), 0.0, 1.0)
     F = len(u0)
-    jac = jacobian(lambda U: problem.residuals(space.from_unit(U), problem.train), u0, step, 0.0, 1.0)
+    if jac is None:
+        jac = jacobian(lambda U: problem.residuals(space.from_unit(U), problem.train), u0, step, 0.0, 1.0)
     r0 = jac.f0
     if not np.all(np.isfinite(r0)):
         out["method"] = "none: residuals not finite at the optimum"
@@ -49,18 +64,27 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         return out
     J = jac.J  # (R, F) in unit coordinates
     dof = max(len(r0) - F, 1)
-    sigma2 = float(r0 @ r0) / dof
+    chi2_dof = float(r0 @ r0) / dof
+    # noise-normalised residuals: the noise is known (sigma = 1); else estimate it from the misfit
+    sigma2 = 1.0 if problem.noise_normalised else chi2_dof
     cov_u, std_u, JtJ = _std(J, sigma2)
     scale = np.abs(space.dvalue_dunit(fitted))
     col_norm = np.linalg.norm(J, axis=0)
     und = [p.name for i, p in enumerate(free)
            if std_u[i] > UNDETERMINED_FRACTION or col_norm[i] < 1e-9 * max(col_norm.max(), 1e-300)]
+    data_rel = _relative(space, fitted, std_u * scale)
+    out["determined_by_data"] = [p.name for p, x in zip(free, data_rel) if x < DETERMINED]
+    if problem.noise_normalised:
+        out["chi2_per_dof"] = chi2_dof
+        # where the model misses the data by more than their noise, the std with the misfit taken as noise too
+        infl = np.sqrt(max(chi2_dof, 1.0))
+        out["std_inflated_by_misfit"] = {p.name: float(s) for p, s in zip(free, infl * std_u * scale)}
     if n_prior:
         # the prior rows are exact (no noise estimate): their residuals are already in units of their scale
         data_std = {p.name: float(s) for p, s in zip(free, std_u * scale)}
         cov_u, std_u, JtJ = _std(np.concatenate([J / np.sqrt(sigma2), space.prior_jacobian_unit(fitted)]), 1.0)
         out["data_only_std"] = data_std
-        out["held_by_prior"] = [n for n in und if space[n].prior is not None]
+        out["held_by_prior"] = [p.name for p in free if p.prior is not None and p.name not in out["determined_by_data"]]
     std = std_u * scale
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_u / np.outer(std_u, std_u)

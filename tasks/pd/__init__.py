@@ -5,6 +5,6 @@ from wrenorm.tasks.pd import options
 
 SYSTEM = from_package(
     __name__, "a PD-controlled joint at finite simulation frequency (K_D, J and feed-forward gains)",
-    search=SearchDefaults(generations=60, popsize=24, polish=20),
+    search=SearchDefaults(method="least-squares", generations=60, popsize=24),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.pd.problem:flow_problems", "f_sim [Hz]", generations=80,
               analytic="wrenorm.tasks.pd.problem:flow_analytic"))

@@ -43,6 +43,7 @@ def _rel(fit, pred, scale):
 
 class ArmProblem(Problem):
     task = "pd"
+    least_squares = True  # the trajectory residuals are the observable: fit their sum of squares
     error_doc = "mean over the two joints of RMS(q_sim - q_ref) / RMS(q_ref) (per condition)"
 
     def __init__(self, f_sim: float, device: str = "cpu", tolerance: float = 0.02):

@@ -191,6 +191,7 @@ def parameter_space(J: float, KP: float, KD: float) -> ParameterSpace:
 
 class PDProblem(Problem):
     task = "pd"
+    least_squares = True  # the trajectory residuals are the observable: fit their sum of squares
     error_doc = "RMS of q_sim - q_ref over the command, divided by the RMS of q_ref (per condition)"
 
     def __init__(self, f_sim: float, integrator: str = "semi-implicit", device: str = "cpu",
