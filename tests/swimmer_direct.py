@@ -20,9 +20,6 @@ from wrenorm.kernels.swimmer.kernel import (
     vec12d,
 )
 
-wp.config.quiet = True
-
-
 sym6 = wp.types.vector(length=6, dtype=float)  # a symmetric 3x3: a00, a01, a11, a02, a12, a22
 
 

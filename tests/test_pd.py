@@ -161,3 +161,24 @@ def test_measured_log_reference(tmp_path):
     assert r["parameters"]["J"]["fitted"] == pytest.approx(0.0525, rel=0.03)
     v = r["validation"]["conditions"]["log_validate"]
     assert v["fitted_error"] < v["measured_error"]
+
+
+@pytest.mark.parametrize("KD", [0.5, 2.0, 5.0])  # under-, critically and over-damped
+def test_exact_reference_equals_dop853(KD):
+    """The reference the fit uses (exact propagation of the linear joint, Gauss-Legendre forcing) against an
+    independent adaptive integrator at 1e-11 relative tolerance, on every command."""
+    from wrenorm.tasks.pd.problem import (
+        DURATION,
+        HELD_OUT_COMMANDS,
+        TRAIN_COMMANDS,
+        continuous_reference,
+        exact_reference,
+    )
+
+    J, KP = 0.05, 20.0
+    assert KD != 2.0 or KD == pytest.approx(2 * np.sqrt(J * KP))
+    for f in (50.0, 333.0):
+        t = np.arange(int(round(DURATION * f)) + 1) / f
+        for cmd in TRAIN_COMMANDS + HELD_OUT_COMMANDS:
+            a, b = exact_reference(cmd, J, KP, KD, t), continuous_reference(cmd, J, KP, KD, t)
+            assert np.max(np.abs(a - b)) < 1e-9 * np.sqrt(np.mean(b ** 2)), (f, cmd.name)

@@ -24,31 +24,32 @@ def save_figure(fig, path: Path) -> None:
     write_atomic(path, buf.getvalue())
 
 
-def plot_search(path: Path, problem, history: dict) -> None:
-    """Loss per generation and each free parameter relative to its measured value."""
-    plt = _figure()
+def search_charts(problem, history: dict) -> list[str]:
+    """SVG charts of a fit's search: the objective per generation / iteration, and each free parameter
+    relative to its measured value."""
+    from wrenorm.viz.svg import line_chart
+
     cm = history.get("cmaes", [])
     hist = cm + [{"generation": len(cm) + h["iteration"], "best": h["cost"], "values": h["values"]}
                  for h in history.get("least_squares", [])]
     if not hist:
-        return
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8))
+        return []
     gens = [h["generation"] for h in hist]
-    ax0.semilogy(gens, [max(h["best"], 1e-300) for h in hist], label="best")
+    series = [{"x": gens, "y": [h["best"] for h in hist], "label": "best"}]
     if cm:
-        ax0.semilogy(gens[:len(cm)], [max(h["median"], 1e-300) for h in cm], label="median", alpha=0.6)
-    ax0.set_xlabel("generation / iteration")
-    ax0.set_ylabel("search objective")
-    ax0.set_title(f"{problem.task}: " + " then ".join(k.replace("_", " ") for k in history))
-    ax0.legend()
+        series.append({"x": gens[:len(cm)], "y": [h["median"] for h in cm], "label": "median", "dash": "4,3"})
+    how = " then ".join(k.replace("_", " ") for k in history)
+    loss = line_chart(series, f"{problem.task}: search objective ({how})", "generation / iteration", "objective",
+                      log_y=True)
     vals = np.array([h["values"] for h in hist])
-    for i, p in enumerate(problem.space.parameters):
-        if p.frozen:
-            continue
-        ax1.plot(gens, vals[:, i] / p.measured if p.measured else vals[:, i], label=p.name)
-    ax1.axhline(1.0, color="k", lw=0.5)
-    ax1.set_xlabel("generation")
-    ax1.set_ylabel("value / measured")
-    ax1.legend(fontsize=7)
-    save_figure(fig, path)
-    plt.close(fig)
+    params = [{"x": gens, "y": vals[:, i] / p.measured if p.measured else vals[:, i], "label": p.name}
+              for i, p in enumerate(problem.space.parameters) if not p.frozen]
+    return [loss, line_chart(params, "parameters during the search", "generation / iteration", "value / measured",
+                             hline=1.0, hline_label="measured")]
+
+
+def write_search_svg(path: Path, problem, history: dict) -> None:
+    charts = search_charts(problem, history)
+    if charts:
+        write_atomic(path, "<!DOCTYPE html><meta charset=\"utf-8\"><body style=\"margin:0\">" + "".join(charts)
+                     + "</body>\n")

@@ -6,6 +6,7 @@ Ratios are measured in one run on one machine (shared machines are noisy: compar
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import platform
@@ -54,18 +55,38 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def timed_fit(system: str, args: list[str], device: str = "cpu") -> dict:
+    """One default fit as a user runs it, a whole process: its wall time, the fit's own split of it
+    (result.json `timing`), the candidates it evaluated and its held-out error."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "wrenorm", "fit", system, "--quiet", "--out", f"{tmp}/run",
+               "--device", "cuda" if device.startswith("cuda") else "cpu", *args]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        row = {"task": system, "command": " ".join(["python -m wrenorm fit", system, *args]), "wall_seconds": wall,
+               "ok": proc.returncode == 0}
+        if proc.returncode == 0:
+            res = json.loads((Path(tmp) / "run" / "result.json").read_text())
+            runs = res.get("runs", [res])
+            row.update(candidates=sum(r["search"]["evaluations"] for r in runs),
+                       held_out_error=runs[0]["validation"].get("mean_fitted_error"),
+                       timing=runs[0].get("timing"), fit_wall_seconds=res.get("wall_seconds"))
+        else:
+            row["error"] = proc.stderr[-300:]
+    return row
+
+
 def bench_fits(device: str, tasks: list[str]) -> list[dict]:
     rows = []
     for task in tasks:
-        with tempfile.TemporaryDirectory() as tmp:
-            cmd = [sys.executable, "-m", "wrenorm", "fit", task, "--quiet", "--no-record", "--out", f"{tmp}/run",
-                   "--device", "cuda" if device.startswith("cuda") else "cpu"]
-            t0 = time.perf_counter()
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            wall = time.perf_counter() - t0
-        rows.append({"task": task, "wall_seconds": wall, "ok": proc.returncode == 0,
-                     "command": " ".join(["python -m wrenorm fit", task])})
-        _log(f"fit {task}: {wall:6.1f} s" + ("" if proc.returncode == 0 else f"  FAILED: {proc.stderr[-300:]}"))
+        row = timed_fit(task, [], device)
+        rows.append(row)
+        t = row.get("timing") or {}
+        _log(f"fit {task}: {row['wall_seconds']:6.1f} s" + (
+            f" (start-up {t.get('start_up_s', 0):.2f}, search {t.get('search_s', 0):.2f}, validation "
+            f"{t.get('validation_s', 0):.2f}, writing {t.get('writing_s', 0):.2f})" if row["ok"] else
+            f"  FAILED: {row.get('error')}"))
     return rows
 
 
@@ -84,18 +105,24 @@ def _table(res: dict) -> str:
     if res.get("parity"):
         lines += [f"CPU vs CUDA on the same inputs: {json.dumps(res['parity'])}", ""]
     if res.get("fits"):
-        lines += ["Default fits (end to end, incl. start-up and Warp cache load):", "", "| command | wall s |",
-                  "|---|---|"]
-        lines += [f"| `{r['command']}` | {r['wall_seconds']:.1f}{'' if r['ok'] else ' (failed)'} |"
-                  for r in res["fits"]]
+        lines += ["Default fits, whole processes (warm kernel cache); the fit's own split of its time:", "",
+                  "| command | wall s | start-up | search | validation | writing | candidates | held-out error |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in res["fits"]:
+            t = r.get("timing") or {}
+            cells = [f"{t.get(k, float('nan')):.2f}" for k in ("start_up_s", "search_s", "validation_s", "writing_s")]
+            lines.append(f"| `{r['command']}` | {r['wall_seconds']:.2f}{'' if r['ok'] else ' (failed)'} | "
+                         + " | ".join(cells) + f" | {r.get('candidates', '')} | {r.get('held_out_error', '')} |")
+        lines.append("")
+    for peer in (res.get("peers") or {}).values():
+        lines += [peer["table"], ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
 def run(args) -> int:
-    import warp as wp
+    from .warp_init import init_warp
 
-    wp.config.quiet = True
-    wp.init()
+    wp = init_warp(args.device)
     if args.device == "cuda" and not wp.is_cuda_available():
         raise InputError("--device", "device", "cuda requested but no CUDA device is available")
     device = "cuda:0" if args.device == "cuda" else "cpu"
@@ -123,6 +150,12 @@ def run(args) -> int:
         _log(f"CPU vs {device}: {res['parity']}")
     if not args.no_fits:
         res["fits"] = bench_fits(device, list(registered))
+        res["peers"] = {}
+        for name in only:
+            module = str(registered[name].bench or "").partition(":")[0]
+            peer = getattr(importlib.import_module(module), "peer", None) if module else None
+            if peer is not None:
+                res["peers"][name] = peer(device)
     table = _table(res)
     write_json(args.out / "results.json", res)
     write_atomic(args.out / "results.md", table)

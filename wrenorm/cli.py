@@ -11,6 +11,7 @@ and the problem, and exit code 2, never a traceback; Ctrl-C ends with exit 130.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import time
@@ -29,10 +30,9 @@ def _default_out(name: str) -> Path:
 
 
 def _device(name: str) -> str:
-    import warp as wp
+    from .warp_init import init_warp
 
-    wp.config.quiet = True
-    wp.init()
+    wp = init_warp(name)
     if name.startswith("cuda") and not wp.is_cuda_available():
         raise InputError("--device", "device", "cuda requested but no CUDA device is available")
     return "cuda:0" if name.startswith("cuda") else "cpu"
@@ -93,6 +93,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     registered = systems()
     p = OneLineParser(prog="wrenorm", description="Fit effective, resolution-dependent parameters of coarse robot "
                                                    "models (renormalisation) with batched Warp kernels.")
+    p.add_argument("--verbose", action="store_true", help="show Warp's start-up and module-load lines")
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     fit = sub.add_parser("fit", help="fit a system's effective parameters")
     fit_sub = fit.add_subparsers(dest="system", required=True, parser_class=OneLineParser)
@@ -271,12 +272,12 @@ def _dispatch(args) -> int:
 
 
 def main(argv=None) -> int:
-    import warp as wp
-
-    # before any task module initialises Warp: no banner or missing-driver notice in users' output
-    wp.config.log_level = wp.LOG_ERROR
     try:
         args = build_parser(argv).parse_args(argv)
+        from .warp_init import init_warp
+
+        # before any task module initialises Warp: no banner or missing-driver line in users' output
+        init_warp(getattr(args, "device", "cpu") or "cpu", args.verbose)
         return _dispatch(args)
     except SystemExit as e:  # argparse: --help (0) or a bad option (2, already reported on one line)
         return int(e.code or 0) if isinstance(e.code, int) or e.code is None else 2
@@ -293,3 +294,6 @@ def main(argv=None) -> int:
         where = e.filename or "file system"
         print(f"wrenorm: error: {where}: {e.strerror or e.__class__.__name__}", file=sys.stderr)
         return 2
+    finally:
+        # Python's last collections walk Warp's ~100k objects (half a second at exit): they live until exit anyway
+        gc.freeze()

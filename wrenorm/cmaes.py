@@ -15,6 +15,8 @@ to other settings (or was edited) is refused.
 from __future__ import annotations
 
 import hashlib
+import sys
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +25,28 @@ from wrenorm.errors import InputError
 
 BLOWUP_LOSS = 1e30  # pycma ranks candidates, so a blown-up candidate only has to rank last
 STATE_SCHEMA = "wrenorm.cmaes-state/1"
+# pycma imports these for optional extras (plots, a surrogate's rank statistics) inside try/except ImportError;
+# they cost 2 s of every fit's start-up and the searches use neither
+_CMA_OPTIONAL = ("matplotlib", "matplotlib.pyplot", "scipy.stats")
+
+
+def import_cma():
+    """pycma, imported without its optional plotting and statistics dependencies (seen as absent while it
+    imports, so it takes its own fallbacks); later imports of those modules elsewhere are unaffected."""
+    if "cma" in sys.modules:
+        return sys.modules["cma"]
+    blocked = [m for m in _CMA_OPTIONAL if m not in sys.modules]
+    for m in blocked:
+        sys.modules[m] = None  # an import of a None entry raises ImportError
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import cma
+    finally:
+        for m in blocked:
+            if sys.modules.get(m, 0) is None:
+                del sys.modules[m]
+    return cma
 
 
 @dataclass
@@ -54,7 +78,7 @@ class BatchedCMAES:
 
     def __init__(self, x0s, sigma0: float, lower, upper, seeds, popsize: int | None = None,
                  max_generations: int = 100, tolfun: float = 1e-12, tolx: float = 1e-10):
-        import cma
+        cma = import_cma()
 
         x0s = np.atleast_2d(np.asarray(x0s, dtype=np.float64))
         self.dim = x0s.shape[1]

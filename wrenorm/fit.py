@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import search as searches
+from .clock import process_age
 from .jacobian import Jacobian
 from .problem import Problem, finite_or_inf
 from .restarts import identifiability_restarts
@@ -75,16 +76,19 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     identity: what else a resumed run must share with the interrupted one (inputs' hashes, versions)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    t_start = process_age()
     t0 = time.perf_counter()
     space = problem.space
     measured = space.measured
     saved = asdict(settings) | (identity or {})
     jac, history, methods = None, {}, []
+    first_generation = []  # seconds from the process's start to the first evaluated generation
     if settings.method.startswith("cmaes"):
         res = searches.cmaes(
             problem, seed=settings.seed, popsize=settings.popsize, generations=settings.generations,
             sigma0=settings.sigma0, start=start, checkpoint=out / STATE_FILE, resume=resume, quiet=quiet,
-            searches=settings.searches, settings=saved)
+            searches=settings.searches, settings=saved,
+            on_generation=lambda rec: first_generation or first_generation.append(process_age()))
         history["cmaes"], methods = res.history, ["cmaes"]
     else:
         searches.check_resume(out / STATE_FILE, problem, saved, resume)
@@ -171,8 +175,11 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         _record(problem, out, result, history, fitted, measured, quiet)
     _plot(out, problem, history)
     result["wall_seconds"] = time.perf_counter() - t0
-    result["timing"] = {"search_s": t_search, "validation_s": t_write - t_validate,
-                        "writing_s": time.perf_counter() - t_write, "after_search_s": t_validate - t0 - t_search}
+    result["timing"] = {"start_up_s": t_start, "search_s": t_search, "validation_s": t_write - t_validate,
+                        "writing_s": time.perf_counter() - t_write, "uncertainty_s": t_validate - t0 - t_search,
+                        "first_generation_after_process_start_s": first_generation[0] if first_generation else None,
+                        "meaning": "start_up_s: from the process's start to the fit's start (interpreter, imports, "
+                                   "building the problem: references, kernels); the rest in the fit's order"}
     write_json(out / "result.json", result)
     return result
 
@@ -220,11 +227,9 @@ def _record(problem, out, result, history, fitted, measured, quiet):
 
 
 def _plot(out, problem, history):
-    try:
-        from wrenorm.viz.plots import plot_search
-    except ImportError:  # matplotlib missing: plots are a convenience, never fatal
-        return
-    plot_search(out / "search.png", problem, history)
+    from wrenorm.viz.plots import write_search_svg
+
+    write_search_svg(out / "search.html", problem, history)
 
 
 def _label(problem: Problem) -> str:

@@ -29,8 +29,11 @@ def _jsonable(obj):
     return obj
 
 
-def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
-    """Write to a temporary file in the same folder, fsync, then rename over `path`."""
+def write_atomic(path: str | os.PathLike, data: bytes | str, durable: bool = True) -> Path:
+    """Write to a temporary file in the same folder, then rename over `path`: a reader sees the old file or the
+    new one, never a part. durable: fsync before the rename, so the new file also survives a power loss (a
+    per-generation checkpoint skips it: the kernel's page cache survives a killed process, and the fsync costs
+    more than the generation)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     mode = "wb" if isinstance(data, bytes) else "w"
@@ -39,7 +42,8 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
         with os.fdopen(fd, mode) as f:
             f.write(data)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -48,8 +52,8 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     return path
 
 
-def write_json(path: str | os.PathLike, obj: dict) -> Path:
-    return write_atomic(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n")
+def write_json(path: str | os.PathLike, obj: dict, durable: bool = True) -> Path:
+    return write_atomic(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", durable)
 
 
 def versions() -> dict:

@@ -119,7 +119,7 @@ def cmaes(
                   f"median {rec['median']:.4e}  sigma {rec['sigma']:.3g}  blowups {rec['blowups']}  "
                   f"{time.perf_counter() - t0:6.1f}s", quiet)
         if checkpoint:
-            write_json(checkpoint, saved | {"search": es.state(), "history": history})
+            write_json(checkpoint, saved | {"search": es.state(), "history": history}, durable=False)
         if _SLOW:
             time.sleep(_SLOW)
     found = [s for s in es.finish() if np.isfinite(s.best_loss)]

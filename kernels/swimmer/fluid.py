@@ -6,8 +6,6 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-wp.config.quiet = True
-
 MINVAL = 1e-15  # mjMINVAL
 
 

@@ -39,8 +39,6 @@ import warp as wp
 
 from wrenorm.kernels.swimmer.fluid import fluid_planar, geo9
 
-wp.config.quiet = True
-
 ROW = 10  # per part per sample: px, py, cos psi, sin psi, pdx, pdy, psid, pddx, pddy, psidd
 
 

@@ -8,7 +8,6 @@ A (3 numbers) and the full K_D^sim matrix (4); K_P frozen (the gauge, as for one
 from __future__ import annotations
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
@@ -81,6 +80,8 @@ class ArmProblem(Problem):
         return Condition(_name(pair), {"t": t, "q_d": q_d[:-1], "qd_d": qd_d[:-1], "q_ref": q_ref})
 
     def _reference(self, pair, t):
+        from scipy.integrate import solve_ivp
+
         geo = self.geo
 
         def rhs(tt, y):

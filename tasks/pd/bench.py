@@ -57,3 +57,47 @@ def kernel_modules() -> dict:
     from wrenorm.kernels import arm, pd
 
     return {"pd": pd, "arm": arm}
+
+
+PEER_REPEATS = 3
+
+
+def peer(device: str, repeats: int = PEER_REPEATS) -> dict:
+    """The paper's PD job fitted by wrenorm and by MuJoCo's mujoco.sysid, whole processes side by side (runs
+    interleaved, medians): process wall time and held-out error of each, and their ratios."""
+    import json
+    import subprocess
+    import sys
+
+    from wrenorm.bench import timed_fit
+
+    try:
+        import mujoco.sysid  # noqa: F401
+    except ImportError as e:
+        return {"table": f"mujoco.sysid comparison skipped: {e} (pip install 'mujoco[sysid]')", "skipped": str(e)}
+    ours, theirs = [], []
+    for _ in range(repeats):
+        ours.append(timed_fit("pd", ["--f-sim", "200"], device))
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "wrenorm.tasks.pd.sysid_peer", "--f-sim", "200"],
+                              capture_output=True, text=True)
+        row = {"wall_seconds": time.perf_counter() - t0, "ok": proc.returncode == 0}
+        if row["ok"]:
+            row.update(json.loads(proc.stdout.strip().splitlines()[-1]))
+        theirs.append(row)
+    med = lambda rows, k: float(np.median([r[k] for r in rows if r.get("ok")]))  # noqa: E731
+    out = {"wrenorm": ours, "sysid": theirs, "repeats": repeats}
+    if all(r["ok"] for r in ours + theirs):
+        out.update(wall_ratio=med(ours, "wall_seconds") / med(theirs, "wall_seconds"),
+                   held_out_ratio=med(ours, "held_out_error") / med(theirs, "held_out_error"))
+        out["table"] = "\n".join([
+            f"PD job at 200 Hz, whole processes side by side ({repeats} interleaved runs, medians):", "",
+            "| tool | process wall s | held-out error | evaluations |", "|---|---|---|---|",
+            f"| `python -m wrenorm fit pd --f-sim 200` | {med(ours, 'wall_seconds'):.2f} | "
+            f"{med(ours, 'held_out_error'):.3g} | {int(med(ours, 'candidates'))} candidates |",
+            f"| mujoco.sysid (`python -m wrenorm.tasks.pd.sysid_peer`) | {med(theirs, 'wall_seconds'):.2f} | "
+            f"{med(theirs, 'held_out_error'):.3g} | {int(med(theirs, 'parameter_points'))} parameter points |",
+            "", f"wrenorm / sysid: wall {out['wall_ratio']:.2f}, held-out error {out['held_out_ratio']:.2f}"])
+    else:
+        out["table"] = "PD peer comparison: a run failed (see results.json)"
+    return out

@@ -49,7 +49,7 @@ def simulate(hand_path, material: RopeMaterial = RopeMaterial(), segments: int =
              frame_rate: float = 250.0, substeps_per_frame: int = 8, iterations: int = 10,
              device: str = "cpu", capture: bool = True, progress=None) -> RopeRun:
     """Swing a rope hanging straight down from the hand's start point; record nodes at frame_rate."""
-    wp.config.quiet = True
+
     import newton
 
     if segments < 4:
