@@ -270,8 +270,10 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path):
         if f.name not in keep:
             f.unlink()
     assert len(list(store.folder.glob("trial-*.npz"))) == 2
-    # settings come from the folder: options given now (other than --out) are ignored
-    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--max-trials", "9", "--out", str(cut)]) == 0
+    # settings come from the folder: an option given now with another value is refused, naming it (issue 17)
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--max-trials", "9", "--out", str(cut)]) == 2
+    assert len(list(store.folder.glob("trial-*.npz"))) == 2  # the refused resume touched nothing
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(cut)]) == 0
     again = json.loads((cut / "correct.json").read_text())
     assert again["real_trials_read_back"] == 2 and again["real_runs"] == done["real_runs"] - 2
     assert [t["error"] for t in again["runs"]["measured"]["trials"]] == [t["error"] for t in trials]

@@ -95,8 +95,10 @@ def test_csv_folder_round_trip(tmp_path, rates):
     """Pixel CSVs at another scale load back to the same metres, speeds and frequencies."""
     for r in rates[:3]:
         _write_pixels(tmp_path, r)
-    # a rotated-only label is used when no pixel file exists
+    # a rotated-only label is used when no pixel file exists; that format adds the head's progress back (the
+    # fish swims towards -x of its head frame)
     rot = sd.head_frame(rates[3].markers)
+    rot[..., 0] -= rates[3].speed * np.arange(len(rot))[:, None] / sd.FPS
     np.savetxt(tmp_path / "rotatedMarkers_f1_75.csv", rot.reshape(-1, 2), delimiter=",")
     (tmp_path / "notes.txt").write_text("ignored")
     got = sd.load_dir(tmp_path)

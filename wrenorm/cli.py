@@ -155,6 +155,25 @@ def _inputs(args) -> list:
     return out
 
 
+def content_hashes(paths) -> dict:
+    """sha256 of every input file (a folder: of its files, in name order), so a resumed run can tell that an input
+    changed under the same name."""
+    import hashlib
+
+    out = {}
+    for item in paths:
+        p = Path(item)
+        files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+        h = hashlib.sha256()
+        for f in files:
+            h.update(f.name.encode())
+            with open(f, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+        out[str(item)] = h.hexdigest()
+    return out
+
+
 def cmd_fit(args) -> int:
     from .fit import FitSettings, run_fits
     from .results import versions
@@ -174,7 +193,8 @@ def cmd_fit(args) -> int:
                       state="search_state.json", inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:
         print(f"wrenorm fit {args.system}: writing {out}", file=sys.stderr)
-    identity = {"system_options": _system_options(args), "wrenorm": versions().get("wrenorm")}
+    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
+                "versions": {k: v for k, v in versions().items() if k in ("wrenorm", "warp-lang", "cma", "numpy")}}
     result = run_fits(problems, out, settings, resume=args.resume, record=not args.no_record, quiet=args.quiet,
                       identity=identity)
     _print_summary(result, out)
@@ -182,7 +202,8 @@ def cmd_fit(args) -> int:
 
 
 _ENGINE_OPTIONS = {"command", "system", "out", "resume", "force", "quiet", "no_record", "device", "seed",
-                   "generations", "popsize", "sigma0", "polish", "restarts", "searches", "search"}
+                   "generations", "popsize", "sigma0", "polish", "restarts", "searches", "search", "verbose",
+                   "resolutions", "free", "freeze"}
 
 
 def _system_options(args) -> dict:
@@ -229,8 +250,10 @@ def cmd_flow(args) -> int:
     out = prepare_out(args.out or _default_out(f"flow-{args.system}"), resume=args.resume, force=args.force,
                       state=POINTS_FILE, inputs=_inputs(args), command=f"flow {args.system}")
     analytic = resolve(system.flow.analytic) if system.flow.analytic else None
+    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args))}
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
-                    resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record)
+                    resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record,
+                    identity=identity)
     for pt in flow["points"]:
         line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
                          if not p["frozen"])
@@ -272,10 +295,13 @@ def _dispatch(args) -> int:
 
 
 def main(argv=None) -> int:
+    previous_sigint = None
     try:
         args = build_parser(argv).parse_args(argv)
+        from .interrupt import install, resume_hint
         from .warp_init import init_warp
 
+        previous_sigint = install(resume_hint(args))
         # before any task module initialises Warp: no banner or missing-driver line in users' output
         init_warp(getattr(args, "device", "cpu") or "cpu", args.verbose)
         return _dispatch(args)
@@ -288,12 +314,17 @@ def main(argv=None) -> int:
         print(f"wrenorm: fit failed: {e}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
-        print("\nwrenorm: interrupted; continue with --resume --out <folder>", file=sys.stderr)
+        from .interrupt import resume_hint
+
+        print(f"\nwrenorm: interrupted{resume_hint(locals().get('args'))}", file=sys.stderr)
         return 130
     except OSError as e:
         where = e.filename or "file system"
         print(f"wrenorm: error: {where}: {e.strerror or e.__class__.__name__}", file=sys.stderr)
         return 2
     finally:
+        from .interrupt import restore
+
+        restore(previous_sigint)
         # Python's last collections walk Warp's ~100k objects (half a second at exit): they live until exit anyway
         gc.freeze()

@@ -22,10 +22,10 @@ from .uncertainty import uncertainty
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
 
 
-def _settings(problems, seed, restarts, popsize, generations) -> dict:
+def _settings(problems, seed, restarts, popsize, generations, identity) -> dict:
     return {"task": problems[0].task, "resolutions": [p.resolution for p in problems], "seed": seed,
             "restarts": restarts, "popsize": popsize, "generations": generations,
-            "free": [[q.name for q in p.space.free] for p in problems]}
+            "free": [[q.name for q in p.space.free] for p in problems]} | (identity or {})
 
 
 def _resumed(out: Path, settings: dict) -> tuple[list, object]:
@@ -34,17 +34,19 @@ def _resumed(out: Path, settings: dict) -> tuple[list, object]:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:
         raise InputError(str(f), POINTS_FILE, f"cannot be read: {e}") from None
-    if saved.get("settings") != json.loads(json.dumps(settings)):
-        raise InputError(str(f), "settings", "the interrupted flow ran other resolutions or search settings; "
-                                             "resume with the same options")
+    old, new = saved.get("settings") or {}, json.loads(json.dumps(settings))
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) != new.get(key):
+            raise InputError(str(f), key, f"the interrupted flow ran with {old.get(key)!r}, this run with "
+                                          f"{new.get(key)!r}; resume with the same options")
     return saved["points"], (np.array(saved["start"]) if saved["start"] is not None else None)
 
 
 def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsize: int = 16,
              generations: int = 60, quiet: bool = False, analytic=None, record: bool = True,
-             resume: bool = False) -> dict:
+             resume: bool = False, identity: dict | None = None) -> dict:
     t0 = time.perf_counter()
-    settings = _settings(problems, seed, restarts, popsize, generations)
+    settings = _settings(problems, seed, restarts, popsize, generations, identity)
     points, start = _resumed(out, settings) if resume else ([], None)
     for prob in problems[len(points):]:
         seeds = [seed + 1000 * k for k in range(restarts)]

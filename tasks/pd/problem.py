@@ -227,6 +227,17 @@ def load_log(path: str | Path) -> MeasuredLog:
     dt = np.diff(t)
     if np.any(dt <= 0):
         raise InputError(src, "time", f"must increase strictly (row {int(np.argmax(dt <= 0)) + 2})")
+    step, span = float(np.median(dt)), float(t[-1] - t[0])
+    # a joint log samples at 10 Hz .. 100 kHz over seconds to an hour; milliseconds read as seconds do not
+    if not (1e-5 <= step <= 0.1) or span > 3600.0:
+        hint = " (milliseconds? seconds expected)" if step >= 0.1 or span > 3600.0 else ""
+        raise InputError(src, "time", f"sample step {step:g} s over {span:g} s is outside a joint log's range "
+                                      f"(step 1e-5..0.1 s, at most an hour){hint}")
+    for j, name in enumerate(LOG_COLUMNS[1:], start=1):
+        if np.ptp(arr[:, j]) == 0.0 and name != "qd_d":
+            raise InputError(src, name, f"never changes (constant {arr[0, j]:g}): nothing to fit")
+    if np.max(np.abs(arr[:, 1])) > 100.0:
+        raise InputError(src, "q", f"reaches {np.max(np.abs(arr[:, 1])):g} rad: radians expected (degrees?)")
     return MeasuredLog(src, t - t[0], arr[:, 1], arr[:, 2], arr[:, 3])
 
 

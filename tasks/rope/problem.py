@@ -182,7 +182,8 @@ class RopeProblem(Problem):
         pidx = np.tile(np.arange(C, dtype=np.int32), B)
         pos0 = np.stack([cs.pos0 for cs in cases])[pidx]
         vel0 = np.stack([cs.vel0 for cs in cases])[pidx]
-        res = self.sim.rollout(pos0, vel0, hand, pidx, rep, steps, t0=float(cases[0].ref.time[0]),
+        # times from the start of each reference's motion: references may start their clocks anywhere
+        res = self.sim.rollout(pos0, vel0, hand, pidx, rep, steps, t0=0.0,
                                stop_at_hit=trajectory_every is None, trajectory_every=trajectory_every)
         # a hit after a shorter condition's horizon does not count
         horizon = np.array([cs.steps for cs in cases])[pidx]
@@ -194,7 +195,7 @@ class RopeProblem(Problem):
         """Rollout of every candidate under every condition, and the chains' critical states (B * C rows,
         row b * C + c is candidate b under condition c)."""
         res = self.simulate(values, conditions)
-        return res, from_rollout(res, self.n, float(conditions[0].data.ref.time[0]))
+        return res, from_rollout(res, self.n, 0.0)
 
     def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
         """(B, C R) signed, weighted residuals of the critical state per condition (observable.Target), for the
@@ -213,7 +214,8 @@ class RopeProblem(Problem):
         status = res.status.reshape(B, C)
         terms["total"] = finite_or_inf(np.where(status == 2, np.inf, terms["total"]))
         terms["status"] = status
-        terms["hit_time"] = res.hit_time.reshape(B, C)
+        # on each reference's own clock, as its event time
+        terms["hit_time"] = res.hit_time.reshape(B, C) + np.array([float(c.data.ref.time[0]) for c in conditions])
         terms["s_a"], terms["s_b"] = res.s_a.reshape(B, C), res.s_b.reshape(B, C)
         return terms
 
@@ -317,10 +319,11 @@ class RopeProblem(Problem):
                                   colors=(255, 255, 255))
             for i, who in enumerate(("measured", "fitted")):
                 b = i * C + j
-                for f, t in enumerate(res.trajectory_times):
+                t_ref0 = float(ref.time[0])
+                for f, t in enumerate(res.trajectory_times + t_ref0):
                     recorder.log_lines3d(f"{who}/{name}/rope", float(t), [res.trajectory[f, b]])
                 if res.status[b] == 1:
-                    t_hit = float(res.hit_time[b])
+                    t_hit = float(res.hit_time[b]) + t_ref0
                     recorder.log_points3d(f"{who}/{name}/critical", t_hit, res.crit_pos[b], radii=0.01)
                     pts = resample(res.crit_pos[b], s_nodes, np.array([res.s_a[b], res.s_b[b]]))
                     recorder.log_points3d(f"{who}/{name}/contact", t_hit, pts, radii=0.025)

@@ -28,6 +28,8 @@ FPS = 60.0
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
 N_MARKERS = 9
 MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest rates
+MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
+MIN_TRAVEL = 0.02  # m over the clip
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
 BUILTIN = "fishsim_kinematics.npz"
 
@@ -224,6 +226,13 @@ def analyse(rate: Rate) -> Rate:
         raise InputError(rate.source or rate.name, "tail markers", "fewer than 3 distinct tail markers")
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     rate.speed = measured_speed(rate.markers, rate.fps)
+    head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])
+    travel = float(np.linalg.norm(head[-1] - head[0]))
+    # a swimming fish travels head first: a track that stays put or goes tail first is not a swim to fit
+    if not (rate.speed > MIN_SPEED and travel > MIN_TRAVEL):
+        raise InputError(rate.source or rate.name, "markers",
+                         f"the head does not move forward (speed {rate.speed:.4f} m/s along the heading, "
+                         f"{travel:.3f} m from start to end): a swimming clip moves head first")
     rate.yaw_amp = yaw_amplitude(rate.markers, rate.tail_freq, rate.fps)
     rate.meta = {"local": local, "tail_markers": keep}
     return rate

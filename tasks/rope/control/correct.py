@@ -65,7 +65,7 @@ class CoarseModel:
 
     def states(self, U: np.ndarray) -> crit.CriticalStates:
         res = self.rollout(U)
-        return crit.from_rollout(res, self.problem.n, float(self.case.ref.time[0]))
+        return crit.from_rollout(res, self.problem.n, 0.0)  # problem.simulate times from the motion's start
 
     def sensitivity(self, u: np.ndarray, goal: crit.Target, h: float = FD_STEP) -> tuple[np.ndarray, dict]:
         """F = de/du (goal.dim, dim) by central differences, all perturbations in one rollout.

@@ -218,7 +218,9 @@ _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system
 
 
 def _restore_settings(args) -> None:
-    """--resume: take every setting from the interrupted run, so its plans and trials repeat exactly."""
+    """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left at its
+    default takes the saved value; one given with another value than the run had is refused, naming it."""
+    import argparse
     import json
 
     if args.out is None:
@@ -230,9 +232,20 @@ def _restore_settings(args) -> None:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:
         raise InputError(str(f), SETTINGS_FILE, f"cannot be read: {e}") from None
+    if not isinstance(saved, dict):
+        raise InputError(str(f), SETTINGS_FILE, "is not a settings object")
+    fresh = argparse.ArgumentParser()
+    add_arguments(fresh)
+    defaults = vars(fresh.parse_args([]))
     for key, value in saved.items():
-        if key not in _NOT_SAVED:
-            setattr(args, key, value)
+        if key in _NOT_SAVED or key not in defaults:
+            continue
+        given = getattr(args, key, None)
+        if given != defaults[key] and json.loads(json.dumps(given, default=str)) != value:
+            raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction ran with {value!r}, "
+                                                                f"this run asks for {given!r}; resume with the same "
+                                                                "options (or leave them out)")
+        setattr(args, key, value)
 
 
 def _default(name: str, method: str) -> float:

@@ -161,7 +161,7 @@ def parameter_analysis(problem, values, goals, names, h: float, step: float, snr
 
     def f(X):
         res = problem.simulate(sp.from_unit(X), conds)  # frozen parameters keep their measured values
-        st = crit.from_rollout(res, problem.n, float(conds[0].data.ref.time[0]))
+        st = crit.from_rollout(res, problem.n, 0.0)
         B = len(X)
         out = []
         for c in range(C):
