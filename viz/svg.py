@@ -92,3 +92,61 @@ def line_chart(series: list[dict], title: str = "", x_label: str = "", y_label: 
             legend_y += 14
     parts.append("</svg>")
     return "".join(parts)
+
+
+def bar_chart(categories: list[str], groups: dict[str, list], title: str = "", y_label: str = "",
+              width: int = 520, height: int = 280, hline: float | None = None, hline_label: str = "") -> str:
+    """Grouped bars: one group of bars per category, one bar per entry of `groups` ({label: values}). A value
+    that is not finite is drawn as a hatched stub marked 'n/a' rather than left out silently."""
+    left, right, top, bottom = 62, 14, 26, 56
+    pw, ph = width - left - right, height - top - bottom
+    vals = [v for vs in groups.values() for v in vs if v is not None and math.isfinite(v)]
+    hi = max(vals + ([hline] if hline is not None else []) + [1e-12])
+    ticks = _nice_ticks(0.0, hi * 1.08)
+    y1 = max(ticks[-1], hi * 1.08)
+    py = lambda v: top + ph - v / y1 * ph  # noqa: E731
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+             f'viewBox="0 0 {width} {height}" font-family="sans-serif" font-size="11" role="img" '
+             f'aria-label="{html.escape(title)}">', f'<rect width="{width}" height="{height}" fill="white"/>',
+             '<defs><pattern id="hatch" width="6" height="6" patternUnits="userSpaceOnUse" '
+             'patternTransform="rotate(45)"><line x1="0" y1="0" x2="0" y2="6" stroke="#c33" stroke-width="2"/>'
+             '</pattern></defs>']
+    if title:
+        parts.append(f'<text x="{width / 2}" y="16" text-anchor="middle" font-size="12">{html.escape(title)}</text>')
+    parts.append(f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="none" stroke="#999"/>')
+    for t in ticks:
+        parts.append(f'<line x1="{left - 4}" y1="{py(t):.1f}" x2="{left}" y2="{py(t):.1f}" stroke="#999"/>'
+                     f'<text x="{left - 6}" y="{py(t) + 4:.1f}" text-anchor="end">{_fmt(t)}</text>')
+    if y_label:
+        parts.append(f'<text transform="translate(13,{top + ph / 2}) rotate(-90)" text-anchor="middle">'
+                     f'{html.escape(y_label)}</text>')
+    n, k = max(len(categories), 1), max(len(groups), 1)
+    slot = pw / n
+    bar = slot * 0.8 / k
+    for i, cat in enumerate(categories):
+        x0 = left + i * slot + slot * 0.1
+        for j, (label, vs) in enumerate(groups.items()):
+            color = ROLE_COLORS.get(label.split()[0], PALETTE[j % len(PALETTE)])
+            v = vs[i] if i < len(vs) else None
+            x = x0 + j * bar
+            if v is None or not math.isfinite(v):
+                parts.append(f'<rect x="{x:.1f}" y="{top + ph - 14}" width="{bar - 2:.1f}" height="14" '
+                             f'fill="url(#hatch)"/><text x="{x + bar / 2:.1f}" y="{top + ph - 17}" '
+                             f'text-anchor="middle">n/a</text>')
+                continue
+            parts.append(f'<rect x="{x:.1f}" y="{py(v):.1f}" width="{bar - 2:.1f}" height="{top + ph - py(v):.1f}" '
+                         f'fill="{color}"><title>{html.escape(f"{cat}, {label}: {v:.4g}")}</title></rect>')
+        parts.append(f'<text x="{left + (i + 0.5) * slot:.1f}" y="{top + ph + 15}" text-anchor="middle">'
+                     f'{html.escape(str(cat))}</text>')
+    if hline is not None:
+        parts.append(f'<line x1="{left}" y1="{py(hline):.1f}" x2="{left + pw}" y2="{py(hline):.1f}" stroke="#444" '
+                     f'stroke-dasharray="5,4"/><text x="{left + pw - 4}" y="{py(hline) - 4:.1f}" text-anchor="end">'
+                     f'{html.escape(hline_label)}</text>')
+    lx = left
+    for j, label in enumerate(groups):
+        color = ROLE_COLORS.get(label.split()[0], PALETTE[j % len(PALETTE)])
+        parts.append(f'<rect x="{lx}" y="{height - 16}" width="12" height="10" fill="{color}"/>'
+                     f'<text x="{lx + 16}" y="{height - 7}">{html.escape(label)}</text>')
+        lx += 24 + 7 * len(label)
+    parts.append("</svg>")
+    return "".join(parts)

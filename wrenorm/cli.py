@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -117,8 +118,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             sp = extra[c.verb].add_parser(s.name, help=c.help)
             if verb == c.verb and name == s.name:
                 resolve(c.add_arguments)(sp)
-    view = sub.add_parser("view", help="open a run's recording in the Rerun viewer")
+    view = sub.add_parser("view", help="open a run's recording in the Rerun viewer, or its report page")
     view.add_argument("run", type=Path)
+    view.add_argument("--report", action="store_true",
+                      help="(re)write the run's report.html from its result and open it in a browser where one is")
     bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
     if verb == "bench":
         from .bench import add_arguments
@@ -174,6 +177,14 @@ def content_hashes(paths) -> dict:
     return out
 
 
+def command_line(args) -> str:
+    """The command that reproduces this run (as typed, less --resume), for result.json and the report."""
+    import shlex
+
+    argv = [a for a in getattr(args, "_argv", sys.argv[1:]) if a != "--resume"]
+    return "python -m wrenorm " + shlex.join(argv)
+
+
 def cmd_fit(args) -> int:
     from .fit import FitSettings, run_fits
     from .results import versions
@@ -196,7 +207,7 @@ def cmd_fit(args) -> int:
     identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
                 "versions": {k: v for k, v in versions().items() if k in ("wrenorm", "warp-lang", "cma", "numpy")}}
     result = run_fits(problems, out, settings, resume=args.resume, record=not args.no_record, quiet=args.quiet,
-                      identity=identity)
+                      identity=identity, command=command_line(args))
     _print_summary(result, out)
     return 0
 
@@ -253,7 +264,7 @@ def cmd_flow(args) -> int:
     identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args))}
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
                     resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record,
-                    identity=identity)
+                    identity=identity, command=command_line(args))
     for pt in flow["points"]:
         line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
                          if not p["frozen"])
@@ -265,6 +276,18 @@ def cmd_flow(args) -> int:
 
 def cmd_view(args) -> int:
     run = args.run
+    if args.report:
+        import webbrowser
+
+        from wrenorm.viz.report import write_report
+
+        if not run.is_dir():
+            raise InputError(str(run), "run", "a run folder is needed for --report")
+        page = write_report(run)
+        print(page)
+        if os.environ.get("DISPLAY") or sys.platform in ("darwin", "win32"):
+            webbrowser.open(page.resolve().as_uri())
+        return 0
     rrd = run / "recording.rrd" if run.is_dir() else run
     if not rrd.exists():
         raise InputError(str(run), "recording.rrd", "no recording in this run folder")
@@ -298,6 +321,7 @@ def main(argv=None) -> int:
     previous_sigint = None
     try:
         args = build_parser(argv).parse_args(argv)
+        args._argv = list(sys.argv[1:] if argv is None else argv)
         from .interrupt import install, resume_hint
         from .warp_init import init_warp
 

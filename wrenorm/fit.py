@@ -70,10 +70,11 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
 
 def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettings(), resume: bool = False,
             start: np.ndarray | None = None, record: bool = True, quiet: bool = False,
-            identity: dict | None = None) -> dict:
-    """Fit `problem`, write OUT/result.json (+ recording.rrd, plots); return the result dict.
+            identity: dict | None = None, command: str | None = None) -> dict:
+    """Fit `problem`, write OUT/result.json (+ recording.rrd, search.html, report.html); return the result dict.
 
-    identity: what else a resumed run must share with the interrupted one (inputs' hashes, versions)."""
+    identity: what else a resumed run must share with the interrupted one (inputs' hashes, versions).
+    command: the command line that reproduces the fit, for the report."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = process_age()
@@ -164,11 +165,9 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         result["search"]["optima"] = res.history[-1]["optima"]
     if settings.restarts >= 2:
         seeds = [settings.seed + 1 + k for k in range(settings.restarts)]
-        if not quiet:
-            print(f"[{problem.task}] identifiability: {len(seeds)} further seeded searches side by side",
-                  file=sys.stderr, flush=True)
         result["restarts"] = identifiability_restarts(problem, fitted, seeds, popsize=settings.popsize,
-                                                      generations=settings.generations, sigma0=settings.sigma0)
+                                                      generations=settings.generations, sigma0=settings.sigma0,
+                                                      quiet=quiet)
     result.update(problem.report(fitted, measured))
     t_write = time.perf_counter()
     if record:
@@ -180,8 +179,22 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
                         "first_generation_after_process_start_s": first_generation[0] if first_generation else None,
                         "meaning": "start_up_s: from the process's start to the fit's start (interpreter, imports, "
                                    "building the problem: references, kernels); the rest in the fit's order"}
+    if command:
+        result["command"] = command
     write_json(out / "result.json", result)
+    _report(out, result, quiet)
     return result
+
+
+def _report(out: Path, result: dict, quiet: bool) -> None:
+    """report.html beside result.json. The result is already safe on disk, so a failure here costs the page
+    only, and says so."""
+    from wrenorm.viz.report import write_report
+
+    try:
+        write_report(out, result)
+    except Exception as e:  # noqa: BLE001  (a report bug must not lose a finished fit)
+        print(f"wrenorm: report.html not written: {type(e).__name__}: {e}", file=sys.stderr)
 
 
 def _summary_markdown(result: dict) -> str:
@@ -238,12 +251,12 @@ def _label(problem: Problem) -> str:
 
 
 def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = False, record: bool = True,
-             quiet: bool = False, identity: dict | None = None) -> dict:
+             quiet: bool = False, identity: dict | None = None, command: str | None = None) -> dict:
     """Fit one problem into OUT, or several (e.g. one per f_sim) into OUT/<label>/ with a combined
     OUT/result.json holding `runs`. Each fit starts from its predecessor's result."""
     common = dict(settings=settings, resume=resume, quiet=quiet, record=record, identity=identity)
     if len(problems) == 1:
-        return run_fit(problems[0], out, **common)
+        return run_fit(problems[0], out, command=command, **common)
     t0 = time.perf_counter()
     runs, start = [], None
     for prob in problems:
@@ -267,5 +280,8 @@ def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = Fa
         "versions": versions(),
         "wall_seconds": time.perf_counter() - t0,
     }
+    if command:
+        combined["command"] = command
     write_json(out / "result.json", combined)
+    _report(out, combined, quiet)
     return combined

@@ -44,7 +44,7 @@ def _resumed(out: Path, settings: dict) -> tuple[list, object]:
 
 def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsize: int = 16,
              generations: int = 60, quiet: bool = False, analytic=None, record: bool = True,
-             resume: bool = False, identity: dict | None = None) -> dict:
+             resume: bool = False, identity: dict | None = None, command: str | None = None) -> dict:
     t0 = time.perf_counter()
     settings = _settings(problems, seed, restarts, popsize, generations, identity)
     points, start = _resumed(out, settings) if resume else ([], None)
@@ -79,7 +79,12 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
                                   "Gauss-Newton sigma^2 (J^T J)^-1 where residuals exist (std_jacobian)",
             "seed": seed, "device": problems[0].device, "versions": versions(),
             "wall_seconds": time.perf_counter() - t0}
+    if command:
+        flow["command"] = command
     write_json(out / "flow.json", flow)
+    from wrenorm.fit import _report
+
+    _report(out, flow, quiet)
     from wrenorm.viz.flow_plot import plot_flow
 
     plot_flow(out / "flow.png", flow)

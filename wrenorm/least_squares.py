@@ -8,14 +8,12 @@ CMA-ES stays the search for event observables and for global restarts; a system 
 """
 from __future__ import annotations
 
-import sys
-import time
-
 import numpy as np
 
 from .errors import AllCandidatesFailed
 from .jacobian import jacobian
 from .problem import Problem
+from .progress import Progress
 
 STEP = 1e-4  # finite-difference step in normalised coordinates
 
@@ -47,7 +45,7 @@ def levenberg_marquardt(problem: Problem, start: np.ndarray, iterations: int = 5
     mu = 1e-3
     history = [{"iteration": 0, "cost": cost, "values": space.from_unit(u[None])[0].tolist(), "mu": mu}]
     stop = "iterations"
-    t0 = time.perf_counter()
+    bar = Progress(iterations, f"{problem.task} least squares", quiet, unit="it")
     for it in range(1, iterations + 1):
         g = J.T @ r
         JtJ = J.T @ J
@@ -76,11 +74,10 @@ def levenberg_marquardt(problem: Problem, start: np.ndarray, iterations: int = 5
         u, r, J, cost = u_new, r_new, J_new, cost_new
         mu = max(mu / 3.0 if gain > 0.75 else (mu * 2.0 if gain < 0.25 else mu), 1e-12)
         history.append({"iteration": it, "cost": cost, "values": space.from_unit(u[None])[0].tolist(), "mu": mu})
-        if not quiet:
-            print(f"[{problem.task}] least squares it {it:3d}  cost {cost:.6e}  mu {mu:.2g}  "
-                  f"{time.perf_counter() - t0:6.2f}s", file=sys.stderr, flush=True)
+        bar.update(cost=f"{cost:.6e}", mu=f"{mu:.2g}")
         if dcost <= 1e-12 * cost or dx < 1e-10:
             stop = "cost" if dcost <= 1e-12 * cost else "step"
             break
+    bar.close()
     result = SearchResult("least-squares", space.from_unit(u[None])[0], cost, history, evaluations, 0, stop)
     return result, r, J

@@ -24,6 +24,7 @@ import numpy as np
 from .cmaes import BatchedCMAES
 from .errors import AllCandidatesFailed, InputError
 from .problem import Problem, finite_or_inf
+from .progress import Progress
 from .results import write_json
 
 # fault-injection hook for the kill -9 / --resume tests: seconds to sleep after each generation
@@ -105,7 +106,7 @@ def cmaes(
     if resume and checkpoint and Path(checkpoint).exists():
         history = _resume(checkpoint, es, saved)
         _progress(f"resuming {problem.task} search at generation {len(history)}", quiet)
-    t0 = time.perf_counter()
+    bar = Progress(generations, f"{problem.task} cmaes", quiet, unit="gen", done=len(history))
     while not es.done:
         U = es.ask()
         values = space.from_unit(U)
@@ -115,13 +116,13 @@ def cmaes(
         history.append(rec)
         if on_generation:
             on_generation(rec)
-        _progress(f"[{problem.task}] gen {rec['generation'] + 1:3d}/{generations}  best {rec['best']:.4e}  "
-                  f"median {rec['median']:.4e}  sigma {rec['sigma']:.3g}  blowups {rec['blowups']}  "
-                  f"{time.perf_counter() - t0:6.1f}s", quiet)
+        bar.update(best=f"{rec['best_so_far']:.4e}", median=f"{rec['median']:.3e}", sigma=f"{rec['sigma']:.3g}",
+                   blowups=rec["blowups"])
         if checkpoint:
             write_json(checkpoint, saved | {"search": es.state(), "history": history}, durable=False)
         if _SLOW:
             time.sleep(_SLOW)
+    bar.close()
     found = [s for s in es.finish() if np.isfinite(s.best_loss)]
     if not found:
         raise AllCandidatesFailed(
@@ -191,13 +192,11 @@ def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations:
     space = problem.space
     es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
                       popsize, generations)
-    t0 = time.perf_counter()
-    while not es.done:
-        U = es.ask()
-        es.tell(objective(problem, space.from_unit(U)))
-        _progress(f"[{problem.task}] {len(set(es.owners.tolist()) | set(es.active))} searches, gen "
-                  f"{es.generation:3d}/{generations}  best {min(s.best_loss for s in es.searches):.4e}  "
-                  f"{time.perf_counter() - t0:6.1f}s", quiet)
+    with Progress(generations, f"{problem.task} {len(seeds)} restarts", quiet, unit="gen") as bar:
+        while not es.done:
+            U = es.ask()
+            es.tell(objective(problem, space.from_unit(U)))
+            bar.update(best=f"{min(s.best_loss for s in es.searches):.4e}", searching=len(es.active))
     return [SearchResult("cmaes", space.from_unit(s.best_x), s.best_loss, [], s.evaluations, s.blowups, s.stop,
                          s.seed) for s in es.finish()]
 
@@ -254,6 +253,7 @@ def gradient(
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1.0 / max(iterations, 1)))
     history, best = [], (np.inf, np.asarray(start, np.float64).copy())
     evaluations = 0
+    bar = Progress(iterations, f"{problem.task} gradient", quiet, unit="it")
     for it in range(iterations):
         values = space.from_unit(u.detach().numpy()[None])
         errs, grads = problem.errors_and_grad(values, problem.train)
@@ -272,6 +272,6 @@ def gradient(
         with torch.no_grad():
             u.clamp_(0.0, 1.0)
         history.append({"iteration": it, "loss": loss, "values": values[0].tolist()})
-        if it % 10 == 0 or it == iterations - 1:
-            _progress(f"[{problem.task}] grad it {it + 1:4d}/{iterations}  loss {loss:.4e}", quiet)
+        bar.update(loss=f"{loss:.4e}")
+    bar.close()
     return SearchResult("gradient", best[1], best[0], history, evaluations, 0, "iterations")

@@ -68,6 +68,9 @@ class System:
     bench: Ref | None = None  # (device, batches, quick) -> {"rows": [...], "table": markdown}
     kernel_modules: Ref | None = None  # () -> {name: Warp module}, for the ahead-of-time CUDA build
     parity: Ref | None = None  # (device) -> largest CPU-vs-device differences of the kernels' outputs
+    report: Ref | None = None  # (result dict) -> [(title, html)], the system's own sections of report.html
+    observable: str = ""  # what behaviour the fit must reproduce, one sentence (the report's first question)
+    omitted: str = ""  # the physics the coarse model leaves out, one sentence
 
 
 def resolve(ref: Ref) -> Callable:
@@ -79,15 +82,18 @@ def resolve(ref: Ref) -> Callable:
 
 
 def from_package(package: str, help: str, search: SearchDefaults = SearchDefaults(), flow: Flow | None = None,
-                 commands: tuple = (), bench: bool = True) -> System:
+                 commands: tuple = (), bench: bool = True, observable: str = "", omitted: str = "") -> System:
     """A system laid out by convention in tasks/<name>/: options.py `add_arguments`, problem.py `build_problems`,
-    and (bench=True) bench.py `bench`, `parity` and `kernel_modules`."""
+    (bench=True) bench.py `bench`, `parity` and `kernel_modules`, and report.py `sections` where it exists."""
+    import importlib.util
+
     options = importlib.import_module(f"{package}.options")
     ref = (lambda module, name: f"{package}.{module}:{name}") if bench else (lambda module, name: None)
+    report = f"{package}.report:sections" if importlib.util.find_spec(f"{package}.report") else None
     return System(name=package.rsplit(".", 1)[-1], help=help, add_arguments=options.add_arguments,
                   build=f"{package}.problem:build_problems", search=search, flow=flow, commands=tuple(commands),
                   bench=ref("bench", "bench"), kernel_modules=ref("bench", "kernel_modules"),
-                  parity=ref("bench", "parity"))
+                  parity=ref("bench", "parity"), report=report, observable=observable, omitted=omitted)
 
 
 _REGISTRY: dict[str, System] = {}

@@ -14,6 +14,9 @@ SYSTEM = from_package(
     search=SearchDefaults(generations=60),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.rope.problem:flow_problems",
               "segment counts (--axis dt: steps [s])", generations=60),
+    observable="the rope's state at its first self-collision: shape, velocity, time and place of the contact",
+    omitted="the continuum: a fine rope's bending modes, internal damping and contact resolved by a chain of few "
+            "segments at a coarse time step",
     commands=(
         ExtraCommand("reference", "generate a fine reference rope (.npz) along a hand path",
                      "wrenorm.tasks.rope.reference.generate:add_reference_arguments",

@@ -12,4 +12,7 @@ SYSTEM = from_package(
     __name__, "a real robotic fish's five stateless fluid coefficients, fitted to its swimming speed",
     search=SearchDefaults(generations=150, popsize=32, restarts=4),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.swimmer.problem:flow_problems",
-              "time steps [s] (--axis bodies: tail bodies)", generations=80))
+              "time steps [s] (--axis bodies: tail bodies)", generations=80),
+    observable="the fish's steady swimming speed (and its yaw and surge gait) at each tail-motor rate",
+    omitted="the fluid field: vortices, added-mass history and wall effects, replaced by five stateless "
+            "per-area force coefficients")

@@ -1,0 +1,341 @@
+"""The report page of a run folder: one self-contained HTML file (inline SVG, no scripts, no network), written
+beside result.json and rebuilt from it by `python -m wrenorm view OUT --report`.
+
+It answers the paper's procedure in order: what was observed, what the coarse model leaves out, which
+parameters were fitted from which measured values, how the fit did on conditions it did not see, and whether
+the omission was absorbed. A system adds its own sections through `System.report` (tasks/<name>/report.py).
+"""
+from __future__ import annotations
+
+import html
+import json
+import math
+import re
+from pathlib import Path
+
+from wrenorm.results import write_atomic
+
+REPORT_FILE = "report.html"
+
+VERDICT_STYLE = {
+    "absorbed": ("#1f7a3a", "#e6f4ea", "The fitted parameters keep every held-out condition within tolerance: the "
+                 "omitted physics is absorbed at this resolution."),
+    "expand": ("#9a4b00", "#fdf0e1", "The fitted parameters do not keep every held-out condition within tolerance: "
+               "the omission is not absorbed by this parameter set. Free another parameter (--free) or refine the "
+               "resolution, then fit again."),
+    "unvalidated": ("#555", "#eee", "No held-out condition: nothing says whether the omission was absorbed."),
+}
+
+CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",sans-serif;max-width:1100px;margin:24px auto;padding:0 16px;
+color:#1d1d1f;line-height:1.45}
+h1{font-size:1.6em;margin-bottom:4px}h2{font-size:1.2em;margin-top:28px;border-bottom:1px solid #ddd;padding-bottom:3px}
+table{border-collapse:collapse;margin:8px 0;font-size:.92em}th,td{padding:4px 10px;border-bottom:1px solid #e5e5e5;
+text-align:right}th{background:#f6f6f6}td:first-child,th:first-child{text-align:left}td:not(:last-child){white-space:nowrap}
+.verdict{border-radius:8px;padding:12px 16px;margin:12px 0}.verdict b{font-size:1.15em;text-transform:uppercase}
+.flag{display:inline-block;border-radius:4px;padding:0 6px;margin:0 2px;font-size:.82em;background:#eee}
+.flag.warn{background:#fde2c8;color:#7a3b00}.flag.bad{background:#f9d0d0;color:#8a1010}.flag.ok{background:#d8efdc}
+.charts{display:flex;flex-wrap:wrap;gap:12px}.muted{color:#666}
+code{background:#f3f3f3;padding:1px 4px;border-radius:3px}
+dl{display:grid;grid-template-columns:max-content 1fr;gap:4px 16px}dt{font-weight:600}dd{margin:0}
+details{margin:10px 0}summary{cursor:pointer;font-weight:600}
+"""
+
+
+def esc(x) -> str:
+    return html.escape(str(x))
+
+
+def num(v, digits: int = 4) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return esc(v)
+    if not math.isfinite(v):
+        return "∞" if v > 0 else ("−∞" if v < 0 else "NaN")
+    return f"{v:.{digits}g}"
+
+
+class _Html(str):
+    """A string that is already HTML (not escaped again by `table`)."""
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    """An HTML table; cells are escaped unless they are already HTML (`_Html`)."""
+    cell = lambda c: c if isinstance(c, _Html) else esc(c)  # noqa: E731
+    head = "".join(f"<th>{esc(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{cell(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def flag(text: str, kind: str = "") -> _Html:
+    return _Html(f'<span class="flag {kind}">{esc(text)}</span>')
+
+
+def _svgs_of(path: Path) -> list[str]:
+    """The inline <svg> charts of an HTML file the run wrote (search.html), so the report needs no history."""
+    try:
+        return re.findall(r"<svg\b.*?</svg>", path.read_text(), flags=re.S)
+    except OSError:
+        return []
+
+
+# --------------------------------------------------------------------------------------------------- a fit
+
+def _verdict_block(v: dict) -> str:
+    verdict = v.get("verdict", "unvalidated")
+    fg, bg, meaning = VERDICT_STYLE.get(verdict, VERDICT_STYLE["unvalidated"])
+    numbers = ""
+    if "mean_measured_error" in v:
+        numbers = (f" Mean held-out error with the measured parameters {num(v['mean_measured_error'])}, with the "
+                   f"fitted ones {num(v['mean_fitted_error'])} (worst {num(v.get('worst_fitted_error'))}; "
+                   f"tolerance {num(v.get('tolerance'))}).")
+    return (f'<div class="verdict" style="color:{fg};background:{bg}"><b>{esc(verdict)}</b> &nbsp; '
+            f"{esc(meaning)}{esc(numbers)}</div>")
+
+
+def _procedure(r: dict, system) -> str:
+    params = r.get("parameters", {})
+    free = [n for n, p in params.items() if not p.get("frozen")]
+    frozen = [n for n, p in params.items() if p.get("frozen")]
+    v = r.get("validation", {})
+    items = [
+        ("observable", getattr(system, "observable", "") or "not stated by this system"),
+        ("loss", r.get("loss", {}).get("meaning", "")),
+        ("omitted physics", getattr(system, "omitted", "") or "not stated by this system"),
+        ("fitted", f"{', '.join(free) or 'nothing'} (starting from measured values; held at measured: "
+                   f"{', '.join(frozen) or 'none'})"),
+        ("trained on", ", ".join(map(str, r.get("train", []))) or "–"),
+        ("validated on", ", ".join(v.get("conditions", {})) or "no held-out condition"),
+        ("resolution", ", ".join(f"{k} = {x}" for k, x in (r.get("resolution") or {}).items())),
+    ]
+    return "<dl>" + "".join(f"<dt>{esc(k)}</dt><dd>{esc(x)}</dd>" for k, x in items) + "</dl>"
+
+
+def _parameter_rows(r: dict) -> list[list]:
+    unc = r.get("uncertainty", {}) or {}
+    undetermined, at_bound = set(unc.get("undetermined", [])), set(unc.get("at_bound", []))
+    by_prior = set(unc.get("held_by_prior", []))
+    not_pinned = set((r.get("restarts") or {}).get("not_pinned", []))
+    rows = []
+    for name, p in r.get("parameters", {}).items():
+        flags = []
+        if p.get("frozen"):
+            flags.append(flag("held at measured"))
+        else:
+            if name in undetermined:
+                flags.append(flag("data cannot determine", "bad"))
+            if name in by_prior:
+                flags.append(flag("held by prior", "warn"))
+            if name in at_bound:
+                flags.append(flag("at bound", "warn"))
+            if name in not_pinned:
+                flags.append(flag("differs across seeds", "warn"))
+            if not flags:
+                flags.append(flag("determined", "ok"))
+        lo, hi = p.get("bounds", [None, None])
+        std = "" if p.get("std") is None else f"± {num(p['std'], 3)}"
+        ratio = "" if p.get("ratio_to_measured") is None else f"{p['ratio_to_measured']:.3g}×"
+        rows.append([name, p.get("unit", ""), num(p.get("measured")), num(p.get("fitted")), std, ratio,
+                     f"[{num(lo, 3)}, {num(hi, 3)}]", _Html(" ".join(flags))])
+    return rows
+
+
+def _held_out(r: dict) -> str:
+    from wrenorm.viz.svg import bar_chart
+
+    v = r.get("validation", {})
+    cond = v.get("conditions", {})
+    if not cond:
+        return "<p class='muted'>No held-out condition was given, so the fit is not validated.</p>"
+    tol = v.get("tolerance")
+    rows = []
+    for name, c in cond.items():
+        fe = c.get("fitted_error")
+        ok = fe is not None and tol is not None and fe <= tol
+        rows.append([name, num(c.get("measured_error")), num(fe),
+                     flag("within tolerance", "ok") if ok else flag("outside tolerance", "bad")])
+    chart = bar_chart(list(cond), {"measured parameters": [c.get("measured_error") for c in cond.values()],
+                                   "fitted parameters": [c.get("fitted_error") for c in cond.values()]},
+                      "held-out error per condition", "error", hline=tol, hline_label="tolerance")
+    return table(["condition", "error, measured parameters", "error, fitted parameters", ""], rows) + chart
+
+
+def _search(r: dict) -> str:
+    s = r.get("search", {})
+    rows = [["methods", " then ".join(s.get("methods", []))], ["evaluations", s.get("evaluations")],
+            ["candidates blown up (NaN/Inf or runaway)", s.get("blowups")], ["stopped by", s.get("stop")],
+            ["searches side by side", s.get("searches")], ["seed", r.get("seed")]]
+    loss = r.get("loss", {})
+    rows += [["loss with measured parameters", num(loss.get("measured"))],
+             ["loss with fitted parameters", num(loss.get("fitted"))]]
+    rs = r.get("restarts")
+    if rs:
+        lo, hi = rs.get("held_out_mean_error_range", [None, None])
+        rows.append([f"{len(rs.get('seeds', []))} further seeded searches: held-out mean error",
+                     f"{num(lo)} .. {num(hi)}"])
+    return table(["", ""], [[a, b if isinstance(b, str) else num(b)] for a, b in rows])
+
+
+def _uncertainty(r: dict) -> str:
+    unc = r.get("uncertainty") or {}
+    out = f"<p>{esc(unc.get('method', ''))}"
+    if unc.get("condition_number") is not None:
+        out += f"; condition number {num(unc['condition_number'], 3)}"
+    out += ".</p>"
+    if unc.get("warning"):
+        out += f"<p><span class='flag bad'>warning</span> {esc(unc['warning'])}</p>"
+    corr = unc.get("correlation")
+    if corr and corr.get("names"):
+        names, m = corr["names"], corr["matrix"]
+        out += "<details><summary>correlation of the fitted parameters</summary>" + table(
+            [""] + names, [[n] + [num(x, 2) for x in row] for n, row in zip(names, m)]) + "</details>"
+    return out
+
+
+def _run_info(r: dict, folder: Path | None) -> str:
+    rows = []
+    if r.get("command"):
+        rows.append(["reproduce", _Html(f"<code>{esc(r['command'])}</code>")])
+    rows.append(["device", r.get("device", "")])
+    t = r.get("timing") or {}
+    if r.get("wall_seconds") is not None:
+        rows.append(["wall time of the fit", f"{r['wall_seconds']:.2f} s"])
+    for k in ("start_up_s", "search_s", "validation_s", "uncertainty_s", "writing_s"):
+        if t.get(k) is not None:
+            rows.append([k.removesuffix("_s").replace("_", " "), f"{t[k]:.2f} s"])
+    rows.append(["versions", ", ".join(f"{k} {v}" for k, v in (r.get("versions") or {}).items())])
+    if folder is not None:
+        files = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+        rows.append(["files", ", ".join(files)])
+        if (folder / "recording.rrd").exists():
+            rows.append(["view", _Html(f"<code>python -m wrenorm view {esc(folder)}</code> (Rerun: fitted against "
+                                       "reference)")])
+    return table(["", ""], rows)
+
+
+def fit_body(r: dict, folder: Path | None, system) -> str:
+    parts = [_verdict_block(r.get("validation", {})), "<h2>The procedure</h2>", _procedure(r, system)]
+    if r.get("excluded_references"):
+        parts.append("<p><span class='flag bad'>left out</span> " + esc("; ".join(
+            f"{x.get('file', x)}: {x.get('why', '')}" if isinstance(x, dict) else str(x)
+            for x in r["excluded_references"])) + "</p>")
+    parts += ["<h2>Parameters</h2>", table(["parameter", "unit", "measured", "fitted", "std", "fitted / measured",
+                                             "bounds", "what the data say"], _parameter_rows(r)),
+              "<h2>Held-out conditions</h2>", _held_out(r)]
+    if system is not None and getattr(system, "report", None):
+        from wrenorm.system import resolve
+
+        for title, body in resolve(system.report)(r):
+            parts += [f"<h2>{esc(title)}</h2>", body]
+    charts = _svgs_of(folder / "search.html") if folder is not None else []
+    parts += ["<h2>Search</h2>", _search(r)]
+    if charts:
+        parts.append('<div class="charts">' + "".join(charts) + "</div>")
+    parts += ["<h2>Uncertainty</h2>", _uncertainty(r), "<h2>Run</h2>", _run_info(r, folder)]
+    return "".join(parts)
+
+
+# -------------------------------------------------------------------------------- several fits, a flow
+
+def runs_body(result: dict, folder: Path, system) -> str:
+    rows = []
+    for r in result["runs"]:
+        v = r.get("validation", {})
+        rows.append([", ".join(f"{k} {x}" for k, x in r["resolution"].items()), num(r["loss"]["measured"]),
+                     num(r["loss"]["fitted"]), num(v.get("mean_fitted_error")), v.get("verdict", "")])
+    parts = ["<h2>Every resolution</h2>", table(["resolution", "loss measured", "loss fitted",
+                                                   "held-out mean error", "verdict"], rows)]
+    for r in result["runs"]:
+        sub = folder / r["folder"] if r.get("folder") else None
+        parts.append(f"<details><summary>{esc(r.get('folder') or r['resolution'])}</summary>"
+                     f"{fit_body(r, sub if sub and sub.is_dir() else None, system)}</details>")
+    if result.get("command"):
+        parts.append(f"<h2>Run</h2><p>reproduce: <code>{esc(result['command'])}</code></p>")
+    return "".join(parts)
+
+
+def flow_body(flow: dict, folder: Path | None) -> str:
+    from wrenorm.viz.svg import line_chart
+
+    points = flow["points"]
+    res = [p["resolution"] for p in points]
+    numeric = [k for k, v in res[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    key = next((k for k in numeric if len({r.get(k) for r in res}) > 1), numeric[0] if numeric else None)
+    x = [r.get(key) for r in res]
+    names = [n for n, p in points[0]["parameters"].items() if not p["frozen"]]
+    charts = []
+    for n in names:
+        fitted = [p["parameters"][n]["fitted"] for p in points]
+        series = [{"x": x, "y": fitted, "label": "fitted", "markers": True, "color": "#2891e6"}]
+        std = [p["parameters"][n].get("std_restarts") or 0.0 for p in points]
+        series += [{"x": x, "y": [f + s for f, s in zip(fitted, std)], "label": "± std over restarts",
+                    "dash": "3,3", "color": "#9cc9f0"},
+                   {"x": x, "y": [f - s for f, s in zip(fitted, std)], "dash": "3,3", "color": "#9cc9f0"}]
+        for order, dash in (("first", "6,3"), ("second", "")):
+            analytic = [(p.get("analytic") or {}).get(f"{n}_sim_{order}_order") for p in points]
+            if any(isinstance(a, (int, float)) for a in analytic):
+                series.append({"x": x, "y": [a if isinstance(a, (int, float)) else float("nan") for a in analytic],
+                               "label": f"analytic, {order} order", "color": "#50c850", "dash": dash})
+        charts.append(line_chart(series, n, str(key), n, hline=points[0]["parameters"][n]["measured"],
+                                 hline_label="measured", width=360, height=260))
+    rows = []
+    for p in points:
+        und = p.get("undetermined") or []
+        rows.append([f"{key} {p['resolution'].get(key)}"]
+                    + [f"{num(p['parameters'][n]['fitted'])} ± {num(p['parameters'][n].get('std_restarts'), 2)}"
+                       for n in names] + [num(p["loss"]["fitted"]), ", ".join(und) or "–"])
+    parts = ["<p>Each effective parameter against resolution, with its measured value: the paper's "
+             "renormalisation flow.</p>", '<div class="charts">' + "".join(charts) + "</div>",
+             table(["resolution"] + names + ["loss", "undetermined"], rows),
+             f"<p class='muted'>{esc(flow.get('uncertainty_method', ''))}</p>"]
+    info = [["device", flow.get("device", "")], ["seed", flow.get("seed", "")],
+            ["wall time", f"{flow.get('wall_seconds', 0):.1f} s"],
+            ["versions", ", ".join(f"{k} {v}" for k, v in (flow.get("versions") or {}).items())]]
+    if flow.get("command"):
+        info.insert(0, ["reproduce", _Html(f"<code>{esc(flow['command'])}</code>")])
+    return "".join(parts) + "<h2>Run</h2>" + table(["", ""], info)
+
+
+# ------------------------------------------------------------------------------------------------ entry
+
+def _system(task: str | None):
+    if not task:
+        return None
+    from wrenorm.system import systems
+
+    return systems().get(task)
+
+
+def page(title: str, body: str) -> str:
+    return (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{esc(title)}</title>"
+            f"<meta name='viewport' content='width=device-width, initial-scale=1'><style>{CSS}</style></head>"
+            f"<body><h1>{esc(title)}</h1>{body}</body></html>\n")
+
+
+def render(result: dict, folder: Path | None = None) -> str:
+    """The report page for a result (a fit, a fit per resolution, or a flow) as HTML text."""
+    system = _system(result.get("task"))
+    task = result.get("task", "wrenorm")
+    if "points" in result:
+        return page(f"{task}: parameter flow", flow_body(result, folder))
+    if "runs" in result:
+        return page(f"{task}: fits at {len(result['runs'])} resolutions", runs_body(result, folder, system))
+    return page(f"{task} fit", fit_body(result, folder, system))
+
+
+def write_report(folder: Path, result: dict | None = None) -> Path:
+    """Write FOLDER/report.html from `result` (default: the folder's result.json or flow.json)."""
+    folder = Path(folder)
+    if result is None:
+        for name in ("result.json", "flow.json"):
+            if (folder / name).exists():
+                result = json.loads((folder / name).read_text())
+                break
+        else:
+            from wrenorm.errors import InputError
+
+            raise InputError(str(folder), "result.json", "no result.json or flow.json: not a finished run folder")
+    path = folder / REPORT_FILE
+    write_atomic(path, render(result, folder))
+    return path
