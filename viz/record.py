@@ -65,6 +65,11 @@ class Recorder:
         self.stream.save(str(self._tmp))
         self._views: list[tuple] = []
         self._styled: set[str] = set()
+        self._timeline: str | None = None
+
+    def show_timeline(self, name: str) -> None:
+        """The timeline the viewer opens on (e.g. sim_time for motion, not the search's generations)."""
+        self._timeline = name
 
     # --- layout ----------------------------------------------------------------
     def add_view(self, name: str, contents: list[str], kind: str = "timeseries", around=None) -> None:
@@ -86,7 +91,8 @@ class Recorder:
             extra = {} if eye is None else {"eye_controls": rrb.EyeControls3D(position=eye[0], look_target=eye[1],
                                                                                eye_up=(0.0, 0.0, 1.0))}
             views.append(make[kind](name=name, origin="/", contents=contents, **extra))
-        self.stream.send_blueprint(rrb.Blueprint(rrb.Grid(*views), collapse_panels=True))
+        panels = [rrb.TimePanel(timeline=self._timeline, state="collapsed")] if self._timeline else []
+        self.stream.send_blueprint(rrb.Blueprint(rrb.Grid(*views), *panels, collapse_panels=True))
 
     # --- time ----------------------------------------------------------------
     def _at(self, t: float | None, timeline: str):
@@ -107,10 +113,10 @@ class Recorder:
         self._at(t, timeline)
         self.stream.log(path, self._rr.Scalars(float(value)))
 
-    def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time"):
+    def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time", labels=None):
         self._at(t, timeline)
         self.stream.log(path, self._rr.Points3D(np.asarray(positions, np.float32), colors=colors or _color_for(path),
-                                                radii=radii))
+                                                radii=radii, labels=labels))
 
     def log_lines3d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
         self._at(t, timeline)

@@ -208,6 +208,10 @@ def _summary_markdown(result: dict) -> str:
               f"validation verdict: **{v['verdict']}** (tolerance {v['tolerance']})"]
     for name, c in v["conditions"].items():
         lines.append(f"- {name}: measured-parameter error {c['measured_error']:.4g}, fitted {c['fitted_error']:.4g}")
+    if v.get("meaning"):
+        lines += ["", v["meaning"]]
+    lines += ["", "Colours: reference grey / white, measured parameters orange, fitted parameters blue, analytic "
+                  "green. report.html beside this recording has the same result as a page."]
     return "\n".join(lines)
 
 

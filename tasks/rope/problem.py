@@ -316,7 +316,7 @@ class RopeProblem(Problem):
             recorder.log_points3d(f"reference/{name}/critical", float(ev.time), c.data.target.state.pos[0], radii=0.008)
             contact = resample(ref.markers[ev.index], ref.marker_arclength, np.array([ev.s_a, ev.s_b]))
             recorder.log_points3d(f"reference/{name}/contact", float(ev.time), contact, radii=0.025,
-                                  colors=(255, 255, 255))
+                                  colors=(255, 255, 255), labels=[f"reference contact {float(ev.time):.3f} s", ""])
             for i, who in enumerate(("measured", "fitted")):
                 b = i * C + j
                 t_ref0 = float(ref.time[0])
@@ -326,12 +326,18 @@ class RopeProblem(Problem):
                     t_hit = float(res.hit_time[b]) + t_ref0
                     recorder.log_points3d(f"{who}/{name}/critical", t_hit, res.crit_pos[b], radii=0.01)
                     pts = resample(res.crit_pos[b], s_nodes, np.array([res.s_a[b], res.s_b[b]]))
-                    recorder.log_points3d(f"{who}/{name}/contact", t_hit, pts, radii=0.025)
+                    recorder.log_points3d(f"{who}/{name}/contact", t_hit, pts, radii=0.025,
+                                          labels=[f"{who} contact {t_hit:.3f} s", ""])
                     recorder.log_scalar(f"{who}/{name}/critical_time", t_hit, t_hit)
+                else:  # said on the rope itself: a chain that never touches has no critical state to compare
+                    t_end = float(res.trajectory_times[-1]) + t_ref0
+                    recorder.log_points3d(f"{who}/{name}/critical", t_end, res.trajectory[-1, b][-1:], radii=0.01,
+                                          labels=[f"{who}: no self-collision"])
             recorder.add_view(f"{split}: {c.name}",
                               [f"/{who}/{name}/**" for who in ("reference", "measured", "fitted")], "spatial3d",
                               around=np.concatenate([ref.markers.reshape(-1, 3), ref.hand]))
         recorder.add_view("summary", ["/summary"], "text")
+        recorder.show_timeline("sim_time")
 
 
 # ------------------------------------------------------------------------------- building
