@@ -83,3 +83,41 @@ def test_replayed_state_continues_bit_identically_and_refuses_other_settings():
         make().replay(state)
     with pytest.raises(InputError, match="not a wrenorm search state"):
         make().replay({"schema": "something else"})
+
+
+def test_width_is_set_by_the_device_kind_never_its_size():
+    from wrenorm.cli import search_width
+    from wrenorm.system import get
+
+    rope = get("rope")
+    assert search_width(rope, "cpu", None, None, 6) == (1, None)  # the CPU keeps one search, today's wall time
+    d = rope.search
+    assert search_width(rope, "cuda:0", None, None, 6) == (d.wide_searches, d.wide_popsize_factor * 9)  # 4+3ln6
+    assert search_width(rope, "cuda:1", None, None, 6) == search_width(rope, "cuda:0", None, None, 6)
+    assert search_width(rope, "cuda:0", 3, 10, 6) == (3, 10)  # options win
+    assert search_width(rope, "cuda:0", None, 10, 6) == (d.wide_searches, 10)
+
+
+def test_searches_side_by_side_report_their_spread_and_each_optimum_is_validated(tmp_path):
+    import json
+
+    from wrenorm.cli import build_parser, main
+    from wrenorm.system import get, resolve
+
+    out = tmp_path / "wide"
+    argv = ["fit", "pd", "--search", "cmaes", "--searches", "3", "--generations", "8", "--no-record", "--quiet",
+            "--out", str(out)]
+    assert main(argv) == 0
+    r = json.loads((out / "result.json").read_text())
+    spread = r["searches_spread"]
+    assert [o["seed"] for o in spread["optima"]] == [0, 1000, 2000]
+    best = min(spread["optima"], key=lambda o: o["train_loss"])
+    assert best["values"] == {n: p["fitted"] for n, p in r["parameters"].items()}
+    prob = resolve(get("pd").build)(build_parser(argv).parse_args(argv), "cpu")[0]
+    for o in spread["optima"]:  # held-out errors re-evaluated here, one optimum at a time
+        v = np.array([o["values"][n] for n in prob.space.names])
+        np.testing.assert_allclose(list(o["held_out_errors"].values()), prob.errors(v[None], prob.held_out)[0],
+                                   rtol=1e-12)
+    lo, hi = spread["held_out_mean_error_range"]
+    assert lo <= best["held_out_mean_error"] <= hi
+    assert set(spread["pinned"]) | set(spread["not_pinned"]) == {p.name for p in prob.space.free}

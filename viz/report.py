@@ -116,7 +116,8 @@ def _parameter_rows(r: dict) -> list[list]:
     unc = r.get("uncertainty", {}) or {}
     undetermined, at_bound = set(unc.get("undetermined", [])), set(unc.get("at_bound", []))
     by_prior = set(unc.get("held_by_prior", []))
-    not_pinned = set((r.get("restarts") or {}).get("not_pinned", []))
+    not_pinned = set((r.get("restarts") or {}).get("not_pinned", [])) | set(
+        (r.get("searches_spread") or {}).get("not_pinned", []))
     rows = []
     for name, p in r.get("parameters", {}).items():
         flags = []
@@ -169,11 +170,13 @@ def _search(r: dict) -> str:
     loss = r.get("loss", {})
     rows += [["loss with measured parameters", num(loss.get("measured"))],
              ["loss with fitted parameters", num(loss.get("fitted"))]]
-    rs = r.get("restarts")
-    if rs:
-        lo, hi = rs.get("held_out_mean_error_range", [None, None])
-        rows.append([f"{len(rs.get('seeds', []))} further seeded searches: held-out mean error",
-                     f"{num(lo)} .. {num(hi)}"])
+    for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
+        spread = r.get(key) or {}
+        if spread.get("optima"):
+            lo, hi = spread.get("held_out_mean_error_range") or [None, None]
+            rows.append([f"{len(spread['optima'])} {who}: held-out mean error", f"{num(lo)} .. {num(hi)}"])
+            rows.append([f"{len(spread['optima'])} {who}: parameters not pinned",
+                         ", ".join(spread.get("not_pinned", [])) or "none"])
     return table(["", ""], [[a, b if isinstance(b, str) else num(b)] for a, b in rows])
 
 

@@ -64,8 +64,10 @@ def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
                help="CMA-ES population (default: pycma's for the dimension when unset)")
     add_number(p, "--sigma0", default=d.sigma0, lo=0.0, lo_open=True, hi=1.0,
                help="initial CMA-ES step in normalised [0, 1] coordinates")
-    add_number(p, "--searches", default=1, lo=1, hi=65536, integer=True,
-               help="seeded CMA-ES searches side by side in one batched evaluation; the best is kept")
+    add_number(p, "--searches", default=None, lo=1, hi=65536, integer=True,
+               help="seeded CMA-ES searches side by side in one batched evaluation; the best is kept and the spread "
+                    f"of their optima reported (default by device kind: cpu 1, cuda {d.wide_searches} with "
+                    f"{d.wide_popsize_factor}x pycma's population)")
     add_number(p, "--restarts", default=d.restarts, lo=0, hi=1000, integer=True,
                help="identifiability check after the fit: further seeded searches side by side (0: none; else >= 2)")
     add_number(p, "--polish", default=d.polish, lo=0, hi=10000, integer=True,
@@ -80,6 +82,11 @@ def _flow_arguments(p: argparse.ArgumentParser, system) -> None:
                help="seeded CMA-ES searches side by side per resolution (their spread is the uncertainty)")
     add_number(p, "--generations", default=system.flow.generations, lo=1, hi=100000, integer=True)
     add_number(p, "--popsize", default=16, lo=4, hi=1_000_000, integer=True, help="CMA-ES population per search")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--together", dest="together", action="store_true", default=None,
+                     help="every resolution's searches in one generation loop (default on cuda)")
+    how.add_argument("--in-turn", dest="together", action="store_false",
+                     help="one resolution after another, each starting from the previous result (default on cpu)")
     system.flow.add_arguments(p)
 
 
@@ -177,6 +184,17 @@ def content_hashes(paths) -> dict:
     return out
 
 
+def search_width(system, device: str, searches: int | None, popsize: int | None, n_free: int) -> tuple:
+    """(searches, popsize) of a fit: as given, else by the device's kind (see SearchDefaults)."""
+    import math
+
+    if searches is not None or not device.startswith("cuda"):
+        return searches or 1, popsize
+    d = system.search
+    base = popsize or 4 + int(3 * math.log(max(n_free, 1)))  # pycma's default population for the dimension
+    return d.wide_searches, (popsize if popsize is not None else d.wide_popsize_factor * base)
+
+
 def command_line(args) -> str:
     """The command that reproduces this run (as typed, less --resume), for result.json and the report."""
     import shlex
@@ -198,8 +216,9 @@ def cmd_fit(args) -> int:
     _apply_parameter_set(problems, args)
     if args.search != "cmaes" and not all(p.has_residuals for p in problems):
         raise InputError("--search", "search", f"{args.search} needs residuals, which {args.system} does not expose")
-    settings = FitSettings(seed=args.seed, generations=args.generations, popsize=args.popsize, sigma0=args.sigma0,
-                           polish=args.polish, restarts=args.restarts, searches=args.searches, method=args.search)
+    searches, popsize = search_width(system, device, args.searches, args.popsize, len(problems[0].space.free))
+    settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
+                           polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
                       state="search_state.json", inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:
@@ -214,7 +233,7 @@ def cmd_fit(args) -> int:
 
 _ENGINE_OPTIONS = {"command", "system", "out", "resume", "force", "quiet", "no_record", "device", "seed",
                    "generations", "popsize", "sigma0", "polish", "restarts", "searches", "search", "verbose",
-                   "resolutions", "free", "freeze"}
+                   "resolutions", "free", "freeze", "together"}
 
 
 def _system_options(args) -> dict:
@@ -240,10 +259,13 @@ def _print_summary(result: dict, out: Path) -> None:
         print(f"  held-out verdict: {v['verdict']}" + (
             f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g},"
             f" tolerance {v['tolerance']})" if "mean_measured_error" in v else ""))
-        if r.get("restarts", {}).get("held_out_mean_error_range"):
-            lo, hi = r["restarts"]["held_out_mean_error_range"]
-            print(f"  across {len(r['restarts']['seeds'])} further seeds: held-out mean error {lo:.4g} .. {hi:.4g}; "
-                  f"not pinned: {', '.join(r['restarts']['not_pinned']) or 'none'}")
+        for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
+            spread = r.get(key) or {}
+            if spread.get("optima"):
+                rng = spread.get("held_out_mean_error_range")
+                held = f"held-out mean error {rng[0]:.4g} .. {rng[1]:.4g}; " if rng else ""
+                print(f"  across {len(spread['optima'])} {who}: {held}"
+                      f"not pinned: {', '.join(spread['not_pinned']) or 'none'}")
         if r.get("uncertainty", {}).get("warning"):
             print(f"  warning: {r['uncertainty']['warning']}")
     view = (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd"))
@@ -264,7 +286,8 @@ def cmd_flow(args) -> int:
     identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args))}
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
                     resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record,
-                    identity=identity, command=command_line(args))
+                    identity=identity, command=command_line(args),
+                    together=device.startswith("cuda") if args.together is None else args.together)
     for pt in flow["points"]:
         line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
                          if not p["frozen"])

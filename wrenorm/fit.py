@@ -20,7 +20,7 @@ from . import search as searches
 from .clock import process_age
 from .jacobian import Jacobian
 from .problem import Problem, finite_or_inf
-from .restarts import identifiability_restarts
+from .restarts import identifiability_restarts, spread_of_optima
 from .results import SCHEMA, versions, write_json
 from .uncertainty import uncertainty
 
@@ -161,8 +161,12 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         "device": problem.device,
         "versions": versions(),
     }
-    if settings.searches > 1 and res.history and "optima" in res.history[-1]:
-        result["search"]["optima"] = res.history[-1]["optima"]
+    optima = history.get("cmaes", [{}])[-1].get("optima") if history.get("cmaes") else None
+    if settings.searches > 1 and optima:
+        # width-first: the searches run side by side anyway, so their optima give the spread for free
+        result["searches_spread"] = spread_of_optima(
+            problem, fitted, [o["seed"] for o in optima], np.array([o["values"] for o in optima]),
+            np.array([o["loss"] for o in optima]))
     if settings.restarts >= 2:
         seeds = [settings.seed + 1 + k for k in range(settings.restarts)]
         result["restarts"] = identifiability_restarts(problem, fitted, seeds, popsize=settings.popsize,

@@ -2,7 +2,8 @@
 
 At each resolution the system is fitted by several seeded CMA-ES searches side by side (one
 batched evaluation per generation for all of them), starting from the neighbouring
-resolution's result. The spread across searches is the reported uncertainty ("restarts");
+resolution's result; or, on a wide device (`together`), every resolution's searches in one generation
+loop, all starting from the measured values. The spread across searches is the reported uncertainty ("restarts");
 where the system exposes residuals, the Gauss-Newton std at the best optimum is given too.
 """
 from __future__ import annotations
@@ -15,16 +16,16 @@ import numpy as np
 
 from .errors import InputError
 from .results import SCHEMA, versions, write_json
-from .search import mean_loss
+from .search import mean_loss, restarts_together
 from .search import restarts as seeded_searches
 from .uncertainty import uncertainty
 
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
 
 
-def _settings(problems, seed, restarts, popsize, generations, identity) -> dict:
+def _settings(problems, seed, restarts, popsize, generations, identity, together) -> dict:
     return {"task": problems[0].task, "resolutions": [p.resolution for p in problems], "seed": seed,
-            "restarts": restarts, "popsize": popsize, "generations": generations,
+            "restarts": restarts, "popsize": popsize, "generations": generations, "together": together,
             "free": [[q.name for q in p.space.free] for p in problems]} | (identity or {})
 
 
@@ -44,13 +45,19 @@ def _resumed(out: Path, settings: dict) -> tuple[list, object]:
 
 def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsize: int = 16,
              generations: int = 60, quiet: bool = False, analytic=None, record: bool = True,
-             resume: bool = False, identity: dict | None = None, command: str | None = None) -> dict:
+             resume: bool = False, identity: dict | None = None, command: str | None = None,
+             together: bool = False) -> dict:
     t0 = time.perf_counter()
-    settings = _settings(problems, seed, restarts, popsize, generations, identity)
+    settings = _settings(problems, seed, restarts, popsize, generations, identity, together)
     points, start = _resumed(out, settings) if resume else ([], None)
-    for prob in problems[len(points):]:
-        seeds = [seed + 1000 * k for k in range(restarts)]
-        res = seeded_searches(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
+    seeds = [seed + 1000 * k for k in range(restarts)]
+    todo = problems[len(points):]
+    found = restarts_together(todo, seeds, popsize, generations, quiet=quiet) if together and todo else None
+    for k, prob in enumerate(todo):
+        if found is not None:
+            res = found[k]
+        else:
+            res = seeded_searches(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
         best = min(res, key=lambda r: r.best_loss)
         vals = np.array([r.best_values for r in res if np.isfinite(r.best_loss)])
         spread = vals.std(axis=0, ddof=1) if len(vals) > 1 else np.full(len(prob.space.names), np.nan)
@@ -77,6 +84,9 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
     flow = {"schema": SCHEMA.replace("result", "flow"), "task": problems[0].task, "points": points,
             "uncertainty_method": f"std over {restarts} seeded CMA-ES restarts run side by side (std_restarts); "
                                   "Gauss-Newton sigma^2 (J^T J)^-1 where residuals exist (std_jacobian)",
+            "resolutions_searched": ("together: every resolution's searches in one generation loop, from the "
+                                     "measured values" if together else
+                                     "in turn: each resolution's searches start from the previous one's result"),
             "seed": seed, "device": problems[0].device, "versions": versions(),
             "wall_seconds": time.perf_counter() - t0}
     if command:

@@ -19,10 +19,18 @@ GOOD_LOSS_FACTOR = 2.0  # a search "fits as well" when its training loss is with
 
 def identifiability_restarts(problem: Problem, fitted: np.ndarray, seeds: list[int], popsize: int | None = 16,
                              generations: int = 100, sigma0: float = 0.2, quiet: bool = True) -> dict:
-    space = problem.space
     res = restarts(problem, seeds, popsize=popsize, generations=generations, sigma0=sigma0, quiet=quiet)
-    vals = np.array([r.best_values for r in res])
-    loss = np.array([r.best_loss for r in res])
+    out = spread_of_optima(problem, fitted, [r.seed for r in res], np.array([r.best_values for r in res]),
+                           np.array([r.best_loss for r in res]))
+    return {"seeds": [int(s) for s in seeds], "popsize": popsize, "generations": generations} | out
+
+
+def spread_of_optima(problem: Problem, fitted: np.ndarray, seeds: list[int], vals: np.ndarray,
+                     loss: np.ndarray) -> dict:
+    """What a set of optima (one per seeded search) says: each one's held-out errors, the spread of the fitted
+    values over those that fit about as well as the best, which parameters that pins, and the held-out spread.
+    One batched evaluation for all optima."""
+    space = problem.space
     fitted_loss = float(objective(problem, fitted[None])[0])
     if problem.held_out:
         held = finite_or_inf(problem.errors(np.concatenate([fitted[None], vals]), problem.held_out))
@@ -35,11 +43,10 @@ def identifiability_restarts(problem: Problem, fitted: np.ndarray, seeds: list[i
     spread = units.max(0) - units.min(0)
     free = space.free
     out = {
-        "seeds": [int(s) for s in seeds], "popsize": popsize, "generations": generations,
-        "optima": [{"seed": int(r.seed), "values": space.as_dict(v), "train_loss": float(lo),
+        "optima": [{"seed": int(sd), "values": space.as_dict(v), "train_loss": float(lo),
                     "held_out_errors": {c.name: float(e) for c, e in zip(problem.held_out, h)},
                     "held_out_mean_error": float(np.mean(h)) if len(h) else None, "fits_as_well": bool(g)}
-                   for r, v, lo, h, g in zip(res, vals, loss, held, good)],
+                   for sd, v, lo, h, g in zip(seeds, vals, loss, held, good)],
         "spread_unit": {p.name: float(d) for p, d in zip(free, spread)},
         "pinned": [p.name for p, d in zip(free, spread) if d < PINNED_SPREAD],
         "not_pinned": [p.name for p, d in zip(free, spread) if d >= PINNED_SPREAD],

@@ -189,16 +189,26 @@ def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations:
     """Independent seeded searches side by side (one batched evaluation per generation for all). The spread
     of their optima is an honest uncertainty for parameters the observable barely constrains, where a
     Jacobian-based std can mislead."""
-    space = problem.space
-    es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
-                      popsize, generations)
-    with Progress(generations, f"{problem.task} {len(seeds)} restarts", quiet, unit="gen") as bar:
-        while not es.done:
-            U = es.ask()
-            es.tell(objective(problem, space.from_unit(U)))
-            bar.update(best=f"{min(s.best_loss for s in es.searches):.4e}", searching=len(es.active))
-    return [SearchResult("cmaes", space.from_unit(s.best_x), s.best_loss, [], s.evaluations, s.blowups, s.stop,
-                         s.seed) for s in es.finish()]
+    return restarts_together([problem], seeds, popsize, generations, sigma0, [start], quiet)[0]
+
+
+def restarts_together(problems: list[Problem], seeds: list[int], popsize: int = 16, generations: int = 60,
+                      sigma0: float = 0.2, starts: list | None = None, quiet: bool = False) -> list[list[SearchResult]]:
+    """`restarts` for several problems (a flow's resolutions) in one generation loop: every generation asks
+    all searches of all problems before any waits for the next, so a wide device holds them all at once."""
+    starts = starts or [None] * len(problems)
+    ess = [BatchedCMAES(np.repeat(_unit_start(p, s)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds, popsize,
+                        generations) for p, s in zip(problems, starts)]
+    what = problems[0].task + (f" {len(problems)} resolutions" if len(problems) > 1 else "")
+    with Progress(generations, f"{what} x {len(seeds)} searches", quiet, unit="gen") as bar:
+        while not all(es.done for es in ess):
+            for p, es in zip(problems, ess):
+                if not es.done:
+                    es.tell(objective(p, p.space.from_unit(es.ask())))
+            bar.update(best=" ".join(f"{min(s.best_loss for s in es.searches):.3e}" for es in ess[:4]),
+                       searching=sum(len(es.active) for es in ess))
+    return [[SearchResult("cmaes", p.space.from_unit(s.best_x), s.best_loss, [], s.evaluations, s.blowups, s.stop,
+                          s.seed) for s in es.finish()] for p, es in zip(problems, ess)]
 
 
 def _loss_and_unit_grad(problem: Problem, u: np.ndarray):

@@ -33,6 +33,11 @@ class SearchDefaults:
     sigma0: float = 0.2  # initial step in normalised [0, 1] coordinates
     polish: int = 0  # L-BFGS evaluations on tape gradients after the search (systems with a tape)
     restarts: int = 0  # identifiability restarts after the fit (further seeded searches side by side)
+    # Width on a wide device (cuda): many seeded searches with larger populations in every batched evaluation
+    # cost little more than one there and bring the spread of the optima. Set by the device's kind, never by
+    # its size, so a run is the same wherever it runs; the CPU keeps one search.
+    wide_searches: int = 32
+    wide_popsize_factor: int = 4  # times pycma's default population for the dimension (IPOP-style width)
 
 
 @dataclass(frozen=True)
