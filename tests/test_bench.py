@@ -27,3 +27,42 @@ def test_bench_refuses_nonpositive_batches(tmp_path, capsys):
                "--out", str(tmp_path / "b")])
     assert rc == 2
     assert "--batches" in capsys.readouterr().err
+
+
+def test_gpu_script_runs_from_the_repository_root_on_the_installed_layout(tmp_path):
+    """bench/gpu.sh lays the package out as installed and runs it from outside the checkout (tried here on the
+    CPU: WRENORM_BENCH_DEVICE=cpu)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, WRENORM_BENCH_DEVICE="cpu", OUT=str(tmp_path), PYTHON=sys.executable, RERUN_ANALYTICS="0")
+    r = subprocess.run(["bash", "bench/gpu.sh", "--quick", "--no-fits", "--no-cuda-build", "--only", "pd",
+                        "--batches", "256"], cwd=repo, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    line = next(x for x in r.stderr.splitlines() if x.startswith("wrenorm.kernels from"))
+    assert "/tmp/wrenorm-src." in line and "/wrenorm/kernels/" in line  # the laid-out copy, not the checkout
+    assert (tmp_path / "bench" / "results.json").exists()
+
+
+def test_a_gpu_fit_row_holds_its_ratios_against_the_cpu_default_on_two_cores(monkeypatch):
+    from wrenorm import bench
+
+    calls = []
+
+    def fake(system, args, device="cpu", prefix=None):
+        calls.append((device, prefix))
+        gpu = device.startswith("cuda")
+        return {"task": system, "command": "c", "ok": True, "wall_seconds": 2.0 if gpu else 4.0,
+                "candidates": 60000 if gpu else 500}
+
+    monkeypatch.setattr(bench, "timed_fit", fake)
+    monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/" + name)
+    rows = bench.bench_fits("cuda:0", ["rope"])
+    assert calls == [("cuda:0", None), ("cpu", bench.TWO_CORES)]
+    assert rows[0]["candidates_ratio_vs_cpu"] == 120.0 and rows[0]["wall_ratio_vs_cpu"] == 0.5
+    table = bench._table({"machine": {"processor": "x", "cpu_count": 16, "device": "cuda:0"}, "date": "d",
+                          "fits": rows})
+    assert "| rope | 2.00 | 4.00 | 120.0 | 0.50 |" in table

@@ -27,7 +27,8 @@ CUDA_BATCHES = [4096, 32768, 262144, 1048576]
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    p.add_argument("--out", type=Path, default=Path("bench"), help="folder for results.json / results.md")
+    p.add_argument("--out", type=Path, default=Path("bench"),
+                   help="folder for results.{json,md,png} (results-cuda.* on cuda)")
     p.add_argument("--quick", action="store_true", help="small batches only (smoke test)")
     p.add_argument("--no-fits", action="store_true", help="skip the end-to-end default fits")
     p.add_argument("--batches", type=int, nargs="+", default=None)
@@ -55,17 +56,18 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def timed_fit(system: str, args: list[str], device: str = "cpu") -> dict:
+def timed_fit(system: str, args: list[str], device: str = "cpu", prefix: list[str] | None = None) -> dict:
     """One default fit as a user runs it, a whole process: its wall time, the fit's own split of it
-    (result.json `timing`), the candidates it evaluated and its held-out error."""
+    (result.json `timing`), the candidates it evaluated and its held-out error. prefix: e.g. taskset."""
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "wrenorm", "fit", system, "--quiet", "--out", f"{tmp}/run",
+        cmd = [*(prefix or []), sys.executable, "-m", "wrenorm", "fit", system, "--quiet", "--out", f"{tmp}/run",
                "--device", "cuda" if device.startswith("cuda") else "cpu", *args]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t0
-        row = {"task": system, "command": " ".join(["python -m wrenorm fit", system, *args]), "wall_seconds": wall,
-               "ok": proc.returncode == 0}
+        row = {"task": system, "command": " ".join([*(prefix or []), "python -m wrenorm fit", system, *args]
+                                                   + (["--device cuda"] if device.startswith("cuda") else [])),
+               "wall_seconds": wall, "ok": proc.returncode == 0}
         if proc.returncode == 0:
             res = json.loads((Path(tmp) / "run" / "result.json").read_text())
             runs = res.get("runs", [res])
@@ -77,10 +79,24 @@ def timed_fit(system: str, args: list[str], device: str = "cpu") -> dict:
     return row
 
 
+TWO_CORES = ["taskset", "-c", "0,1"]  # the CPU default as on the development machines (2 cores)
+
+
 def bench_fits(device: str, tasks: list[str]) -> list[dict]:
+    """Each default fit on `device`; on a GPU also the CPU default on two cores of the same machine, run
+    right after it, and the ratios of candidates evaluated and of wall time against it."""
+    import shutil
+
     rows = []
     for task in tasks:
         row = timed_fit(task, [], device)
+        if device.startswith("cuda"):
+            prefix = TWO_CORES if shutil.which("taskset") else None
+            cpu = timed_fit(task, [], "cpu", prefix)
+            row["cpu_default"] = {k: cpu.get(k) for k in ("command", "wall_seconds", "candidates", "ok")}
+            if row["ok"] and cpu["ok"]:
+                row["candidates_ratio_vs_cpu"] = row["candidates"] / cpu["candidates"]
+                row["wall_ratio_vs_cpu"] = row["wall_seconds"] / cpu["wall_seconds"]
         rows.append(row)
         t = row.get("timing") or {}
         _log(f"fit {task}: {row['wall_seconds']:6.1f} s" + (
@@ -114,6 +130,17 @@ def _table(res: dict) -> str:
             lines.append(f"| `{r['command']}` | {r['wall_seconds']:.2f}{'' if r['ok'] else ' (failed)'} | "
                          + " | ".join(cells) + f" | {r.get('candidates', '')} | {r.get('held_out_error', '')} |")
         lines.append("")
+        against = [r for r in res["fits"] if r.get("cpu_default")]
+        if against:
+            lines += ["Against the CPU default on two cores of the same machine, run right after each:", "",
+                      "| task | cuda wall s | cpu wall s | candidates cuda / cpu | wall cuda / cpu |",
+                      "|---|---|---|---|---|"]
+            for r in against:
+                c = r["cpu_default"]
+                lines.append(f"| {r['task']} | {r['wall_seconds']:.2f} | {c['wall_seconds']:.2f} | "
+                             f"{r.get('candidates_ratio_vs_cpu', float('nan')):.1f} | "
+                             f"{r.get('wall_ratio_vs_cpu', float('nan')):.2f} |")
+            lines.append("")
     for peer in (res.get("peers") or {}).values():
         lines += [peer["table"], ""]
     return "\n".join(lines).rstrip() + "\n"
@@ -157,14 +184,15 @@ def run(args) -> int:
             if peer is not None:
                 res["peers"][name] = peer(device)
     table = _table(res)
-    write_json(args.out / "results.json", res)
-    write_atomic(args.out / "results.md", table)
-    written = [args.out / "results.json", args.out / "results.md"]
+    stem = "results" if device == "cpu" else "results-cuda"  # both live in bench/, side by side
+    write_json(args.out / f"{stem}.json", res)
+    write_atomic(args.out / f"{stem}.md", table)
+    written = [args.out / f"{stem}.json", args.out / f"{stem}.md"]
     try:
         from wrenorm.viz.bench_plot import plot_bench
 
-        plot_bench(args.out / "results.png", res)
-        written.append(args.out / "results.png")
+        plot_bench(args.out / f"{stem}.png", res)
+        written.append(args.out / f"{stem}.png")
     except ImportError as e:  # the GPU machine may lack matplotlib: the numbers matter more than the plot
         _log(f"no plot ({e})")
     print(table)
