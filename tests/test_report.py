@@ -36,8 +36,7 @@ def test_a_fit_writes_a_report_that_says_what_its_result_says(pd_run):
     result = json.loads((pd_run / "result.json").read_text())
     text = (pd_run / "report.html").read_text()
     assert f"<b>{result['validation']['verdict']}</b>" in text
-    for name, p in result["parameters"].items():
-        assert f"<td>{name}</td>" in text
+    _assert_page_holds(text, result)
     for cond in result["validation"]["conditions"]:
         assert f"<td>{cond}</td>" in text
     assert "python -m wrenorm fit pd --no-record --quiet --out" in text  # the command to reproduce it
@@ -64,6 +63,58 @@ def test_view_report_of_a_folder_without_a_result_is_a_one_line_error(tmp_path, 
     assert main(["view", str(tmp_path), "--report"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "result.json" in err[0] and str(tmp_path) in err[0]
+
+
+def _rows(page: str) -> dict[str, list[str]]:
+    """Every table row of a page (as a browser or the writer left it): first cell -> the cells' text."""
+    from html.parser import HTMLParser
+
+    rows, cur, cell = {}, None, None
+
+    class Rows(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            nonlocal cur, cell
+            if tag == "tr":
+                cur = []
+            elif tag in ("td", "th") and cur is not None:
+                cell = []
+
+        def handle_endtag(self, tag):
+            nonlocal cur, cell
+            if tag in ("td", "th") and cell is not None:
+                cur.append("".join(cell).strip())
+                cell = None
+            elif tag == "tr" and cur:
+                rows.setdefault(cur[0], cur)
+                cur = None
+
+        def handle_data(self, data):
+            if cell is not None:
+                cell.append(data)
+
+    Rows().feed(page)
+    return rows
+
+
+def _assert_page_holds(page: str, result: dict) -> None:
+    """The verdict, every parameter with measured, fitted, std and what the data say, the held-out table, and
+    one chart per held-out table, search, and condition."""
+    from wrenorm.viz.report import num
+
+    assert result["validation"]["verdict"] in page
+    rows = _rows(page)
+    for name, p in result["parameters"].items():
+        row = rows[name]
+        assert num(p["measured"]) in row and num(p["fitted"]) in row, (name, row)
+        if p["std"] is not None:
+            assert f"± {num(p['std'], 3)}" in row, (name, row)
+        assert row[-1] in ("held at measured", "determined") or any(
+            f in row[-1] for f in ("cannot determine", "at bound", "held by prior", "differs across seeds")), row
+        assert (row[-1] == "held at measured") == p["frozen"]
+    for cond, c in result["validation"]["conditions"].items():
+        assert rows[cond][1:3] == [num(c["measured_error"]), num(c["fitted_error"])]
+    n_conditions = len(result["train"]) + len(result["validation"]["conditions"])
+    assert page.count("<svg") >= 1 + 2 + n_conditions  # held-out bars, search (2), per condition
 
 
 def _result(**over) -> dict:
@@ -119,8 +170,7 @@ def test_the_report_renders_in_a_real_browser(pd_run, tmp_path):
     result = json.loads((pd_run / "result.json").read_text())
     # the browser parsed the tables and the charts as the page means them
     assert dom.stdout.count("<svg") == (pd_run / "report.html").read_text().count("<svg")
-    for name in result["parameters"]:
-        assert f"<td>{name}</td>" in dom.stdout
+    _assert_page_holds(dom.stdout, result)
     shot = tmp_path / "report.png"
     subprocess.run([browser, *flags, f"--screenshot={shot}", "--window-size=1200,1600", page], capture_output=True,
                    timeout=120, check=True)
@@ -145,7 +195,8 @@ def _chunks(data: bytes, kind: bytes):
 
 def test_a_flow_writes_its_report(tmp_path):
     out = tmp_path / "flow"
-    r = _run(["flow", "pd", "--resolutions", "100", "400", "--restarts", "2", "--no-record", "--quiet", "--out", str(out)])
+    r = _run(["flow", "pd", "--resolutions", "100", "400", "--restarts", "2", "--no-record", "--quiet",
+              "--out", str(out)])
     assert r.returncode == 0, r.stderr
     text = (out / "report.html").read_text()
     flow = json.loads((out / "flow.json").read_text())

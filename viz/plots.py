@@ -48,8 +48,12 @@ def search_charts(problem, history: dict) -> list[str]:
                              hline=1.0, hline_label="measured")]
 
 
-def write_search_svg(path: Path, problem, history: dict) -> None:
-    charts = search_charts(problem, history)
+def write_svg_page(path: Path, charts: list[str]) -> None:
+    """A bare page of inline SVG charts (search.html, conditions.html): viewable alone, inlined by report.html."""
     if charts:
         write_atomic(path, "<!DOCTYPE html><meta charset=\"utf-8\"><body style=\"margin:0\">" + "".join(charts)
                      + "</body>\n")
+
+
+def write_search_svg(path: Path, problem, history: dict) -> None:
+    write_svg_page(path, search_charts(problem, history))

@@ -231,6 +231,10 @@ def fit_body(r: dict, folder: Path | None, system) -> str:
 
         for title, body in resolve(system.report)(r):
             parts += [f"<h2>{esc(title)}</h2>", body]
+    per_condition = _svgs_of(folder / "conditions.html") if folder is not None else []
+    if per_condition:
+        parts += ["<h2>Each condition: reference, measured and fitted parameters</h2>",
+                  '<div class="charts">' + "".join(per_condition) + "</div>"]
     charts = _svgs_of(folder / "search.html") if folder is not None else []
     parts += ["<h2>Search</h2>", _search(r)]
     if charts:

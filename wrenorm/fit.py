@@ -176,7 +176,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     t_write = time.perf_counter()
     if record:
         _record(problem, out, result, history, fitted, measured, quiet)
-    _plot(out, problem, history)
+    _plot(out, problem, history, fitted, measured)
     result["wall_seconds"] = time.perf_counter() - t0
     result["timing"] = {"start_up_s": t_start, "search_s": t_search, "validation_s": t_write - t_validate,
                         "writing_s": time.perf_counter() - t_write, "uncertainty_s": t_validate - t0 - t_search,
@@ -247,10 +247,11 @@ def _record(problem, out, result, history, fitted, measured, quiet):
         raise
 
 
-def _plot(out, problem, history):
-    from wrenorm.viz.plots import write_search_svg
+def _plot(out, problem, history, fitted, measured):
+    from wrenorm.viz.plots import write_search_svg, write_svg_page
 
     write_search_svg(out / "search.html", problem, history)
+    write_svg_page(out / "conditions.html", problem.charts(fitted, measured))
 
 
 def _label(problem: Problem) -> str:

@@ -86,6 +86,11 @@ class Problem(ABC):
         """Task-specific fields added to result.json (e.g. analytic predictions, speeds)."""
         return {}
 
+    def charts(self, fitted: np.ndarray, measured: np.ndarray) -> list[str]:
+        """SVG charts, one or more per condition: the reference against the model with measured and with fitted
+        parameters (report.html shows them; viz/svg.py draws them)."""
+        return []
+
     def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:  # noqa: B027 (optional hook)
         """Log reference, measured-parameter and fitted-parameter behaviour to a viz.Recorder."""
 

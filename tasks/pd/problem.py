@@ -372,6 +372,11 @@ class PDProblem(Problem):
         f = self.space.as_dict(fitted)
         return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name}
 
+    def charts(self, fitted, measured):
+        from wrenorm.tasks.pd.report import condition_charts
+
+        return condition_charts(self, fitted, measured)
+
     def record(self, rec, fitted, measured):
         for group in (self.train, self.held_out):
             traj = self.trajectories(np.stack([measured, fitted]), group)

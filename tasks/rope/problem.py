@@ -292,6 +292,11 @@ class RopeProblem(Problem):
                        "error 0: no penalty constant in the comparison",
         }
 
+    def charts(self, fitted, measured):
+        from wrenorm.tasks.rope.report import condition_charts
+
+        return condition_charts(self, fitted, measured)
+
     def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:
         """Per hand path, one 3-D view: the reference rope (grey line and its markers), the
         measured-parameter chain (orange) and the fitted chain (blue) as line strips on
