@@ -206,3 +206,14 @@ def test_a_flow_writes_its_report(tmp_path):
     write_report(out)
     assert (out / "report.html").read_text() == text
     assert Path(out / "report.html").stat().st_size < 200_000
+
+
+def test_a_sensitivity_run_writes_a_report_with_its_own_verdicts(tmp_path):
+    out = tmp_path / "sens"
+    r = _run(["sensitivity", "rope", "--no-record", "--quiet", "--out", str(out)])
+    assert r.returncode == 0, r.stderr
+    result = json.loads((out / "sensitivity.json").read_text())
+    text = (out / "report.html").read_text()
+    above = result["command"]["count_above_noise"] + result["parameters"]["count_above_noise"]
+    assert text.count("above the noise</span>") == above  # the analysis' own decisions, not re-derived
+    assert "data:image/png;base64," in text and "python -m wrenorm sensitivity rope" in text

@@ -320,10 +320,48 @@ def page(title: str, body: str) -> str:
             f"<body><h1>{esc(title)}</h1>{body}</body></html>\n")
 
 
+def images(folder: Path | None) -> str:
+    """The run's PNG plots, embedded (data URIs), so the page stays one self-contained file."""
+    import base64
+
+    if folder is None:
+        return ""
+    out = []
+    for png in sorted(folder.glob("*.png")):
+        data = base64.b64encode(png.read_bytes()).decode()
+        out.append(f'<figure><img alt="{esc(png.stem)}" style="max-width:100%" src="data:image/png;base64,{data}">'
+                   f"<figcaption class='muted'>{esc(png.name)}</figcaption></figure>")
+    return "".join(out)
+
+
+def other_body(result: dict, folder: Path | None, system) -> str:
+    """A run that is not a fit (sensitivity, correction): the system's sections, its plots, how to rerun it."""
+    parts = []
+    if system is not None and getattr(system, "report", None):
+        from wrenorm.system import resolve
+
+        for title, body in resolve(system.report)(result):
+            parts += [f"<h2>{esc(title)}</h2>", body]
+    pictures = images(folder)
+    if pictures:
+        parts += ["<h2>Plots</h2>", pictures]
+    info = [["device", result.get("device", "")], ["wall time", f"{result.get('wall_seconds', 0):.1f} s"],
+            ["versions", ", ".join(f"{k} {v}" for k, v in (result.get("versions") or {}).items())]]
+    if result.get("command_line"):
+        info.insert(0, ["reproduce", _Html(f"<code>{esc(result['command_line'])}</code>")])
+    return "".join(parts) + "<h2>Run</h2>" + table(["", ""], info)
+
+
+RESULT_FILES = ("result.json", "flow.json", "sensitivity.json", "correction.json")
+
+
 def render(result: dict, folder: Path | None = None) -> str:
-    """The report page for a result (a fit, a fit per resolution, or a flow) as HTML text."""
-    system = _system(result.get("task"))
-    task = result.get("task", "wrenorm")
+    """The report page for a result (a fit, a fit per resolution, a flow, or a system's own run) as HTML."""
+    system = _system(result.get("task") or result.get("system"))
+    task = result.get("task") or result.get("system") or "wrenorm"
+    kind = str(result.get("schema", "")).removeprefix("wrenorm.").split("/")[0]
+    if kind not in ("result", "flow", ""):
+        return page(f"{task}: {kind}", other_body(result, folder, system))
     if "points" in result:
         return page(f"{task}: parameter flow", flow_body(result, folder))
     if "runs" in result:
@@ -335,14 +373,15 @@ def write_report(folder: Path, result: dict | None = None) -> Path:
     """Write FOLDER/report.html from `result` (default: the folder's result.json or flow.json)."""
     folder = Path(folder)
     if result is None:
-        for name in ("result.json", "flow.json"):
+        for name in RESULT_FILES:
             if (folder / name).exists():
                 result = json.loads((folder / name).read_text())
                 break
         else:
             from wrenorm.errors import InputError
 
-            raise InputError(str(folder), "result.json", "no result.json or flow.json: not a finished run folder")
+            raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: not a finished run "
+                                                         "folder")
     path = folder / REPORT_FILE
     write_atomic(path, render(result, folder))
     return path

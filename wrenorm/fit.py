@@ -186,11 +186,11 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     if command:
         result["command"] = command
     write_json(out / "result.json", result)
-    _report(out, result, quiet)
+    write_report_or_warn(out, result, quiet)
     return result
 
 
-def _report(out: Path, result: dict, quiet: bool) -> None:
+def write_report_or_warn(out: Path, result: dict, quiet: bool = False) -> None:
     """report.html beside result.json. The result is already safe on disk, so a failure here costs the page
     only, and says so."""
     from wrenorm.viz.report import write_report
@@ -292,5 +292,5 @@ def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = Fa
     if command:
         combined["command"] = command
     write_json(out / "result.json", combined)
-    _report(out, combined, quiet)
+    write_report_or_warn(out, combined, quiet)
     return combined

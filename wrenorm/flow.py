@@ -92,9 +92,9 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
     if command:
         flow["command"] = command
     write_json(out / "flow.json", flow)
-    from wrenorm.fit import _report
+    from wrenorm.fit import write_report_or_warn
 
-    _report(out, flow, quiet)
+    write_report_or_warn(out, flow, quiet)
     from wrenorm.viz.flow_plot import plot_flow
 
     plot_flow(out / "flow.png", flow)

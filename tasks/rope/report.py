@@ -12,6 +12,8 @@ def _chain(c: dict) -> list:
 
 
 def sections(result: dict) -> list[tuple[str, str]]:
+    if str(result.get("schema", "")).startswith("wrenorm.sensitivity"):
+        return sensitivity_sections(result)
     points = result.get("critical_points") or {}
     if not points:
         return []
@@ -57,4 +59,49 @@ def condition_charts(problem, fitted, measured) -> list[str]:
                 series.append({"x": [], "y": [], "color": ROLE_COLORS[who], "label": f"{who} parameters: never hits"})
         out.append(line_chart(series, f"{split}: {c.name}, critical state from the side", "x [m]", "z [m]",
                               width=360, height=300))
+    return out
+
+
+def _directions(names, sv, noise, above, vectors=None) -> str:
+    """One row per singular direction, flagged as the analysis decided (never re-derived here)."""
+    rows = []
+    for i, (v, n, ok) in enumerate(zip(sv, noise, above)):
+        row = [f"{i + 1}", num(v, 3), num(n, 3), flag("above the noise", "ok") if ok else flag("in the noise", "bad")]
+        if vectors is not None:
+            comp = vectors[i]
+            big = sorted(range(len(comp)), key=lambda k: -abs(comp[k]))[:3]
+            row.append(", ".join(f"{names[k]} {comp[k]:+.2f}" for k in big))
+        rows.append(row)
+    return table(["direction", "singular value", "noise", ""] + (["largest components"] if vectors is not None
+                                                                  else []), rows)
+
+
+def _criterion(result: dict, step_key: str) -> str:
+    nm = result.get("noise_model") or {}
+    return (f"<p class='muted'>A direction is above the noise when singular value x step >= snr x noise (step "
+            f"{num(nm.get(step_key), 3)}, snr {num(nm.get('snr'), 3)}).</p>")
+
+
+def sensitivity_sections(result: dict) -> list[tuple[str, str]]:
+    cmd = result.get("command") or {}
+    out = []
+    if cmd:
+        dirs = cmd.get("directions") or []
+        vectors = [[d["direction"][n] for n in cmd["names"]] for d in dirs] if dirs else None
+        out.append((f"Command directions ({result.get('path')}, {result.get('variant')} rope, {result.get('params')} "
+                    "parameters)",
+                    f"<p><b>{cmd.get('count_above_noise')} of {cmd.get('dim')}</b> command directions move the "
+                    "critical state above the noise; a correction without a model needs at least "
+                    f"{cmd.get('min_trials_model_free')} trials.</p>"
+                    + _directions(cmd["names"], cmd.get("singular_values", []), cmd.get("noise", []),
+                                  cmd.get("above_noise", []), vectors) + _criterion(result, "command_step")))
+    par = result.get("parameters") or {}
+    if par.get("stacked_singular_values") is not None:
+        out.append(("Parameter directions over the built-in throws",
+                    f"<p><b>{par.get('count_above_noise')} of {len(par.get('names', []))}</b> parameter directions "
+                    f"are above the noise over {len(par.get('conditions_used', []))} throws; "
+                    f"{par.get('min_experiments')} throws suffice ({', '.join(par.get('min_experiment_set', []))})."
+                    "</p>" + _directions(par["names"], par["stacked_singular_values"], par["stacked_noise"],
+                                         par.get("stacked_above_noise", []))
+                    + _criterion(result, "param_step")))
     return out

@@ -202,6 +202,7 @@ def parameter_analysis(problem, values, goals, names, h: float, step: float, snr
         noise, ok = resolvable(sv, Uf, C_all, step, snr)
         full, idx = fewest_experiments(blocks, covs, step, snr)
         out.update({"stacked_singular_values": sv, "stacked_noise": noise, "stacked_right_vectors": Vt,
+                    "stacked_above_noise": ok,
                     "count_above_noise": int(ok.sum()), "min_experiments": len(idx),
                     "min_experiment_set": [used[i] for i in idx]})
     return out
@@ -296,8 +297,15 @@ def run(args) -> int:
         "parameters": {k: v for k, v in par.items() if k != "stacked_right_vectors"},
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
     }
+    from wrenorm.cli import command_line
+
+    result["command_line"] = command_line(args)
+    result["device"] = device
     write_json(out / "sensitivity.json", result)
     _plot(out / "sensitivity.png", cmd, par, args)
+    from wrenorm.fit import write_report_or_warn
+
+    write_report_or_warn(out, result, args.quiet)
     if not args.no_record:
         _record(out / "recording.rrd", model, cmd, par, goal, args)
     print(f"command: {cmd['count_above_noise']} of {space.dim} directions above the noise "
