@@ -29,6 +29,10 @@ def _jsonable(obj):
     return obj
 
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str, durable: bool = True) -> Path:
     """Write to a temporary file in the same folder, then rename over `path`: a reader sees the old file or the
     new one, never a part. durable: fsync before the rename, so the new file also survives a power loss (a
@@ -39,6 +43,7 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, durable: bool = Tru
     mode = "wb" if isinstance(data, bytes) else "w"
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # as an ordinary file would be (mkstemp makes it private)
         with os.fdopen(fd, mode) as f:
             f.write(data)
             f.flush()
