@@ -120,25 +120,22 @@ class LiveRecorder:
         self._at(t, timeline)
         self.stream.log(path, self._rr.Scalars(float(value)))
 
-    def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time", labels=None):
+    def _geometry(self, archetype: str, path, t, data, colors, radii, timeline, **extra):
         self._at(t, timeline)
-        self.stream.log(path, self._rr.Points3D(np.asarray(positions, np.float32), colors=colors or _color_for(path),
-                                                radii=radii, labels=labels))
+        self.stream.log(path, getattr(self._rr, archetype)(data, colors=colors or _color_for(path), radii=radii,
+                                                           **extra))
 
-    def log_lines3d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
-        self._at(t, timeline)
-        strips = [np.asarray(s, np.float32) for s in strips]
-        self.stream.log(path, self._rr.LineStrips3D(strips, colors=colors or _color_for(path), radii=radii))
+    def log_points3d(self, path, t, positions, colors=None, radii=None, timeline="sim_time", labels=None):
+        self._geometry("Points3D", path, t, np.asarray(positions, np.float32), colors, radii, timeline, labels=labels)
 
     def log_points2d(self, path, t, positions, colors=None, radii=None, timeline="sim_time", labels=None):
-        self._at(t, timeline)
-        self.stream.log(path, self._rr.Points2D(np.asarray(positions, np.float32), colors=colors or _color_for(path),
-                                                radii=radii, labels=labels))
+        self._geometry("Points2D", path, t, np.asarray(positions, np.float32), colors, radii, timeline, labels=labels)
+
+    def log_lines3d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
+        self._geometry("LineStrips3D", path, t, [np.asarray(s, np.float32) for s in strips], colors, radii, timeline)
 
     def log_lines2d(self, path, t, strips, colors=None, radii=None, timeline="sim_time"):
-        self._at(t, timeline)
-        strips = [np.asarray(s, np.float32) for s in strips]
-        self.stream.log(path, self._rr.LineStrips2D(strips, colors=colors or _color_for(path), radii=radii))
+        self._geometry("LineStrips2D", path, t, [np.asarray(s, np.float32) for s in strips], colors, radii, timeline)
 
     def log_series(self, path: str, times: np.ndarray, values: np.ndarray, timeline: str = "sim_time") -> None:
         """A whole scalar time series in one call (columnar), for long trajectories."""
