@@ -116,7 +116,8 @@ def generate(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(v, p, None) for v in args.variants for p in args.paths]
-    jobs += [(v, args.perturb_path, int(s)) for v in args.variants for s in args.perturb_seeds]
+    jobs += [(v, args.perturb_paths[i % len(args.perturb_paths)], int(s)) for v in args.variants
+             for i, s in enumerate(args.perturb_seeds)]
     for variant, path, seed in jobs:
         name = f"{args.engine}_{variant}_{path}" + ("" if seed is None else f"_p{seed}")
         f = out / f"{name}.npz"
@@ -124,7 +125,8 @@ def generate(args) -> int:
             continue
         t0 = _time.perf_counter()
         ref = generate_reference(path, f, variant=variant, engine=args.engine, frame_rate=args.frame_rate,
-                                 markers=args.markers, perturb=seed, dense=True, duration=args.duration)
+                                 markers=args.markers, perturb=seed, dense=True, duration=args.duration,
+                                 annotate=args.annotate)
         hit = ref.sim_contact_time
         print(f"{name}: simulator contact {'none' if not np.isfinite(hit) else f'{hit:.4f} s'} "
               f"({_time.perf_counter() - t0:.1f} s)", flush=True)
@@ -140,11 +142,13 @@ def main(argv=None) -> int:
     g.add_argument("--out", required=True)
     g.add_argument("--variants", nargs="+", default=["default"])
     g.add_argument("--paths", nargs="+", default=["flick", "flick_fast", "flick_wide", "flick_high", "flick_slow"])
-    g.add_argument("--perturb-path", default="flick")
+    g.add_argument("--perturb-paths", nargs="+", default=["flick", "flick_fast", "flick_wide", "flick_high",
+                                                          "flick_slow"], help="seed i perturbs path i mod their number")
     g.add_argument("--perturb-seeds", nargs="*", type=int, default=[])
     g.add_argument("--frame-rate", type=float, default=200.0)
     g.add_argument("--markers", type=int, default=12)
     g.add_argument("--duration", type=float, default=1.5)
+    g.add_argument("--annotate", action="store_true", help="store the simulator's contact as critical_time")
     s = sub.add_parser("score", help="score the detector on a folder of references")
     s.add_argument("dirs", nargs="+")
     s.add_argument("--markers", type=int, nargs="+", default=[8, 12, 24])

@@ -323,22 +323,22 @@ def reconstruct(markers: np.ndarray, S: np.ndarray, n_sub: int, continuity: bool
     return pts, sarc, ratio
 
 
-def interval_bounds(X: np.ndarray, S: np.ndarray, radius: float, excl: float, I: np.ndarray, J: np.ndarray):
-    """Rigorous lower bound (T, P) of the gap between any rope shapes in intervals I <= J, and chord/arc.
+def interval_bounds(X: np.ndarray, S: np.ndarray, radius: float, excl: float, iv: np.ndarray, jv: np.ndarray):
+    """Rigorous lower bound (T, P) of the gap between any rope shapes in intervals iv <= jv, and chord/arc.
 
     (1) Each interval's rope lies in the capsule of radius b = sqrt(arc^2 - chord^2)/2 around its chord, so
         gap >= dist(chord_I, chord_J) - b_I - b_J - 2r.
-    (2) A contact between p in I and q in J with s_q - s_p >= excl closes a loop: the rope from marker I to
-        marker J+1 is then at least excl - 2r longer than their distance, so
-        gap >= |x_I - x_{J+1}| - (S_{J+1} - S_I - excl) - 2r.
+    (2) A contact between p in iv and q in jv with s_q - s_p >= excl closes a loop: the rope from marker iv to
+        marker jv+1 is then at least excl - 2r longer than their distance, so
+        gap >= |x_I - x_{jv+1}| - (S_{jv+1} - S_I - excl) - 2r.
     """
     a = np.diff(S)
     chord = np.linalg.norm(np.diff(X, axis=1), axis=-1)
     b = 0.5 * np.sqrt(np.maximum(a[None, :] ** 2 - chord**2, 0.0))
-    d = segment_distances(X[:, I], X[:, I + 1], X[:, J], X[:, J + 1])[0]
-    g1 = d - b[:, I] - b[:, J] - 2.0 * radius
-    span = np.linalg.norm(X[:, J + 1] - X[:, I], axis=-1)
-    g2 = span - (S[J + 1] - S[I] - excl) - 2.0 * radius
+    d = segment_distances(X[:, iv], X[:, iv + 1], X[:, jv], X[:, jv + 1])[0]
+    g1 = d - b[:, iv] - b[:, jv] - 2.0 * radius
+    span = np.linalg.norm(X[:, jv + 1] - X[:, iv], axis=-1)
+    g2 = span - (S[jv + 1] - S[iv] - excl) - 2.0 * radius
     return np.maximum(g1, g2), chord / a[None, :]
 
 
@@ -479,13 +479,13 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     margin = 3.0 * np.sqrt(2.0) * sigma  # 3-sigma of the distance between two noisy points, one axis
 
     # --- interval pairs that may touch at all, and the rigorous lower bound of their gap
-    I, J = np.triu_indices(M - 1, k=0)
-    keep = (S[J + 1] - S[I]) > excl
-    I, J = I[keep], J[keep]
-    if len(I) == 0:
+    iv, jv = np.triu_indices(M - 1, k=0)
+    keep = (S[jv + 1] - S[iv]) > excl
+    iv, jv = iv[keep], jv[keep]
+    if len(iv) == 0:
         reasons.append("the rope is shorter than pi diameters: it cannot touch itself")
         return result("no_contact", "none")
-    glow, ratio = interval_bounds(X, S, radius, excl, I, J)
+    glow, ratio = interval_bounds(X, S, radius, excl, iv, jv)
     glow = glow - margin
     glow_min = glow.min(axis=1)
     diag["max_chord_over_arc"] = float(ratio.max())
@@ -522,14 +522,14 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         # half-widths of the two intervals. For pairs inside one interval or two adjacent ones the gap
         # measures how tightly the rope folds there (one shape error, not two), and a fold that tight needs
         # more than a half turn inside one interval, so it counts only for curls.
-        rho_min = np.minimum(ratio[tt, I[pp]], ratio[tt, J[pp]])
-        short_range = (J[pp] - I[pp]) <= 1
-        shape = SHAPE_ERROR_FRACTION * np.where(short_range, np.maximum(b_half[tt, I[pp]], b_half[tt, J[pp]]),
-                                                b_half[tt, I[pp]] + b_half[tt, J[pp]])
+        rho_min = np.minimum(ratio[tt, iv[pp]], ratio[tt, jv[pp]])
+        short_range = (jv[pp] - iv[pp]) <= 1
+        shape = SHAPE_ERROR_FRACTION * np.where(short_range, np.maximum(b_half[tt, iv[pp]], b_half[tt, jv[pp]]),
+                                                b_half[tt, iv[pp]] + b_half[tt, jv[pp]])
         unc = GAP_ERROR + margin + np.where(short_range & (rho_min >= CURL_CHORD_RATIO), 0.0, shape)
         for c0 in range(0, len(tt), chunk):
             t_, p_ = tt[c0:c0 + chunk], pp[c0:c0 + chunk]
-            Ii, Jj = I[p_], J[p_]
+            Ii, Jj = iv[p_], jv[p_]
             A, B = pts[t_, Ii], pts[t_, Jj]
             sA, sB = sarc[t_, Ii], sarc[t_, Jj]
             d, u, v = segment_distances_excluded(
@@ -586,7 +586,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         return result("unusable", "none")
     t_event = float(time[k - 1] + frac * dt)
     sa, sb = float(best_s[k, 0] / length), float(best_s[k, 1] / length)
-    Ie, Je = int(I[best_pair[k]]), int(J[best_pair[k]])
+    Ie, Je = int(iv[best_pair[k]]), int(jv[best_pair[k]])
     diag.update(event_frame=k, event_intervals=(Ie, Je), gap_before=float(gap_series[k - 1]), gap_at=float(gap[k]),
                 gap_uncertainty_m=float(unc_at[k]), closing_speed_mps=float((gap_series[k - 1] - gap[k]) / dt))
     low = []
@@ -609,8 +609,8 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             f"earlier near-contact: at t={time[q]:.3f} s ({1000 * (t_event - time[q]):.0f} ms before the detected "
             f"contact) the reconstructed rope came within its uncertainty of touching (gap "
             f"{1000 * gap_series[q]:.1f} mm, uncertainty {1000 * (gap_series[q] - plaus[q]):.1f} mm) between "
-            f"s={plaus_s[q, 0]:.2f} (chord/arc {ratio[q, I[pq]]:.2f}) and s={plaus_s[q, 1]:.2f} (chord/arc "
-            f"{ratio[q, J[pq]]:.2f}); it may have been the first contact")
+            f"s={plaus_s[q, 0]:.2f} (chord/arc {ratio[q, iv[pq]]:.2f}) and s={plaus_s[q, 1]:.2f} (chord/arc "
+            f"{ratio[q, jv[pq]]:.2f}); it may have been the first contact")
         low.append("earlier")
     diag["slow_approach_s"] = t_event - t_ep
     if t_event - t_ep > time_tolerance and "slow" in rules:
@@ -831,7 +831,8 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
         ev = CollisionEvent(k, float(t_c), sa, sb, float("nan"), gap, "annotated", "high", ())
         if det.event is not None and abs(det.event.time - t_c) > time_tolerance:
             warnings.append(f"the annotated critical_time {t_c:.4f} s differs from the detected contact "
-                            f"({det.event.time:.4f} s) by {1000 * (det.event.time - t_c):+.0f} ms; the annotation is used")
+                            f"({det.event.time:.4f} s) by {1000 * (det.event.time - t_c):+.0f} ms; "
+                            "the annotation is used")
         elif det.event is None:
             warnings.append(f"no contact detected in the markers ({det.status}); the annotated critical_time "
                             f"{t_c:.4f} s is used")

@@ -305,13 +305,15 @@ def generate_reference(path_name, out=None, segments: int = 64, variant: str = "
                        duration: float = DEFAULT_DURATION, markers: int | None = None,
                        frame_rate: float | None = None, substeps_per_frame: int = 8, iterations: int = 10,
                        device: str = "cpu", progress=None, engine: str = "newton", perturb: int | None = None,
-                       dense: bool = False) -> RopeReference:
+                       dense: bool = False, annotate: bool = False) -> RopeReference:
     """Simulate a fine rope (newton's rod or MuJoCo's) along a hand path and (if out is given) save it.
 
     markers: number of markers at evenly spaced arc length (both ends included); default every node of the
     rod. The polyline through all nodes is exactly the simulator's capsule centre line. perturb: draw the hand
     path's command around the named path with this seed (`perturbed_path`). dense: also store every node
     (`dense_nodes` (T, N+1, 3), `dense_arclength`) so that other marker sets can be made from the file.
+    annotate: also store the simulator's contact time as the `critical_time` annotation (a stand-in for a
+    user's annotation from video; none when the simulator saw no contact).
     The file carries the simulator's first contact (`sim_contact_time`, `sim_contact_s`): MuJoCo's own contact
     list; for newton the first frame whose capsule centre lines (every node) are within one diameter, beyond
     pi diameters along the rope, interpolated inside the frame."""
@@ -366,7 +368,8 @@ def generate_reference(path_name, out=None, segments: int = 64, variant: str = "
         time=time, markers=mk, hand=hand, length=material.length, mass=material.mass, radius=material.radius,
         bend_stiffness=material.bend_stiffness, marker_arclength=s,
         source=f"{what}: path={label} variant={variant} frame_rate={frame_rate:g}Hz wall={wall:.1f}s",
-        sim_contact_time=sim_t, sim_contact_s=sim_s)
+        sim_contact_time=sim_t, sim_contact_s=sim_s,
+        critical_time=sim_t if annotate and np.isfinite(sim_t) and sim_t > time[0] else None)
     extra = {}
     if dense:
         extra = {"dense_nodes": nodes.astype(np.float32), "dense_arclength": np.linspace(0.0, 1.0, n_nodes)}
@@ -458,6 +461,9 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
                help="markers at evenly spaced arc length, ends included (default: every node)")
     parser.add_argument("--dense", action="store_true",
                         help="also store every node (dense_nodes) so other marker sets can be made from the file")
+    parser.add_argument("--annotate", action="store_true",
+                        help="store the simulator's own first contact as the critical_time annotation (a stand-in "
+                             "for a hand annotation from video)")
 
 
 def run_reference(args) -> int:
@@ -470,7 +476,8 @@ def run_reference(args) -> int:
     ref = generate_reference(args.path, args.out, segments=args.segments, variant=args.variant,
                              duration=args.duration, markers=getattr(args, "markers", None), progress=progress,
                              engine=engine, frame_rate=getattr(args, "frame_rate", None),
-                             perturb=getattr(args, "perturb", None), dense=getattr(args, "dense", False))
+                             perturb=getattr(args, "perturb", None), dense=getattr(args, "dense", False),
+                             annotate=getattr(args, "annotate", False))
     ev = first_self_collision(ref)
     hit = "never" if ev is None else f"t = {ev.time:.4f} s (frame {ev.index}, s = {ev.s_a:.3f} / {ev.s_b:.3f})"
     sim = ref.sim_contact_time
