@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope.reference.events import detect_reference, polyline_gap, segment_distances, segment_distances_excluded
+from wrenorm.tasks.rope.reference.events import (CONTACT_LEVEL, detect_reference, polyline_gap, segment_distances,
+                                                 segment_distances_excluded)
 from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, HandPath, builtin_hand_paths
 from wrenorm.tasks.rope.reference.generate import (
     RopeReference, builtin_reference_path, builtin_references, first_self_collision, load_reference,
@@ -239,11 +240,12 @@ def test_loop_collision_time_and_arclengths():
     t, s, markers = _closing_loop(T=60, dt=0.007)
     ref = RopeReference(t, markers, markers[:, 0].copy(), L, 0.2, R, None, s)
     ev = first_self_collision(ref)
-    # The gap falls linearly through zero at 0.4 s, between frames 57 (0.399) and 58 (0.406).
-    assert ev.index == 58
+    # The gap falls linearly at 0.1 m/s through zero at 0.4 s, and through the contact level (surfaces within
+    # 0.5 mm touch) 5 ms earlier, between frames 56 (0.392) and 57 (0.399).
+    assert ev.index == 57
     assert t[ev.index - 1] < ev.time <= t[ev.index]
-    assert ev.time == pytest.approx(0.4, abs=1e-6)
-    assert ev.gap_before > 0 >= ev.gap_at
+    assert ev.time == pytest.approx(0.4 - CONTACT_LEVEL / 0.1, abs=1e-6)
+    assert ev.gap_before > CONTACT_LEVEL >= ev.gap_at
     # The loop returns at arc length lead + circ = 0.95 m onto the straight lead around x = lead.
     assert ev.s_b * L == pytest.approx(0.95, abs=0.03)
     assert ev.s_a * L == pytest.approx(0.15, abs=0.03)

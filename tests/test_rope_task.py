@@ -61,7 +61,9 @@ def synthetic_placeholder():
 def test_truth_has_zero_error_and_measured_does_not(problem_and_truth):
     prob, truth = problem_and_truth
     err = prob.errors(np.stack([truth, prob.space.measured]), prob.train)
-    assert np.all(err[0] < 1e-3)
+    # 2e-3, not 0: the reference detector counts surfaces within 0.5 mm as touching (events.CONTACT_LEVEL), the
+    # chain's kernel at 0 mm, so the two critical moments differ by 0.5 mm / closing speed (~0.2 ms)
+    assert np.all(err[0] < 2e-3)
     assert np.all(err[1] > 0.05)
 
 

@@ -19,7 +19,9 @@ Method (README, "Events in motion capture", has the measurements behind every th
    along-rope constraint (the two closest points >= pi * diameter apart; `segment_distances_excluded`). A
    rigorous broad phase (`interval_bounds`: every rope of the known length through two markers lies in the
    spheroid with them as foci) skips interval pairs that cannot touch.
-3. Time: the first frame whose reconstructed gap is <= 0, interpolated inside the frame.
+3. Time: the first frame whose reconstructed surface gap is within the contact level (CONTACT_LEVEL, 0.5 mm: the
+   fine simulators' first impacts last 1.5-3 ms and the pieces then rest within +-0.2 mm, so a frame grid sees
+   the resting gap, not the impact), interpolated inside the frame.
 4. Confidence (`Detection.reasons` says why in sentences): an earlier near-contact within the gap's
    uncertainty (the only way to report a contact late), a slow approach, an unresolved curl at the contact
    (chord/arc < 2/pi: more than a half turn between two markers), a one-frame touch whose pieces then pass
@@ -32,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-VERSION = 2  # bump when the detector's answer can change (keys the event cache)
+VERSION = 3  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -42,6 +44,9 @@ MAX_BRIDGE_TIME = 0.02  # s: occlusions longer than this are not trusted near th
 MAX_MISSING_FRACTION = 0.5  # a marker missing in more of the frames makes the file unusable
 SUBSEGMENT_PER_RADIUS = 1.5  # sub-segment length <= 1.5 radius: sagitta error < ~1 mm on tight curls
 NEAR_GAP = 0.02  # m: interval pairs whose rigorous bound is below this get the exact reconstructed gap
+CONTACT_LEVEL = 5e-4  # m: surfaces this close touch. Fine simulators' first impacts last 1.5-3 ms, after which the
+#                      pieces rest with gaps within +-0.2 mm (MuJoCo dev set): a 200 Hz frame grid lands on those gaps,
+#                      not on the impact; 2.5x that band. Real ropes are fuzzier than that.
 HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the gap's uncertainty (dev data)
 RULES = ("earlier", "slow", "parted", "graze", "fold", "curl", "occlusion")  # confidence rules, all by default
 
@@ -431,7 +436,7 @@ def _first_per_frame(tt: np.ndarray, value: np.ndarray, T: int):
 
 def detect(time, markers, marker_arclength, length, radius, missing=None, hand=None,
            time_tolerance: float = TIME_TOLERANCE, noise: float | None = None, continuity: bool = False,
-           rules: tuple | None = None) -> Detection:
+           rules: tuple | None = None, contact_level: float = CONTACT_LEVEL) -> Detection:
     """First self-contact of a rope from markers, with confidence and reasons.
 
     time (T,) s uniform; markers (T, M, 3) m, held end first (NaN where occluded: bridged here unless the
@@ -551,15 +556,20 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         plaus[tt[sel2]] = gpl[sel2]
         plaus_pair[tt[sel2]] = pp[sel2]
         plaus_s[tt[sel2]] = np.stack([sa_best[sel2], sb_best[sel2]], 1) / length
+    # From here on gaps are measured from the contact level (surfaces closer than it touch); reports add it back.
+    level = float(contact_level)
+    gap, plaus, glow_min = gap - level, plaus - level, glow_min - level
+    diag["contact_level_m"] = level
     # frames without near pairs: the reconstructed gap is above the rigorous bound (> NEAR_GAP)
     gap_series = np.where(np.isfinite(gap), gap, glow_min + margin)
     kmin = int(np.argmin(gap_series))
-    diag.update(min_gap_m=float(gap_series[kmin]), min_gap_frame=kmin, min_gap_time=float(time[kmin]),
-                gap_series=gap_series, plausible_gap_series=np.where(np.isfinite(plaus), plaus, gap_series),
+    diag.update(min_gap_m=float(gap_series[kmin] + level), min_gap_frame=kmin, min_gap_time=float(time[kmin]),
+                gap_series=gap_series + level, plausible_gap_series=np.where(np.isfinite(plaus), plaus, gap_series),
                 lower_bound_series=glow_min, subsegments_per_interval=n_sub, near_pairs_checked=len(tt))
     within_unc = np.isfinite(plaus) & (plaus <= 0.0)
     diag["summary"] = {
-        "min_gap_m": float(gap_series[kmin]), "min_gap_time": float(time[kmin]),
+        "min_gap_m": float(gap_series[kmin] + level), "min_gap_time": float(time[kmin]),
+        "contact_level_m": level,
         "frames_within_uncertainty": int(within_unc.sum()),
         "first_within_uncertainty_time": float(time[np.argmax(within_unc)]) if within_unc.any() else None,
         "frames_in_contact": int(np.sum(gap <= 0.0)),
@@ -574,12 +584,12 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     diag["earliest_plausible_time"] = None if kq is None else float(time[max(kq - 1, 0)] + fq * dt * (kq > 0))
     if k is None:
         if kq is None:
-            reasons.append(f"no self-contact: the reconstructed rope stays {1000 * gap_series[kmin]:.1f} mm clear "
-                           f"(closest at t={time[kmin]:.3f} s), more than its uncertainty")
+            reasons.append(f"no self-contact: the reconstructed rope stays {1000 * (gap_series[kmin] + level):.1f} mm "
+                           f"clear (closest at t={time[kmin]:.3f} s), more than its uncertainty")
             return result("no_contact", "none")
         reasons.append(f"no contact on the reconstructed rope, but it comes within its uncertainty of one (gap "
-                       f"{1000 * gap_series[kq]:.1f} mm at t={time[kq]:.3f} s between s={plaus_s[kq, 0]:.2f} and "
-                       f"s={plaus_s[kq, 1]:.2f}): a contact cannot be excluded")
+                       f"{1000 * (gap_series[kq] + level):.1f} mm at t={time[kq]:.3f} s between s={plaus_s[kq, 0]:.2f} "
+                       f"and s={plaus_s[kq, 1]:.2f}): a contact cannot be excluded")
         return result("unusable", "none")
     if k == 0:
         reasons.append("the reconstructed rope is in contact from the first frame: no first-contact time")
@@ -587,7 +597,8 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     t_event = float(time[k - 1] + frac * dt)
     sa, sb = float(best_s[k, 0] / length), float(best_s[k, 1] / length)
     Ie, Je = int(iv[best_pair[k]]), int(jv[best_pair[k]])
-    diag.update(event_frame=k, event_intervals=(Ie, Je), gap_before=float(gap_series[k - 1]), gap_at=float(gap[k]),
+    diag.update(event_frame=k, event_intervals=(Ie, Je), gap_before=float(gap_series[k - 1] + level),
+                gap_at=float(gap[k] + level),
                 gap_uncertainty_m=float(unc_at[k]), closing_speed_mps=float((gap_series[k - 1] - gap[k]) / dt))
     low = []
 
@@ -608,7 +619,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         reasons.append(
             f"earlier near-contact: at t={time[q]:.3f} s ({1000 * (t_event - time[q]):.0f} ms before the detected "
             f"contact) the reconstructed rope came within its uncertainty of touching (gap "
-            f"{1000 * gap_series[q]:.1f} mm, uncertainty {1000 * (gap_series[q] - plaus[q]):.1f} mm) between "
+            f"{1000 * (gap_series[q] + level):.1f} mm, uncertainty {1000 * (gap_series[q] - plaus[q]):.1f} mm) between "
             f"s={plaus_s[q, 0]:.2f} (chord/arc {ratio[q, iv[pq]]:.2f}) and s={plaus_s[q, 1]:.2f} (chord/arc "
             f"{ratio[q, jv[pq]]:.2f}); it may have been the first contact")
         low.append("earlier")
@@ -630,15 +641,16 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     unc_after = np.where(np.isfinite(unc_after), unc_after, GAP_ERROR + margin)
     within = after <= unc_after
     depth = min([float(gap[k])] + [float(g) for g, w in zip(after, within) if w])
-    diag.update(gap_after_m=[float(g) for g in after], held=[bool(w) for w in within], depth_m=depth)
+    diag.update(gap_after_m=[float(g + level) for g in after], held=[bool(w) for w in within], depth_m=depth + level)
     if len(after) and not within[0] and "parted" in rules:
         reasons.append(f"parted at once: the reconstructed pieces overlap at frame {k} and are "
-                       f"{1000 * after[0]:.1f} mm apart one frame later (uncertainty {1000 * unc_after[0]:.1f} mm): "
+                       f"{1000 * (after[0] + level):.1f} mm apart one frame later (uncertainty "
+                       f"{1000 * unc_after[0]:.1f} mm): "
                        "touching pieces stay together for a while, a reconstruction error does not")
         low.append("parted")
     elif len(after) and not within.all() and depth > -unc_at[k] and "graze" in rules:
-        reasons.append(f"gap only just closes: the reconstructed pieces overlap by {1000 * -depth:.1f} mm, less "
-                       f"than the gap's uncertainty {1000 * unc_at[k]:.1f} mm, and part within "
+        reasons.append(f"gap only just closes: the reconstructed pieces come {1000 * -depth:.1f} mm inside the "
+                       f"contact level, less than the gap's uncertainty {1000 * unc_at[k]:.1f} mm, and part within "
                        f"{1000 * hold * dt:.0f} ms: as consistent with a near miss as with a touch")
         low.append("graze")
     if Je - Ie <= 1 and "fold" in rules:
@@ -680,7 +692,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             low.append("occlusion")
     diag["rules_fired"] = low
     conf = "low" if low else "high"
-    ev = CollisionEvent(k, t_event, sa, sb, float(gap_series[k - 1]), float(gap[k]), "detected", conf,
+    ev = CollisionEvent(k, t_event, sa, sb, float(gap_series[k - 1] + level), float(gap[k] + level), "detected", conf,
                         tuple(reasons))
     return result("contact", conf, ev)
 
