@@ -300,13 +300,13 @@ class RopeProblem(Problem):
         return summary, warnings
 
     def validation_errors(self, values: np.ndarray, conditions: Sequence[Condition]):
-        """Held-out errors that measure states, not penalties: every chain by its state (shape, velocity) at the
-        reference's critical time (`state_at_critical_time`), so that a chain that never hits and one that hits
-        compare like with like and a fitted / measured ratio means what it says; per condition whether each
-        chain hit itself, and when."""
+        """Held-out errors that measure states, not penalties: a chain that hits itself is scored by its critical
+        state (shape, velocity, time, place), a chain that never hits by its state at the reference's critical
+        time plus the least time error a later hit could have (`no_hit_bound`), so a fitted / measured ratio
+        compares like with like; per condition whether each chain hit, and when."""
         values = np.atleast_2d(values)
         terms = self.error_terms(values, conditions)
-        errs = self.state_at_critical_time(values, conditions)
+        errs = self.no_hit_bound(values, conditions)
         names = ["measured", "fitted"] if len(values) == 2 else [f"candidate{i}" for i in range(len(values))]
         details = []
         for j, c in enumerate(conditions):
@@ -315,7 +315,9 @@ class RopeProblem(Problem):
                 hit = bool(terms["status"][i, j] == 1)
                 row[f"{who}_hit"] = hit
                 row[f"{who}_hit_time"] = float(terms["hit_time"][i, j]) if hit else None
-            row["scored"] = "shape and velocity error of the chain's state at the reference's critical time"
+            row["scored"] = ("critical-state error of a chain that hits; a chain that never hits: its shape and "
+                             "velocity error at the reference's critical time plus the time error of a hit at the end "
+                             "of the horizon")
             details.append(row)
         return errs, details
 
@@ -372,26 +374,26 @@ class RopeProblem(Problem):
         return out
 
     def held_out_comparison(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
-        """Held-out error ratio fitted / measured: with the no-hit penalty, with its lower bound, and (the
-        validation's own score) by every chain's state at the reference's critical time."""
+        """Held-out error ratio fitted / measured: scored as the validation does (no-hit chains by their state at
+        the reference's critical time), with the no-hit penalty, and by every chain's state at that time."""
         vals = np.stack([measured, fitted])
         pen = self.errors(vals, self.held_out)
         low = self.no_hit_bound(vals, self.held_out)
         state = self.state_at_critical_time(vals, self.held_out)
         ratio = lambda e: float(np.mean(e[1]) / np.mean(e[0])) if np.mean(e[0]) > 0 else None  # noqa: E731
         return {
-            "state_at_reference_time": {"measured": state[0].tolist(), "fitted": state[1].tolist(),
-                                        "ratio_of_means": ratio(state)},
-            "with_no_hit_penalty": {"measured": pen[0].tolist(), "fitted": pen[1].tolist(),
-                                    "ratio_of_means": ratio(pen)},
             "no_hit_scored_at_reference_time": {"measured": low[0].tolist(), "fitted": low[1].tolist(),
                                                 "ratio_of_means": ratio(low)},
-            "meaning": "ratio of mean held-out errors, fitted / measured parameters. state_at_reference_time (the "
-                       "validation verdict's score): every chain's shape and velocity error at the reference's "
-                       "critical time, hit or not. with_no_hit_penalty: the training error (a chain that never hits "
-                       "pays the penalty). no_hit_scored_at_reference_time: the training error, a chain that never "
-                       "hits scored by its state at the reference's critical time plus the time error of a hit at "
-                       "the end of the horizon (a lower bound), place error 0",
+            "with_no_hit_penalty": {"measured": pen[0].tolist(), "fitted": pen[1].tolist(),
+                                    "ratio_of_means": ratio(pen)},
+            "state_at_reference_time": {"measured": state[0].tolist(), "fitted": state[1].tolist(),
+                                        "ratio_of_means": ratio(state)},
+            "meaning": "ratio of mean held-out errors, fitted / measured parameters. no_hit_scored_at_reference_time "
+                       "(the validation verdict's score): the critical-state error, a chain that never hits scored "
+                       "by its shape and velocity error at the reference's critical time plus the time error of a hit "
+                       "at the end of the horizon (a lower bound), place error 0. with_no_hit_penalty: the training "
+                       "error (a chain that never hits pays the penalty). state_at_reference_time: every chain's "
+                       "shape and velocity error at the reference's critical time, hit or not (no event alignment)",
         }
 
     def record(self, recorder, fitted: np.ndarray, measured: np.ndarray) -> None:
