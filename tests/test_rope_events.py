@@ -106,6 +106,7 @@ def test_occlusion_near_the_event_is_bridged_and_flagged(tmp_path):
     c = critical(occ)
     assert c.event is not None and c.event.flagged and abs(c.event.time - ev.time) < 0.005
     assert any("bridged" in r for r in c.event.reasons)
+    assert any("2 marker samples were missing (NaN) and bridged in time" in w for w in c.warnings)
     data["markers"][ev.index - 8:ev.index + 2, j + 1] = np.nan  # 50 ms: too long to trust near the event
     np.savez(f, **data)
     long = critical(load_reference(f))

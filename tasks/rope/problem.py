@@ -289,8 +289,9 @@ class RopeProblem(Problem):
                 if ev.flagged:
                     warnings.append(f"{r['file']}: markers: uncertain event at t={ev.time:.4f} s used (flagged): "
                                     + "; ".join(ev.reasons))
-                elif crit is not None and crit.annotated:
-                    warnings += [f"{r['file']}: critical_time: {w}" for w in crit.warnings]
+                if crit is not None:
+                    warnings += [f"{r['file']}: {'critical_time' if 'annotat' in w else 'markers'}: {w}"
+                                 for w in crit.warnings if not w.startswith("uncertain event: ")]
             elif not r.get("used"):
                 warnings.append(f"{r['file']}: {r['field']}: {r['problem']} (left out of the {r['role']} set)")
         summary = {"files": rows, "used": sum(bool(r.get("used")) for r in rows),
@@ -495,6 +496,9 @@ def screen_references(paths, role: str, rows: list, warn=None) -> tuple[list, li
         row.update(used=True, critical_time=ev.time, source=ev.source, confidence=ev.confidence)
         if ev.flagged:
             say(f"{p}: markers: uncertain event at t={ev.time:.4f} s, used but flagged: " + "; ".join(ev.reasons))
+        for w in crit.warnings:
+            if "bridged in time" in w:
+                say(f"{p}: markers: {w}")
         rows.append(row)
         refs.append(ref)
         names.append(name)

@@ -838,6 +838,11 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
     the loader to lie inside the time axis), else the detected first contact."""
     det = detect_reference(ref)
     warnings = []
+    missing = getattr(ref, "missing", None)
+    if missing is not None and np.any(missing):
+        cols = np.flatnonzero(np.any(missing, axis=0)).tolist()
+        warnings.append(f"{int(np.sum(missing))} marker samples were missing (NaN) and bridged in time (markers "
+                        f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
     t_c = getattr(ref, "critical_time", None)
     if t_c is not None:
         time = ref.time

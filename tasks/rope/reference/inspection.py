@@ -42,9 +42,6 @@ def inspect_reference(path) -> dict:
             "time": ref.sim_contact_time if np.isfinite(ref.sim_contact_time) else None,
             "s": None if ref.sim_contact_s is None else [float(x) for x in ref.sim_contact_s]},
     })
-    if missing:
-        cols = np.flatnonzero(ref.missing.any(axis=0)).tolist()
-        out["warnings"].append(f"{missing} marker samples were missing (NaN) and bridged in time (markers {cols})")
     return _jsonable(out)
 
 
