@@ -12,7 +12,13 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope.reference.events import candidate_pairs, segment_distances
+from wrenorm.tasks.rope.reference.events import (
+    CONTACT_LEVEL,
+    detect_reference,
+    polyline_gap,
+    segment_distances,
+    segment_distances_excluded,
+)
 from wrenorm.tasks.rope.reference.generate import (
     RopeReference,
     builtin_reference_path,
@@ -89,7 +95,8 @@ def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
     (lambda d: d.update(time=d["time"] ** 1.5), "time"),
     (lambda d: d.update(time=d["time"][::-1].copy()), "time"),
     (lambda d: d.update(time=d["time"] * 1000.0), "time"),
-    (lambda d: d["markers"].__setitem__((3, 4, 1), np.nan), "markers"),
+    (lambda d: d["markers"].__setitem__((slice(0, 40), 4), np.nan), "markers"),  # marker 4 mostly missing
+    (lambda d: d["markers"].__setitem__((3, 4, 1), np.inf), "markers"),
     (lambda d: d["hand"].__setitem__((0, 0), np.inf), "hand"),
     (lambda d: d.update(markers=d["markers"][:, :, :2].copy()), "markers"),
     (lambda d: d.update(markers=d["markers"][:-1].copy()), "markers"),
@@ -243,29 +250,52 @@ def test_loop_collision_time_and_arclengths():
     t, s, markers = _closing_loop(T=60, dt=0.007)
     ref = RopeReference(t, markers, markers[:, 0].copy(), L, 0.2, R, None, s)
     ev = first_self_collision(ref)
-    # The gap falls linearly through zero at 0.4 s, between frames 57 (0.399) and 58 (0.406).
-    assert ev.index == 58
+    # The gap falls linearly at 0.1 m/s through zero at 0.4 s, and through the contact level (surfaces within
+    # 0.5 mm touch) 5 ms earlier, between frames 56 (0.392) and 57 (0.399).
+    assert ev.index == 57
     assert t[ev.index - 1] < ev.time <= t[ev.index]
-    assert ev.time == pytest.approx(0.4, abs=1e-6)
-    assert ev.gap_before > 0 >= ev.gap_at
+    assert ev.time == pytest.approx(0.4 - CONTACT_LEVEL / 0.1, abs=1e-6)
+    assert ev.gap_before > CONTACT_LEVEL >= ev.gap_at
     # The loop returns at arc length lead + circ = 0.95 m onto the straight lead around x = lead.
     assert ev.s_b * L == pytest.approx(0.95, abs=0.03)
     assert ev.s_a * L == pytest.approx(0.15, abs=0.03)
 
 
-def test_contact_at_first_frame_reported_at_index_0():
+def test_contact_at_first_frame_is_no_usable_event():
     t, s, markers = _closing_loop(T=10, dt=0.01)
     markers = markers.copy()
     markers[:, -8:, 1] = 0.0  # the loop's end lies on the lead from the start
     ref = RopeReference(t, markers, markers[:, 0].copy(), L, 0.2, R, None, s)
-    assert first_self_collision(ref).index == 0
+    assert first_self_collision(ref) is None
+    det = detect_reference(ref)
+    assert det.status == "unusable" and "from the first frame" in det.reasons[-1]
 
 
-def test_neighbour_exclusion():
+def test_exclusion_along_the_rope_is_exact():
+    """Closest points closer than pi diameters along the rope never count; farther ones always do."""
+    rng = np.random.default_rng(1)
+    p0, p1, q0, q1 = (rng.normal(scale=0.05, size=(200, 3)) for _ in range(4))
+    sa0, la, lb = 0.0, 0.05, 0.05
+    sb0 = rng.uniform(0.0, 0.1, 200)
+    excl = 2 * np.pi * R
+    d, u, v = segment_distances_excluded(p0, p1, q0, q1, sa0, la, sb0, lb, excl)
+    g = np.linspace(0, 1, 101)
+    a = p0[:, None, None] + (p1 - p0)[:, None, None] * g[None, :, None, None]
+    b = q0[:, None, None] + (q1 - q0)[:, None, None] * g[None, None, :, None]
+    sep = (sb0[:, None, None] + g[None, None, :] * lb) - (sa0 + g[None, :, None] * la)
+    brute = np.where(sep >= excl, np.linalg.norm(a - b, axis=-1), np.inf).min(axis=(1, 2))
+    feasible = np.isfinite(brute)
+    assert np.all(np.isinf(d[~np.isfinite(d) | ~feasible]) | (d[~np.isfinite(d) | ~feasible] <= 1e9))
+    assert np.all(d[feasible] <= brute[feasible] + 1e-12) and np.all(brute[feasible] - d[feasible] < 2e-3)
+    ok = np.isfinite(d)
+    assert np.all((sb0 + v * lb - (sa0 + u * la))[ok] >= excl - 1e-9)
+
+
+def test_polyline_gap_of_a_straight_rope_is_its_u_turn_free_clearance():
     s = np.linspace(0, 1, 65)
-    i, j = candidate_pairs(s, L, R)
-    gap = (j - i - 1) * (L / 64)
-    assert np.all(j - i >= 2) and np.all(gap > 2 * np.pi * R) and len(i) > 1000
+    nodes = np.stack([np.zeros(65), np.zeros(65), -s * L], 1)
+    gap, _ = polyline_gap(nodes, s, L, R)
+    assert gap == pytest.approx(2 * np.pi * R - 2 * R, rel=1e-6)  # pi d along a straight line, minus d
 
 
 # --------------------------------------------------------------------------------------------- hand paths

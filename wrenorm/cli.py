@@ -268,6 +268,8 @@ def _print_summary(result: dict, out: Path) -> None:
                       f"not pinned: {', '.join(spread['not_pinned']) or 'none'}")
         if r.get("uncertainty", {}).get("warning"):
             print(f"  warning: {r['uncertainty']['warning']}")
+        for w in r.get("warnings", []):
+            print(f"  warning: {w}")
     view = (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd"))
     print(f"\nresult: {out / 'result.json'}" + (f"   view: python -m wrenorm view {out}" if view else ""))
 

@@ -45,9 +45,10 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
     if not problem.held_out:
         return {"conditions": {}, "verdict": "unvalidated", "tolerance": problem.tolerance,
                 "note": "no held-out conditions: nothing to validate on"}
-    errs = finite_or_inf(problem.errors(np.stack([measured, fitted]), problem.held_out))
+    errs, details = problem.validation_errors(np.stack([measured, fitted]), problem.held_out)
+    errs = finite_or_inf(errs)
     conditions = {
-        c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j])}
+        c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j])} | dict(details[j])
         for j, c in enumerate(problem.held_out)
     }
     worst = float(np.max(errs[1]))
@@ -56,6 +57,7 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
         "conditions": conditions,
         "mean_measured_error": float(np.mean(errs[0])),
         "mean_fitted_error": float(np.mean(errs[1])),
+        "ratio_of_means": float(np.mean(errs[1]) / np.mean(errs[0])) if np.mean(errs[0]) > 0 else None,
         "worst_fitted_error": worst,
         "tolerance": problem.tolerance,
         "verdict": verdict,

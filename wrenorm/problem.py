@@ -71,6 +71,13 @@ class Problem(ABC):
     def has_residuals(self) -> bool:
         return type(self).residuals is not Problem.residuals
 
+    def validation_errors(self, values: np.ndarray, conditions: Sequence[Condition]):
+        """(B, C) held-out errors for the verdict, and per condition a dict of what else the validation should
+        report (e.g. whether an event happened). Default: `errors`, nothing else. A system whose training
+        error carries a penalty (a missing event) overrides this to score states, so that fitted and measured
+        errors compare like with like."""
+        return self.errors(values, conditions), [{} for _ in conditions]
+
     def errors_and_grad(self, values: np.ndarray, conditions: Sequence[Condition]):
         """(B, C) errors and (B, C, P) d error / d value, for gradient searches.
 

@@ -2,7 +2,7 @@
 
 problem.py     the fit: RopeProblem, one condition per reference throw
 observable.py  the critical state (shape, velocity, time and place of the first self-collision) and its error
-reference/     reference ropes: file format, event detection, the fine newton rope, hand paths
+reference/     reference ropes: file format, event detection, the fine newton and MuJoCo ropes, hand paths
 control/       steering real throws: command space, planning, correction over trials, sensitivity
 bench.py       kernel throughput; baselines.py: the numpy / torch peers of the chain step
 """
@@ -21,6 +21,10 @@ SYSTEM = from_package(
         ExtraCommand("reference", "generate a fine reference rope (.npz) along a hand path",
                      "wrenorm.tasks.rope.reference.generate:add_reference_arguments",
                      "wrenorm.tasks.rope.reference.generate:run_reference"),
+        ExtraCommand("inspect", "the critical moment a reference file gives the fit: detected or annotated, "
+                                "with its confidence and reasons",
+                     "wrenorm.tasks.rope.reference.inspection:add_arguments",
+                     "wrenorm.tasks.rope.reference.inspection:run"),
         ExtraCommand("correct", "correct a throw's command over real trials toward a goal critical state",
                      "wrenorm.tasks.rope.control.correct_cli:add_arguments",
                      "wrenorm.tasks.rope.control.correct_cli:run"),

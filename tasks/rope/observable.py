@@ -81,11 +81,18 @@ def from_rollout(res, n_nodes: int, t0: float = 0.0) -> CriticalStates:
                           hit, np.where(hit, 0.0, clearance))
 
 
-def reference_event(ref):
-    """The reference's first self-collision (reference/events.py), or None."""
-    from wrenorm.tasks.rope.reference.generate import first_self_collision
+def reference_critical(ref):
+    """Where a reference's critical moment comes from (reference/events.py `critical`): the file's
+    `critical_time` annotation when it has one, else the first self-contact detected in its markers, with
+    its confidence, reasons and warnings; `.event` is None when there is no usable one."""
+    from wrenorm.tasks.rope.reference.events import critical
 
-    ev = first_self_collision(ref)
+    return critical(ref)
+
+
+def reference_event(ref):
+    """The reference's critical moment (annotated, else detected; a CollisionEvent), or None."""
+    ev = reference_critical(ref).event
     return None if ev is None or ev.index == 0 else ev
 
 
@@ -96,11 +103,11 @@ def from_reference(ref, event=None) -> CriticalStates:
     frames, velocity the frame difference over that interval (the rule the chain kernel uses too)."""
     ev = reference_event(ref) if event is None else event
     if ev is None:
-        from wrenorm.tasks.rope.reference.events import gap_series
+        from wrenorm.tasks.rope.reference.events import detect_reference
 
-        gap = gap_series(ref.markers, ref.marker_arclength, ref.length, ref.radius)[0]
+        clear = detect_reference(ref).diagnostics.get("summary", {}).get("min_gap_m")
+        clear = np.inf if clear is None or not np.isfinite(clear) else float(clear)
         nan = np.full((1, SAMPLES, 3), np.nan)
-        clear = float(np.min(gap[1:])) if len(gap) > 1 and np.isfinite(gap[1:]).any() else np.inf
         return CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
                               np.array([max(clear, 0.0)]))
     t, k = ref.time, ev.index

@@ -33,7 +33,7 @@ from wrenorm.errors import InputError
 from wrenorm.kernels.rope import ChainParams, RopeSim
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
-from wrenorm.tasks.rope.observable import NO_HIT, SAMPLES, WEIGHTS, Target, from_rollout, reference_event, resample
+from wrenorm.tasks.rope.observable import NO_HIT, SAMPLES, WEIGHTS, Target, from_rollout, reference_critical, resample
 from wrenorm.tasks.rope.options import FLOW_DT, FLOW_SEGMENTS, ITERATIONS
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
@@ -55,13 +55,15 @@ class RopeCase:
     vel0: np.ndarray
     steps: int
     target: Target  # the reference's critical state
+    critical: object = None  # events.Critical: where the event came from, its confidence and warnings
 
 
 def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None = None) -> RopeCase:
-    ev = reference_event(ref)
-    if ev is None:
-        raise InputError(name, "markers", "the reference never hits itself after its first frame "
-                                          "(no critical point to fit)")
+    crit = reference_critical(ref)
+    ev = crit.event
+    if ev is None or ev.index == 0:
+        raise InputError(name, crit.field, crit.problem or "the reference never hits itself after its first frame "
+                                                           "(no critical point to fit)")
     t = ref.time
     steps = int(math.floor((t[-1] - t[0]) / dt + 1e-9))
     if steps < 2:
@@ -77,7 +79,7 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     if np.abs(vel0).max() < START_AT_REST_BELOW:
         vel0[:] = 0.0
     return RopeCase(name, ref, ev, hand, pos0.astype(np.float32), vel0.astype(np.float32), steps,
-                    Target.from_reference(ref, ev, weights, source=name))
+                    Target.from_reference(ref, ev, weights, source=name), crit)
 
 
 # ------------------------------------------------------------------------------- problem
@@ -86,7 +88,7 @@ class RopeProblem(Problem):
 
     def __init__(self, train_refs: Sequence, held_refs: Sequence = (), segments: int = 10, dt: float = 0.005,
                  device: str = "cpu", names: Sequence[str] | None = None, held_names: Sequence[str] | None = None,
-                 iterations: int = ITERATIONS, weights: dict | None = None):
+                 iterations: int = ITERATIONS, weights: dict | None = None, screening: Sequence[dict] = ()):
         if not 3 <= segments <= 63:
             raise InputError("--segments", "segments", f"{segments} is outside [3, 63] (links; masses = segments + 1)")
         if not 1 <= iterations <= 64:
@@ -121,6 +123,7 @@ class RopeProblem(Problem):
         self.resolution = {"segments": self.segments, "masses": self.n, "dt": self.dt, "iterations": int(iterations)}
         self.error_doc = ("weighted sum of shape (/length), velocity (/reference speed), time (/critical time) and "
                           "contact-place errors of the rope at its first self-collision, per hand path")
+        self.screening = [dict(r) for r in screening]  # every reference file offered, used or left out
 
     def _space(self, ref) -> ParameterSpace:
         S, L, M = self.segments, self.length, self.mass
@@ -236,7 +239,8 @@ class RopeProblem(Problem):
             terms = self.error_terms(np.stack([measured, fitted]), group)
             for j, c in enumerate(group):
                 ev = c.data.event
-                row = {"reference": {"time": ev.time, "s_a": ev.s_a, "s_b": ev.s_b, "frame": ev.index},
+                row = {"reference": {"time": ev.time, "s_a": ev.s_a, "s_b": ev.s_b, "frame": ev.index,
+                                     "source": ev.source, "confidence": ev.confidence, "reasons": list(ev.reasons)},
                        "held_out": group is self.held_out}
                 for i, who in enumerate(("measured", "fitted")):
                     hit = terms["status"][i, j] == 1
@@ -247,7 +251,62 @@ class RopeProblem(Problem):
                 out["critical_points"][c.name] = row
         if self.held_out:
             out["held_out_comparison"] = self.held_out_comparison(fitted, measured)
+        out["references"], out["warnings"] = self.reference_report()
         return out
+
+    def reference_report(self) -> tuple[dict, list]:
+        """Which reference files were used and which left out (and why), and the warnings to print: left-out
+        files, and events used although uncertain (flagged) or annotated differently from the detection."""
+        rows = list(self.screening)
+        used = {c.name: c for c in self.train + self.held_out}
+        for c in self.train + self.held_out:
+            if not any(r.get("name") == c.name for r in rows):
+                rows.append({"name": c.name, "file": getattr(c.data.ref, "file", "") or c.name,
+                             "role": "validate" if c in self.held_out else "fit", "used": True})
+        warnings = []
+        for r in rows:
+            c = used.get(r.get("name")) if r.get("used") else None
+            if c is not None:
+                ev, crit = c.data.event, c.data.critical
+                r["event"] = {"time": ev.time, "s_a": ev.s_a, "s_b": ev.s_b, "source": ev.source,
+                              "confidence": ev.confidence}
+                r["flagged"] = ev.flagged
+                r["warnings"] = [] if crit is None else list(crit.warnings)
+                if ev.flagged:
+                    warnings.append(f"{r['file']}: markers: uncertain event at t={ev.time:.4f} s used (flagged): "
+                                    + "; ".join(ev.reasons))
+                if crit is not None:
+                    warnings += [f"{r['file']}: {'critical_time' if 'annotat' in w else 'markers'}: {w}"
+                                 for w in crit.warnings if not w.startswith("uncertain event: ")]
+            elif not r.get("used"):
+                warnings.append(f"{r['file']}: {r['field']}: {r['problem']} (left out of the {r['role']} set)")
+        summary = {"files": rows, "used": sum(bool(r.get("used")) for r in rows),
+                   "left_out": sum(not r.get("used") for r in rows),
+                   "flagged": sum(bool(r.get("flagged")) for r in rows),
+                   "annotated": sum(r.get("event", {}).get("source") == "annotated" for r in rows)}
+        return summary, warnings
+
+    def validation_errors(self, values: np.ndarray, conditions: Sequence[Condition]):
+        """Held-out errors that measure states, not penalties: a chain that hits itself is scored by its critical
+        state (shape, velocity, time, place), a chain that never hits by its state at the reference's critical
+        time plus the least time error a later hit could have (`no_hit_bound`), so a fitted / measured ratio
+        compares like with like; per condition whether each chain hit, and when."""
+        values = np.atleast_2d(values)
+        terms = self.error_terms(values, conditions)
+        errs = self.no_hit_bound(values, conditions)
+        names = ["measured", "fitted"] if len(values) == 2 else [f"candidate{i}" for i in range(len(values))]
+        details = []
+        for j, c in enumerate(conditions):
+            row = {"reference_time": float(c.data.event.time)}
+            for i, who in enumerate(names):
+                hit = bool(terms["status"][i, j] == 1)
+                row[f"{who}_hit"] = hit
+                row[f"{who}_hit_time"] = float(terms["hit_time"][i, j]) if hit else None
+            row["scored"] = ("critical-state error of a chain that hits; a chain that never hits: its shape and "
+                             "velocity error at the reference's critical time plus the time error of a hit at the end "
+                             "of the horizon")
+            details.append(row)
+        return errs, details
 
     def no_hit_bound(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
         """(B, C) error with the no-hit penalty replaced by a penalty-free score: shape and velocity
@@ -275,21 +334,53 @@ class RopeProblem(Problem):
                                               cs.steps * self.dt)
         return out
 
+    def state_at_critical_time(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+        """(B, C) error of every chain's state at the reference's critical time, hit or not: shape and velocity
+        at the K points (Target.state_error with no time error). No event enters, so no penalty either: the
+        same quantity for a chain that hit itself early, late or never."""
+        values = np.atleast_2d(values)
+        res = self.simulate(values, conditions, trajectory_every=1)
+        B, C = values.shape[0], len(conditions)
+        s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
+        out = np.full((B, C), np.inf)
+        for j, c in enumerate(conditions):
+            cs = c.data
+            t_ref = float(cs.target.state.time[0])
+            x = t_ref / self.dt
+            k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
+            u = min(x - k, 1.0)
+            for i in range(B):
+                b = i * C + j
+                if res.status[b] == 2:  # blew up
+                    continue
+                pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
+                vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
+                if np.all(np.isfinite(pos)) and np.all(np.isfinite(vel)):
+                    out[i, j] = cs.target.state_error(resample(pos, s_nodes, s_k), resample(vel, s_nodes, s_k),
+                                                      t_ref)
+        return out
+
     def held_out_comparison(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
-        """Held-out error ratio fitted / measured, with the no-hit penalty and with its lower bound."""
+        """Held-out error ratio fitted / measured: scored as the validation does (no-hit chains by their state at
+        the reference's critical time), with the no-hit penalty, and by every chain's state at that time."""
         vals = np.stack([measured, fitted])
         pen = self.errors(vals, self.held_out)
         low = self.no_hit_bound(vals, self.held_out)
+        state = self.state_at_critical_time(vals, self.held_out)
         ratio = lambda e: float(np.mean(e[1]) / np.mean(e[0])) if np.mean(e[0]) > 0 else None  # noqa: E731
         return {
-            "with_no_hit_penalty": {"measured": pen[0].tolist(), "fitted": pen[1].tolist(),
-                                    "ratio_of_means": ratio(pen)},
             "no_hit_scored_at_reference_time": {"measured": low[0].tolist(), "fitted": low[1].tolist(),
                                                 "ratio_of_means": ratio(low)},
-            "meaning": "ratio of mean held-out errors, fitted / measured parameters; the second row scores a chain "
-                       "that never hits by its shape and velocity error at the reference's critical time plus the "
-                       "time error of a hit at the end of the horizon (a lower bound of its time error), place "
-                       "error 0: no penalty constant in the comparison",
+            "with_no_hit_penalty": {"measured": pen[0].tolist(), "fitted": pen[1].tolist(),
+                                    "ratio_of_means": ratio(pen)},
+            "state_at_reference_time": {"measured": state[0].tolist(), "fitted": state[1].tolist(),
+                                        "ratio_of_means": ratio(state)},
+            "meaning": "ratio of mean held-out errors, fitted / measured parameters. no_hit_scored_at_reference_time "
+                       "(the validation verdict's score): the critical-state error, a chain that never hits scored "
+                       "by its shape and velocity error at the reference's critical time plus the time error of a hit "
+                       "at the end of the horizon (a lower bound), place error 0. with_no_hit_penalty: the training "
+                       "error (a chain that never hits pays the penalty). state_at_reference_time: every chain's "
+                       "shape and velocity error at the reference's critical time, hit or not (no event alignment)",
         }
 
     def charts(self, fitted, measured):
@@ -347,23 +438,70 @@ class RopeProblem(Problem):
 
 # ------------------------------------------------------------------------------- building
 def build_problems(args, device: str) -> list[Problem]:
-    from wrenorm.tasks.rope.reference.generate import builtin_references, load_reference
+    from wrenorm.tasks.rope.reference.generate import builtin_references
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
+    screening: list[dict] = []
     if args.reference:
-        train = [load_reference(p) for p in args.reference]
-        names = [_stem(p) for p in args.reference]
+        train, names = screen_references(args.reference, "fit", screening)
+        if not train:
+            raise InputError("--reference", "reference",
+                             f"no usable fit reference remains: all {len(args.reference)} left out (warnings above)")
     else:
         train, names = builtin_references("fit"), list(FIT_PATHS)
     if args.validate:
-        held = [load_reference(p) for p in args.validate]
-        held_names = [_stem(p) for p in args.validate]
+        held, held_names = screen_references(args.validate, "validate", screening)
     elif args.reference:
         held, held_names = [], []
     else:
         held, held_names = builtin_references("held_out"), list(HELD_OUT_PATHS)
     return [RopeProblem(train, held, segments=args.segments, dt=args.dt, device=device, names=names,
-                        held_names=held_names, iterations=args.iterations)]
+                        held_names=held_names, iterations=args.iterations, screening=screening)]
+
+
+def screen_references(paths, role: str, rows: list, warn=None) -> tuple[list, list]:
+    """Load each reference and find its critical moment; a file that cannot be read, or has no usable event,
+    is left out with a one-line warning naming file, field and problem (and a row in `rows`); an uncertain
+    (flagged) event is used, and said so. Returns (references, names) of the usable ones."""
+    import sys
+
+    from wrenorm.tasks.rope.reference.generate import load_reference
+
+    def say(msg):
+        (warn or (lambda m: print(f"wrenorm: warning: {m}", file=sys.stderr, flush=True)))(msg)
+
+    refs, names = [], []
+    taken = set()
+    for p in paths:
+        name = _stem(p)
+        if name in taken:  # two files with one stem: keep conditions apart
+            name = str(p)
+        row = {"name": name, "file": str(p), "role": role}
+        try:
+            ref = load_reference(p)
+        except InputError as e:
+            row.update(used=False, field=e.field, problem=e.problem)
+            rows.append(row)
+            say(f"{e.source}: {e.field}: {e.problem} (left out of the {role} set)")
+            continue
+        crit = reference_critical(ref)
+        if crit.event is None or crit.event.index == 0:
+            row.update(used=False, field=crit.field, problem=crit.problem or "no critical moment")
+            rows.append(row)
+            say(f"{p}: {row['field']}: {row['problem']} (left out of the {role} set)")
+            continue
+        ev = crit.event
+        row.update(used=True, critical_time=ev.time, source=ev.source, confidence=ev.confidence)
+        if ev.flagged:
+            say(f"{p}: markers: uncertain event at t={ev.time:.4f} s, used but flagged: " + "; ".join(ev.reasons))
+        for w in crit.warnings:
+            if "bridged in time" in w:
+                say(f"{p}: markers: {w}")
+        rows.append(row)
+        refs.append(ref)
+        names.append(name)
+        taken.add(name)
+    return refs, names
 
 
 def _stem(path) -> str:

@@ -1,10 +1,12 @@
 """Reference rope trajectories (the "real" flying-knot data): file format, loader, writer, the
-first self-collision, and generation with a fine newton rope.
+first self-collision, and generation with a fine rope (newton, or MuJoCo: reference/mujoco.py).
 
-File format (.npz): time (T,) s uniform; markers (T, M, 3) m, held end first; hand (T, 3) m;
-scalars length (m), mass (kg), radius (m); optional bend_stiffness (N m^2); optional
-marker_arclength (M,) in [0, 1] (default evenly spaced). Bad files raise InputError(path, field,
-problem).
+File format (.npz; README, "Reference format", documents every field): time (T,) s uniform; markers
+(T, M, 3) m, held end first, NaN where a marker was not seen; hand (T, 3) m; scalars length (m),
+mass (kg), radius (m); optional bend_stiffness (N m^2), marker_arclength (M,) in [0, 1] (default
+evenly spaced), source (text), critical_time (s, a user's annotation of the first self-contact that
+overrides detection), sim_contact_time (s, NaN when none) and sim_contact_s (2,) (the simulator's own
+first contact, for tests). Other fields are ignored. Bad files raise InputError(path, field, problem).
 """
 from __future__ import annotations
 
@@ -18,13 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.tasks.rope.reference.events import CollisionEvent, first_collision
+from wrenorm.tasks.rope.reference.events import MAX_MISSING_FRACTION, CollisionEvent, bridge_missing, detect_reference
 
 __all__ = ["RopeReference", "CollisionEvent", "load_reference", "save_reference", "first_self_collision",
            "generate_reference", "builtin_references", "add_reference_arguments", "run_reference"]
 
 REQUIRED = ("time", "markers", "hand", "length", "mass", "radius")
-OPTIONAL = ("bend_stiffness", "marker_arclength", "source")
+OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s")
 FRAME_RATE = 250.0  # Hz: 4 ms frames resolve a tip moving at ~10 m/s to 4 cm
 DEFAULT_DURATION = 1.5  # s: every built-in path collides by ~1.05 s
 
@@ -40,27 +42,34 @@ class RopeReference:
     bend_stiffness: float | None  # N m^2
     marker_arclength: np.ndarray  # (M,) in [0, 1]
     source: str = ""
+    critical_time: float | None = None  # s, the user's annotation of the first self-contact (overrides detection)
+    sim_contact_time: float | None = None  # s, the fine simulator's own first contact (NaN: none), for tests
+    sim_contact_s: np.ndarray | None = None  # (2,) its arc-length fractions
+    missing: np.ndarray | None = None  # (T, M) bool: samples that were NaN in the file, bridged in time
+    file: str = ""  # where it was read from
 
     @property
     def dt(self) -> float:
         return float(self.time[1] - self.time[0])
 
 
-def first_self_collision(ref: RopeReference, exclude_arclength: float | None = None) -> CollisionEvent | None:
-    """First frame where two non-neighbouring parts of the marker polyline are within a rope
-    diameter; see :mod:`wrenorm.tasks.rope.reference.events`."""
-    return first_collision(ref.time, ref.markers, ref.marker_arclength, ref.length, ref.radius, exclude_arclength)
+def first_self_collision(ref: RopeReference) -> CollisionEvent | None:
+    """The first self-contact detected in the markers (flagged or not; None when there is no usable one);
+    see :mod:`wrenorm.tasks.rope.reference.events`. An annotation does not enter here: the event a fit
+    uses comes from `events.critical` (observable.reference_event)."""
+    det = detect_reference(ref)
+    return det.event if det.status == "contact" else None
 
 
 # ---------------------------------------------------------------------------------------------- loading
 
-def _array(src: str, name: str, value) -> np.ndarray:
+def _array(src: str, name: str, value, allow_nan: bool = False) -> np.ndarray:
     a = np.asarray(value)
     if a.dtype.kind not in "iuf":
         raise InputError(src, name, f"must be a real number array, got dtype {a.dtype}")
     a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
-        raise InputError(src, name, "contains NaN or Inf")
+    if np.any(np.isinf(a)) or (not allow_nan and np.any(np.isnan(a))):
+        raise InputError(src, name, "contains Inf" if allow_nan else "contains NaN or Inf")
     return a
 
 
@@ -103,7 +112,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         raise InputError(src, "time", f"frame step {mean_dt:g} s is outside [1e-5, 0.1] s (seconds expected)")
     T = time.shape[0]
 
-    markers = _array(src, "markers", data["markers"])
+    markers = _array(src, "markers", data["markers"], allow_nan=True)
     if markers.ndim != 3 or markers.shape[0] != T or markers.shape[2] != 3 or markers.shape[1] < 2:
         raise InputError(src, "markers", f"must have shape ({T}, M>=2, 3), got {markers.shape}")
     M = markers.shape[1]
@@ -120,19 +129,32 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     else:
         s = np.linspace(0.0, 1.0, M)
 
+    # Occlusion: a sample with any NaN coordinate is missing; short gaps are bridged in time (and flagged by
+    # the event detector when they touch the event), a marker missing in most frames cannot be.
+    partial = np.isnan(markers).any(-1) & ~np.isnan(markers).all(-1)
+    markers[partial] = np.nan
+    markers, missing, frac = bridge_missing(markers, mean_dt, hand, held_at_hand=s[0] == 0.0)
+    if frac.mean() > MAX_MISSING_FRACTION or np.any(frac > MAX_MISSING_FRACTION):
+        worst = int(np.argmax(frac))
+        raise InputError(src, "markers", f"mostly missing: marker {worst} is NaN in {100 * frac[worst]:.0f}% of the "
+                                         f"frames ({100 * frac.mean():.0f}% of all samples; at most "
+                                         f"{100 * MAX_MISSING_FRACTION:.0f}% per marker can be bridged)")
+
     # Units: a rope in millimetres sits hundreds of "metres" away or has links 1000x too long.
     box = 100.0
     if np.abs(markers).max() > box or np.abs(hand).max() > box:
         raise InputError(src, "markers" if np.abs(markers).max() > box else "hand",
                          f"coordinates beyond {box:g} m: metres expected (millimetres?)")
+    seen = ~(missing[:, 1:] | missing[:, :-1])
     chord = np.linalg.norm(np.diff(markers, axis=1), axis=2)  # (T, M-1)
     arc = np.diff(s) * length
-    # A chord can never exceed its arc; 10 % slack for stretch and marker noise.
-    worst = np.max(chord / arc[None, :])
+    # A chord can never exceed its arc; 10 % slack for stretch and marker noise (observed samples only).
+    worst = np.max(np.where(seen, chord / arc[None, :], 0.0))
     if worst > 1.1 + 0.002 / max(arc.min(), 1e-9):
         raise InputError(src, "markers", f"marker spacing up to {worst:.3g}x the arc length between markers "
                                          f"(length {length:g} m): wrong units or wrong length?")
-    reach = np.linalg.norm(markers[:, 0] - hand, axis=1).max()
+    reach = np.linalg.norm(markers[:, 0] - hand, axis=1)[~missing[:, 0]]
+    reach = reach.max() if reach.size else 0.0
     allowed = s[0] * length * 1.1 + 0.05 * length + 0.01
     if reach > allowed:
         raise InputError(src, "markers", f"first marker is up to {reach:.3g} m from the hand, expected within "
@@ -140,7 +162,28 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     source = ""
     if data.get("source") is not None:
         source = str(np.asarray(data["source"]).reshape(-1)[0]) if np.asarray(data["source"]).size else ""
-    return RopeReference(time, markers, hand, length, mass, radius, bend, s, source)
+
+    span = f"({time[0]:g}, {time[-1]:g}] s"
+    critical_time = None
+    if data.get("critical_time") is not None:
+        critical_time = _scalar(src, "critical_time", data["critical_time"], -np.inf, np.inf, "s")
+        if not time[0] < critical_time <= time[-1]:
+            raise InputError(src, "critical_time", f"{critical_time:g} s is outside the file's time range {span} "
+                                                   "(seconds on the file's own time axis, after its first frame)")
+    sim_t = sim_s = None
+    if data.get("sim_contact_time") is not None:
+        a = _array(src, "sim_contact_time", data["sim_contact_time"], allow_nan=True)
+        if a.size != 1:
+            raise InputError(src, "sim_contact_time", f"must be a single number, got shape {a.shape}")
+        sim_t = float(a.reshape(()))
+        if np.isfinite(sim_t) and not time[0] <= sim_t <= time[-1]:
+            raise InputError(src, "sim_contact_time", f"{sim_t:g} s is outside the file's time range {span}")
+    if data.get("sim_contact_s") is not None:
+        sim_s = _array(src, "sim_contact_s", data["sim_contact_s"], allow_nan=True).reshape(-1)
+        if sim_s.shape != (2,) or np.any(sim_s[np.isfinite(sim_s)] < 0) or np.any(sim_s[np.isfinite(sim_s)] > 1):
+            raise InputError(src, "sim_contact_s", "must be two arc-length fractions in [0, 1] (or NaN)")
+    return RopeReference(time, markers, hand, length, mass, radius, bend, s, source, critical_time, sim_t, sim_s,
+                         missing if missing.any() else None, src)
 
 
 def load_reference(path) -> RopeReference:
@@ -172,20 +215,36 @@ def load_reference(path) -> RopeReference:
     return validate_arrays(src, data)
 
 
-def save_reference(path, ref: RopeReference) -> None:
-    """Validate, then write compressed npz atomically (temp file in the same folder + os.replace)."""
+def reference_arrays(ref: RopeReference, extra: dict | None = None) -> dict:
+    """The arrays a reference file holds (markers NaN again where they were missing), plus `extra` fields."""
+    markers = np.array(ref.markers, dtype=np.float64)
+    if ref.missing is not None:
+        markers[np.asarray(ref.missing, bool)] = np.nan
+    data = {"time": ref.time, "markers": markers, "hand": ref.hand, "length": ref.length, "mass": ref.mass,
+            "radius": ref.radius, "marker_arclength": ref.marker_arclength, "source": ref.source}
+    for key in ("bend_stiffness", "critical_time", "sim_contact_time", "sim_contact_s"):
+        if getattr(ref, key) is not None:
+            data[key] = getattr(ref, key)
+    return data | dict(extra or {})
+
+
+def save_reference(path, ref: RopeReference, extra: dict | None = None) -> None:
+    """Validate, then write compressed npz atomically (temp file in the same folder + os.replace).
+
+    extra: further arrays to store beside the format's fields (e.g. the fine simulator's dense nodes); the
+    loader ignores them."""
     path = Path(path)
-    data = {"time": ref.time, "markers": ref.markers, "hand": ref.hand, "length": ref.length,
-            "mass": ref.mass, "radius": ref.radius, "marker_arclength": ref.marker_arclength,
-            "source": ref.source}
-    if ref.bend_stiffness is not None:
-        data["bend_stiffness"] = ref.bend_stiffness
+    data = reference_arrays(ref)
     validate_arrays(str(path), {k: (np.asarray(v) if k != "source" else v) for k, v in data.items()})
     out = {k: np.asarray(v) for k, v in data.items()}
     # float32 keeps shipped files small; sub-micrometre rounding is far below any rope effect.
     out["markers"] = out["markers"].astype(np.float32)
     out["hand"] = out["hand"].astype(np.float32)
     out["source"] = np.array(str(ref.source))
+    for k, v in (extra or {}).items():
+        if k in out:
+            raise InputError(str(path), k, "an extra field must not replace a format field")
+        out[k] = np.asarray(v)
     folder = path.parent if str(path.parent) else Path(".")
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -210,47 +269,128 @@ def save_reference(path, ref: RopeReference) -> None:
 
 # -------------------------------------------------------------------------------------------- generation
 
+ENGINES = ("newton", "mujoco")
+ENGINE_FRAME_RATE = {"newton": FRAME_RATE, "mujoco": 200.0}  # Hz: 200 Hz is a common motion-capture rate
+
+
+def resample_nodes(nodes: np.ndarray, markers: int) -> tuple[np.ndarray, np.ndarray]:
+    """Markers at evenly spaced arc length (both ends included) on a rod of equal segments, linear between its
+    nodes: points of the capsule centre line, so marker_arclength is exact. Returns (markers (T, M, 3),
+    marker_arclength (M,))."""
+    n = nodes.shape[1] - 1
+    s = np.linspace(0.0, 1.0, int(markers))
+    f = s * n
+    i0 = np.clip(np.floor(f + 1e-9).astype(int), 0, n - 1)
+    w = np.where(np.abs(f - i0) < 1e-9, 0.0, f - i0)[None, :, None]
+    return (1.0 - w) * nodes[:, i0] + w * nodes[:, i0 + 1], s
+
+
+def perturbed_path(path_name: str, seed: int, sigma: float = 0.75):
+    """A hand path near a built-in one: its command (waypoint offsets and durations, control/command.py) drawn
+    from N(0, sigma) per coordinate, clipped to the command bounds, redrawn until the hand's speed and
+    acceleration limits hold. Returns (HandPath, u)."""
+    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.reference.paths import get_hand_path
+
+    space = CommandSpace(get_hand_path(path_name))
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        u = np.clip(rng.normal(0.0, sigma, space.dim), space.lower, space.upper)
+        if space.feasible(u):
+            return space.decode(u), u
+    raise InputError("--perturb", "perturb", f"no feasible command near {path_name!r} in 200 draws (seed {seed})")
+
+
 def generate_reference(path_name, out=None, segments: int = 64, variant: str = "default",
                        duration: float = DEFAULT_DURATION, markers: int | None = None,
-                       frame_rate: float = FRAME_RATE, substeps_per_frame: int = 8, iterations: int = 10,
-                       device: str = "cpu", progress=None) -> RopeReference:
-    """Simulate the fine newton rope along a hand path and (if out is given) save it.
+                       frame_rate: float | None = None, substeps_per_frame: int = 8, iterations: int = 10,
+                       device: str = "cpu", progress=None, engine: str = "newton", perturb: int | None = None,
+                       dense: bool = False, annotate: bool = False) -> RopeReference:
+    """Simulate a fine rope (newton's rod or MuJoCo's) along a hand path and (if out is given) save it.
 
-    markers: number of markers (subsampled nodes, held end and free end included); default all
-    segments+1 nodes. The polyline through all nodes is exactly newton's capsule centre line, so the
-    reference's collision detector sees the contact geometry the fine simulation resolved (33
-    markers on 64 segments cut corners of the curled tip and called one contact 0.16 s early).
-    """
+    markers: number of markers at evenly spaced arc length (both ends included); default every node of the
+    rod. The polyline through all nodes is exactly the simulator's capsule centre line. perturb: draw the hand
+    path's command around the named path with this seed (`perturbed_path`). dense: also store every node
+    (`dense_nodes` (T, N+1, 3), `dense_arclength`) so that other marker sets can be made from the file.
+    annotate: also store the simulator's contact time as the `critical_time` annotation (a stand-in for a
+    user's annotation from video; none when the simulator saw no contact).
+    The file carries the simulator's first contact (`sim_contact_time`, `sim_contact_s`): MuJoCo's own contact
+    list; for newton the first frame whose capsule centre lines (every node) are within one diameter, beyond
+    pi diameters along the rope, interpolated inside the frame."""
     from wrenorm.tasks.rope.reference.materials import get_variant
-    from wrenorm.tasks.rope.reference.newton import simulate
     from wrenorm.tasks.rope.reference.paths import HandPath, get_hand_path
 
+    if engine not in ENGINES:
+        raise InputError("--engine", "engine", f"{engine!r} is not one of {', '.join(ENGINES)}")
+    command = None
     if isinstance(path_name, HandPath):
         hand_path, label = path_name, "custom"
+    elif perturb is not None:
+        hand_path, command = perturbed_path(path_name, int(perturb))
+        label = f"{path_name}+perturb{int(perturb)}"
     else:
         hand_path, label = get_hand_path(path_name), path_name
     material = get_variant(variant)
+    frame_rate = ENGINE_FRAME_RATE[engine] if frame_rate is None else float(frame_rate)
     if not 0.05 <= duration <= 30.0:
         raise InputError("--duration", "duration", f"{duration:g} s is outside [0.05, 30] s")
     if not 4 <= segments <= 1024:
         raise InputError("--segments", "segments", f"{segments} is outside [4, 1024]")
-    run = simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
-                   substeps_per_frame=substeps_per_frame, iterations=iterations, device=device,
-                   progress=progress)
+    if not 10.0 <= frame_rate <= 5000.0:
+        raise InputError("--frame-rate", "frame_rate", f"{frame_rate:g} Hz is outside [10, 5000] Hz")
+    if engine == "mujoco":
+        from wrenorm.tasks.rope.reference.mujoco import simulate as mj_simulate
+
+        run = mj_simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
+                          progress=progress)
+        nodes, time, hand, wall = run.nodes, run.time, run.hand, run.wall_s
+        ev = run.contact
+        sim_t = float("nan") if ev is None else ev.time
+        sim_s = np.array([np.nan, np.nan]) if ev is None else np.array([ev.s_a, ev.s_b])
+        what = f"{run.name} near_contacts={run.near_contacts}"
+    else:
+        from wrenorm.tasks.rope.reference.newton import simulate
+
+        run = simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
+                       substeps_per_frame=substeps_per_frame, iterations=iterations, device=device,
+                       progress=progress)
+        nodes, time, hand, wall = run.nodes, run.time, run.hand, run.wall_s
+        sim_t, sim_s = _dense_first_contact(time, nodes, material.length, material.radius)
+        what = (f"newton {_newton_version()} SolverVBD rod: segments={segments} "
+                f"substep={1.0 / (frame_rate * (substeps_per_frame + substeps_per_frame % 2)):.2e}s "
+                f"iterations={iterations}")
     n_nodes = segments + 1
     m = n_nodes if markers is None else int(markers)
     if not 2 <= m <= n_nodes:
         raise InputError("--markers", "markers", f"{m} is outside [2, {n_nodes}]")
-    idx = np.unique(np.round(np.linspace(0, segments, m)).astype(int))
+    mk, s = (nodes, np.linspace(0.0, 1.0, n_nodes)) if m == n_nodes else resample_nodes(nodes, m)
     ref = RopeReference(
-        time=run.time, markers=run.nodes[:, idx], hand=run.hand, length=material.length, mass=material.mass,
-        radius=material.radius, bend_stiffness=material.bend_stiffness, marker_arclength=idx / segments,
-        source=(f"newton {_newton_version()} SolverVBD rod: path={label} variant={variant} segments={segments} "
-                f"substep={1.0 / (frame_rate * (substeps_per_frame + substeps_per_frame % 2)):.2e}s "
-                f"iterations={iterations} wall={run.wall_s:.1f}s"))
+        time=time, markers=mk, hand=hand, length=material.length, mass=material.mass, radius=material.radius,
+        bend_stiffness=material.bend_stiffness, marker_arclength=s,
+        source=f"{what}: path={label} variant={variant} frame_rate={frame_rate:g}Hz wall={wall:.1f}s",
+        sim_contact_time=sim_t, sim_contact_s=sim_s,
+        critical_time=sim_t if annotate and np.isfinite(sim_t) and sim_t > time[0] else None)
+    extra = {}
+    if dense:
+        extra = {"dense_nodes": nodes.astype(np.float32), "dense_arclength": np.linspace(0.0, 1.0, n_nodes)}
+    if command is not None:
+        extra["command_u"] = command
     if out is not None:
-        save_reference(out, ref)
+        save_reference(out, ref, extra)
     return ref
+
+
+def _dense_first_contact(time, nodes, length, radius):
+    """First frame contact of a dense centre line (the physics definition), interpolated in the signed gap."""
+    from wrenorm.tasks.rope.reference.events import polyline_gap
+
+    gap, sab = polyline_gap(nodes, np.linspace(0.0, 1.0, nodes.shape[1]), length, radius)
+    hits = np.flatnonzero(gap <= 0.0)
+    if len(hits) == 0 or hits[0] == 0:
+        return float("nan"), np.array([np.nan, np.nan])
+    k = int(hits[0])
+    g0, g1 = gap[k - 1], gap[k]
+    return float(time[k - 1] + (g0 / (g0 - g1)) * (time[k] - time[k - 1])), sab[k].copy()
 
 
 def _newton_version() -> str:
@@ -298,28 +438,48 @@ def builtin_references(kind: str = "fit", variant: str = "default", progress=Non
 # --------------------------------------------------------------------------------------------------- CLI
 
 def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
+    from wrenorm.options import add_number
     from wrenorm.tasks.rope.reference.materials import VARIANTS
     from wrenorm.tasks.rope.reference.paths import builtin_hand_paths
 
     parser.add_argument("--out", required=True, help="output .npz file (written atomically)")
+    parser.add_argument("--engine", default="newton", choices=ENGINES,
+                        help="fine simulator: newton's VBD rod, or MuJoCo's elastic rod (an independent second one)")
     parser.add_argument("--path", default="flick", choices=sorted(builtin_hand_paths()), help="hand path")
-    parser.add_argument("--segments", type=int, default=64, help="rod segments of the fine rope")
+    add_number(parser, "--perturb", default=None, lo=0, hi=2**31 - 1, integer=True,
+               help="draw the hand path's command around --path with this seed (a throw no one tuned on)")
+    add_number(parser, "--segments", default=64, lo=4, hi=1024, integer=True, help="rod segments of the fine rope")
     parser.add_argument("--variant", default="default", choices=sorted(VARIANTS), help="rope material")
-    parser.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="simulated seconds")
-    parser.add_argument("--markers", type=int, default=None, help="markers to keep (default: every node)")
+    parser.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="simulated seconds, in [0.05, 30]")
+    add_number(parser, "--frame-rate", default=None, lo=10.0, hi=5000.0, unit="Hz",
+               help="recorded frames per second (default: newton 250, mujoco 200)")
+    add_number(parser, "--markers", default=None, lo=2, hi=1025, integer=True,
+               help="markers at evenly spaced arc length, ends included (default: every node)")
+    parser.add_argument("--dense", action="store_true",
+                        help="also store every node (dense_nodes) so other marker sets can be made from the file")
+    parser.add_argument("--annotate", action="store_true",
+                        help="store the simulator's own first contact as the critical_time annotation (a stand-in "
+                             "for a hand annotation from video)")
 
 
 def run_reference(args) -> int:
     def progress(done, total, wall):
         print(f"  frame {done}/{total}  wall {wall:.1f} s", flush=True)
 
+    engine = getattr(args, "engine", "newton")
     print(f"simulating rope variant={args.variant} path={args.path} segments={args.segments} "
-          f"duration={args.duration:g} s with newton SolverVBD", flush=True)
+          f"duration={args.duration:g} s with {engine}", flush=True)
     ref = generate_reference(args.path, args.out, segments=args.segments, variant=args.variant,
-                             duration=args.duration, markers=getattr(args, "markers", None), progress=progress)
+                             duration=args.duration, markers=getattr(args, "markers", None), progress=progress,
+                             engine=engine, frame_rate=getattr(args, "frame_rate", None),
+                             perturb=getattr(args, "perturb", None), dense=getattr(args, "dense", False),
+                             annotate=getattr(args, "annotate", False))
     ev = first_self_collision(ref)
     hit = "never" if ev is None else f"t = {ev.time:.4f} s (frame {ev.index}, s = {ev.s_a:.3f} / {ev.s_b:.3f})"
-    print(f"wrote {args.out}: {len(ref.time)} frames x {ref.markers.shape[1]} markers; first self-collision {hit}")
+    sim = ref.sim_contact_time
+    own = "none" if sim is None or not np.isfinite(sim) else f"t = {sim:.4f} s"
+    print(f"wrote {args.out}: {len(ref.time)} frames x {ref.markers.shape[1]} markers; first self-contact "
+          f"detected in the markers {hit}; simulator's own {own}")
     return 0
 
 
