@@ -227,3 +227,15 @@ def test_os_errors_are_one_line(tmp_path, capsys):
     Path(tmp_path / "dir.csv").mkdir()
     assert main([*PD, "--reference", str(tmp_path / "dir.csv"), "--out", str(tmp_path / "r2")]) == 2
     _one_line_error(capsys, "dir.csv")
+
+
+def test_reference_rope_never_replaces_a_file_without_force(tmp_path, capsys):
+    from wrenorm.cli import main
+
+    precious = tmp_path / "capture.npz"
+    precious.write_bytes(b"someone's motion capture")
+    assert main(["reference", "rope", "--out", str(precious)]) == 2
+    assert precious.read_bytes() == b"someone's motion capture"
+    _one_line_error(capsys, str(precious), "--force")
+    assert main(["reference", "rope", "--out", str(tmp_path / "x.csv")]) == 2
+    _one_line_error(capsys, ".npz")

@@ -218,11 +218,9 @@ def _run_info(r: dict, folder: Path | None) -> str:
 
 
 def fit_body(r: dict, folder: Path | None, system) -> str:
-    parts = [_verdict_block(r.get("validation", {})), "<h2>The procedure</h2>", _procedure(r, system)]
-    if r.get("excluded_references"):
-        parts.append("<p><span class='flag bad'>left out</span> " + esc("; ".join(
-            f"{x.get('file', x)}: {x.get('why', '')}" if isinstance(x, dict) else str(x)
-            for x in r["excluded_references"])) + "</p>")
+    parts = [_verdict_block(r.get("validation", {}))]
+    parts += [f"<p><span class='flag warn'>warning</span> {esc(w)}</p>" for w in r.get("warnings") or []]
+    parts += ["<h2>The procedure</h2>", _procedure(r, system)]
     parts += ["<h2>Parameters</h2>", table(["parameter", "unit", "measured", "fitted", "std", "fitted / measured",
                                              "bounds", "what the data say"], _parameter_rows(r)),
               "<h2>Held-out conditions</h2>", _held_out(r)]

@@ -35,6 +35,14 @@ class Progress:
             self._bar = tqdm(total=total, desc=what, unit=unit or "it", file=self.stream, dynamic_ncols=True,
                              leave=True, initial=done)
 
+    def set_total(self, total: int) -> None:
+        """For work whose size is known only once it starts (a simulator's frame count)."""
+        if total != self.total:
+            self.total = total
+            if self._bar is not None:
+                self._bar.total = total
+                self._bar.refresh()
+
     def update(self, n: int = 1, **fields) -> None:
         self.n += n
         self._fields.update(fields)

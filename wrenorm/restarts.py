@@ -33,7 +33,7 @@ def spread_of_optima(problem: Problem, fitted: np.ndarray, seeds: list[int], val
     space = problem.space
     fitted_loss = float(objective(problem, fitted[None])[0])
     if problem.held_out:
-        held = finite_or_inf(problem.errors(np.concatenate([fitted[None], vals]), problem.held_out))
+        held = finite_or_inf(problem.validation_errors(np.concatenate([fitted[None], vals]), problem.held_out)[0])
         held_fit, held = held[0], held[1:]
     else:
         held_fit, held = None, np.full((len(vals), 0), np.nan)

@@ -32,7 +32,23 @@ def sections(result: dict) -> list[tuple[str, str]]:
         crow = [[k.replace("_", " "), num(v.get("ratio_of_means"), 3)] for k, v in comp.items() if isinstance(v, dict)]
         body += table(["held-out scoring", "fitted / measured mean error"], crow)
         body += f"<p class='muted'>{comp.get('meaning', '')}</p>"
-    return [("Critical moments", body)]
+    out = [("Critical moments", body)]
+    refs = result.get("references") or {}
+    if refs.get("files"):
+        rows = []
+        for f in refs["files"]:
+            ev = f.get("event") or {}
+            state = (flag("left out", "bad") if not f.get("used") else flag("flagged", "warn") if f.get("flagged")
+                     else flag("used", "ok"))
+            why = "; ".join(f.get("warnings") or []) or (f"{f['field']}: {f['problem']}" if f.get("field") else "")
+            rows.append([f.get("name", ""), f.get("role", ""), state, num(ev.get("time")), ev.get("source", ""),
+                         ev.get("confidence", ""), why])
+        out.append((f"References: {refs.get('used')} used, {refs.get('left_out')} left out, {refs.get('flagged')} "
+                    "flagged",
+                    table(["reference", "role", "", "event time", "from", "confidence", "why"], rows)
+                    + "<p class='muted'>A flagged event is used, and said here; a reference without a usable event is "
+                      "left out of the fit (the command says which and why).</p>"))
+    return out
 
 
 def condition_charts(problem, fitted, measured) -> list[str]:

@@ -450,7 +450,9 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
                help="draw the hand path's command around --path with this seed (a throw no one tuned on)")
     add_number(parser, "--segments", default=64, lo=4, hi=1024, integer=True, help="rod segments of the fine rope")
     parser.add_argument("--variant", default="default", choices=sorted(VARIANTS), help="rope material")
-    parser.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="simulated seconds, in [0.05, 30]")
+    add_number(parser, "--duration", default=DEFAULT_DURATION, lo=0.05, hi=30.0, unit="s", help="simulated seconds")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+    parser.add_argument("--quiet", action="store_true", help="no progress")
     add_number(parser, "--frame-rate", default=None, lo=10.0, hi=5000.0, unit="Hz",
                help="recorded frames per second (default: newton 250, mujoco 200)")
     add_number(parser, "--markers", default=None, lo=2, hi=1025, integer=True,
@@ -463,17 +465,32 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_reference(args) -> int:
-    def progress(done, total, wall):
-        print(f"  frame {done}/{total}  wall {wall:.1f} s", flush=True)
+    from wrenorm.progress import Progress
 
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise InputError(str(out), "--out", "a rope reference is an .npz file: name it FILE.npz")
+    if out.is_dir():
+        raise InputError(str(out), "--out", "is a folder; give the .npz file to write")
+    if out.exists() and not getattr(args, "force", False):
+        raise InputError(str(out), "--out", "exists; --force replaces it")
     engine = getattr(args, "engine", "newton")
-    print(f"simulating rope variant={args.variant} path={args.path} segments={args.segments} "
-          f"duration={args.duration:g} s with {engine}", flush=True)
+    quiet = getattr(args, "quiet", False)
+    if not quiet:
+        print(f"simulating rope variant={args.variant} path={args.path} segments={args.segments} "
+              f"duration={args.duration:g} s with {engine}", file=sys.stderr, flush=True)
+    bar = Progress(None, f"rope reference ({engine})", quiet, unit="frame")
+
+    def progress(done, total, wall):
+        bar.set_total(total)
+        bar.update(done - bar.n)
+
     ref = generate_reference(args.path, args.out, segments=args.segments, variant=args.variant,
                              duration=args.duration, markers=getattr(args, "markers", None), progress=progress,
                              engine=engine, frame_rate=getattr(args, "frame_rate", None),
                              perturb=getattr(args, "perturb", None), dense=getattr(args, "dense", False),
                              annotate=getattr(args, "annotate", False))
+    bar.close()
     ev = first_self_collision(ref)
     hit = "never" if ev is None else f"t = {ev.time:.4f} s (frame {ev.index}, s = {ev.s_a:.3f} / {ev.s_b:.3f})"
     sim = ref.sim_contact_time
