@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -69,6 +70,9 @@ class RolloutResult:
     final_vel: np.ndarray
     trajectory: np.ndarray | None = None        # (K, B, N, 3) positions every `trajectory_every` steps
     trajectory_times: np.ndarray | None = None  # (K,) s
+    events: Any = None  # the ChainEvents on the rollout's device (what critical.chain_states reads)
+    dt: float = 0.0
+    t0: float = 0.0
 
 
 class RopeSim:
@@ -111,8 +115,9 @@ class RopeSim:
 
     def rollout(self, pos0: np.ndarray, vel0: np.ndarray, hand: np.ndarray, path_index: np.ndarray,
                 params: ChainParams, steps: int, t0: float = 0.0, stop_at_hit: bool = True,
-                chunk: int | None = None, trajectory_every: int | None = None) -> RolloutResult:
-        """pos0/vel0 (B, N, 3); hand (P, S, 3) hand samples at t0 + s dt with S > steps."""
+                chunk: int | None = None, trajectory_every: int | None = None, host: bool = True) -> RolloutResult:
+        """pos0/vel0 (B, N, 3); hand (P, S, 3) hand samples at t0 + s dt with S > steps. host=False leaves the
+        results on the device (`events`; the per-chain arrays None): for an observable computed there."""
         n, dev = self.n, self.device
         B = params.batch
         hand = np.asarray(hand, dtype=np.float32)
@@ -169,6 +174,8 @@ class RopeSim:
         wp.synchronize_device(dev)
         # launches alone, without host<->device copies: what a GPU kernel sustains
         self.last_kernel_seconds = time.perf_counter() - t_kernel
+        if not host:
+            return RolloutResult(*[None] * 11, events=ev, dt=self.dt, t0=t0)
         st = ev.status.numpy()
         hf = ev.hit_frame.numpy()
         ha = ev.hit_alpha.numpy()
@@ -182,7 +189,7 @@ class RopeSim:
             final_pos=state.pos.numpy(), final_vel=state.vel.numpy(),
             trajectory=None if frames is None else np.stack(frames),
             trajectory_times=None if frames is None else t0 + self.dt * np.minimum(
-                np.arange(len(frames)) * chunk, steps))
+                np.arange(len(frames)) * chunk, steps), events=ev, dt=self.dt, t0=t0)
 
 
 # ---------------------------------------------------------------------------------- helpers

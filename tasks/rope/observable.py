@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.kernels.rope import critical
 
 WEIGHTS = {"shape": 1.0, "velocity": 0.1, "time": 1.0, "place": 0.5}
 NO_HIT = 5.0  # above any colliding candidate's error (each term is O(1) at worst)
@@ -70,15 +71,18 @@ class CriticalStates:
 
 
 def from_rollout(res, n_nodes: int, t0: float = 0.0) -> CriticalStates:
-    """Critical states of a batch of coarse chains (kernels.rope.RolloutResult), resampled to the K points."""
-    s_nodes = np.linspace(0.0, 1.0, n_nodes)
-    s_k = np.linspace(0.0, 1.0, SAMPLES)
-    hit = res.status == 1
-    mask = np.where(hit, 1.0, np.nan)[:, None, None]
-    clearance = np.where(res.status == 2, np.inf, res.clearance.astype(np.float64))
-    return CriticalStates(resample(res.crit_pos, s_nodes, s_k) * mask, resample(res.crit_vel, s_nodes, s_k) * mask,
-                          np.where(hit, res.hit_time - t0, np.nan), np.stack([res.s_a, res.s_b], 1),
-                          hit, np.where(hit, 0.0, clearance))
+    """Critical states of a batch of coarse chains (kernels.rope.RolloutResult), resampled to the K points, on
+    the host (the planner and the charts want them there; a fit keeps them on the device, see RopeProblem)."""
+    states = critical.chain_states(res.events, np.zeros(len(res.status), np.int32), [np.iinfo(np.int32).max],
+                                   res.dt, res.t0 - t0, SAMPLES)
+    h = states.to_host()
+    hit = h["status"] == 1
+    # the host copy of a rollout may have been marked since (a hit after its condition's horizon counts as none)
+    keep = hit & (res.status == 1)
+    nan = np.nan
+    return CriticalStates(np.where(keep[:, None, None], h["pos"], nan), np.where(keep[:, None, None], h["vel"], nan),
+                          np.where(keep, h["time"], nan), np.where(keep[:, None], h["s"], nan), keep,
+                          np.where(keep, 0.0, np.where(res.status == 2, np.inf, res.clearance.astype(np.float64))))
 
 
 def reference_critical(ref):
@@ -120,13 +124,6 @@ def from_reference(ref, event=None) -> CriticalStates:
                           np.array([ev.time - t[0]]), np.array([[ev.s_a, ev.s_b]]), np.ones(1, bool), np.zeros(1))
 
 
-def no_hit_cost(clearance, length: float) -> np.ndarray:
-    """What a rope that never hits itself costs: NO_HIT + min(clearance, 0.1 L) / (0.1 L); a blow-up (NaN or
-    infinite clearance) costs the largest miss."""
-    c = np.nan_to_num(np.asarray(clearance, np.float64), nan=np.inf)
-    return NO_HIT + np.minimum(np.maximum(c, 0.0), NO_HIT_SCALE * length) / (NO_HIT_SCALE * length)
-
-
 @dataclass
 class Target:
     """The critical state to reproduce (a reference's, a goal's), with the scales that make errors
@@ -155,37 +152,42 @@ class Target:
         return {"position": slice(0, 3 * K), "velocity": slice(3 * K, 6 * K), "time": slice(6 * K, 6 * K + 1),
                 "place": slice(6 * K + 1, 6 * K + 3)}
 
+    def device_target(self, device: str = "cpu"):
+        """This target as the observable kernel's TargetStates (one condition), made once per device."""
+        cache = self.__dict__.setdefault("_device_targets", {})
+        if device not in cache:
+            cache[device] = stack_targets([self], device)
+        return cache[device]
+
+    def _score(self, st: CriticalStates, residual: bool):
+        states = critical.DeviceStates.from_host(np.where(st.hit, 1, 0), st.time, st.s, st.clearance, st.pos, st.vel)
+        return critical.critical_terms(states, np.zeros(st.batch, np.int32), self.device_target(), MISS, residual)
+
     def residual(self, st: CriticalStates) -> np.ndarray:
         """(B, dim) weighted residual e = W (Z - Z_target); NaN rows for ropes that never hit."""
-        g, w, K = self.state, self.weights, SAMPLES
-        B = st.batch
-        return np.concatenate([
-            (w["shape"] / (self.length * np.sqrt(K))) * (st.pos - g.pos).reshape(B, -1),
-            (w["velocity"] / (self.speed * np.sqrt(K))) * (st.vel - g.vel).reshape(B, -1),
-            (w["time"] / g.time[0]) * (st.time - g.time)[:, None],
-            (0.5 * w["place"]) * (st.s - g.s),
-        ], axis=1)
+        return self._score(st, residual=True)[1]
 
     def terms(self, st: CriticalStates) -> dict:
-        """The error terms and their weighted total per row; a miss costs `no_hit_cost`."""
-        g, w = self.state, self.weights
-        rms = lambda d: np.sqrt(np.mean(np.sum(d ** 2, -1), -1))  # noqa: E731
-        with np.errstate(invalid="ignore"):
-            t = {
-                "shape": rms(st.pos - g.pos) / self.length,
-                "velocity": rms(st.vel - g.vel) / self.speed,
-                "time": np.abs(st.time - g.time) / g.time[0],
-                "place": 0.5 * np.abs(st.s - g.s).sum(-1),
-            }
-            total = sum(w[k] * t[k] for k in t)
-        t["total"] = np.where(st.hit, total, no_hit_cost(st.clearance, self.length))
-        return t
+        """The error terms and their weighted total per row; a miss costs the no-hit rule."""
+        terms = self._score(st, residual=False)[0]
+        return {k: terms[:, i] for i, k in enumerate(critical.TERMS)}
 
     def state_error(self, pos: np.ndarray, vel: np.ndarray, time: float) -> float:
         """Shape and velocity error of one rope state (K, 3) at the K points plus the time error of `time`:
-        how a rope that never hit is scored by its state at the target's critical time (no penalty)."""
-        rms = lambda d: float(np.sqrt(np.mean(np.sum(d ** 2, -1))))  # noqa: E731
-        g, w = self.state, self.weights
-        return (w["shape"] * rms(pos - g.pos[0]) / self.length + w["velocity"] * rms(vel - g.vel[0]) / self.speed
-                + w["time"] * abs(time - g.time[0]) / g.time[0])
+        how a rope that never hit is scored by its state at the target's critical time (no penalty). The same
+        terms as a hit's, with the contact placed where the target's is (a state has no contact to place)."""
+        st = CriticalStates(np.asarray(pos, np.float64)[None], np.asarray(vel, np.float64)[None],
+                            np.array([float(time)]), self.state.s.copy(), np.ones(1, bool), np.zeros(1))
+        return float(self.terms(st)["total"][0])
 
+
+MISS = critical.no_hit_rule(NO_HIT, NO_HIT_SCALE)
+
+
+def stack_targets(targets: list[Target], device: str):
+    """The observable kernel's TargetStates for several conditions (one target each), on `device`."""
+    g = [t.state for t in targets]
+    return critical.target_states(
+        np.concatenate([x.pos for x in g]), np.concatenate([x.vel for x in g]), np.concatenate([x.time for x in g]),
+        np.concatenate([x.s for x in g]), [t.speed for t in targets], [t.length for t in targets],
+        [[t.weights[k] for k in ("shape", "velocity", "time", "place")] for t in targets], device)

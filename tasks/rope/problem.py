@@ -30,10 +30,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.kernels.rope import ChainParams, RopeSim
+from wrenorm.kernels.rope import ChainParams, RopeSim, critical
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
-from wrenorm.tasks.rope.observable import NO_HIT, SAMPLES, WEIGHTS, Target, from_rollout, reference_critical, resample
+from wrenorm.tasks.rope.observable import (
+    MISS,
+    NO_HIT,
+    SAMPLES,
+    WEIGHTS,
+    Target,
+    from_rollout,
+    reference_critical,
+    resample,
+    stack_targets,
+)
 from wrenorm.tasks.rope.options import FLOW_DT, FLOW_SEGMENTS, ITERATIONS
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
@@ -100,6 +110,7 @@ class RopeProblem(Problem):
         self.segments, self.n, self.dt = int(segments), int(segments) + 1, float(dt)
         self.device = device
         self.weights = dict(WEIGHTS if weights is None else weights)
+        self._targets: dict = {}  # the observable kernel's targets per (device, conditions)
         names = list(names or [f"ref{i}" for i in range(len(train_refs))])
         held_names = list(held_names or [f"held{i}" for i in range(len(held_refs))])
         self.train = [Condition(nm, prepare_case(nm, r, self.n, self.dt, self.weights))
@@ -170,8 +181,10 @@ class RopeProblem(Problem):
                            mass_slope=v[:, sp.index("mass_slope")] if "mass_slope" in sp.names else 0.0,
                            stretch=v[:, sp.index("stretch")] if "stretch" in sp.names else 0.0)
 
-    def simulate(self, values: np.ndarray, conditions: Sequence[Condition], trajectory_every: int | None = None):
-        """Every candidate under every condition in one batch; chain b*C + c is (candidate b, condition c)."""
+    def simulate(self, values: np.ndarray, conditions: Sequence[Condition], trajectory_every: int | None = None,
+                 host: bool = True):
+        """Every candidate under every condition in one batch; chain b*C + c is (candidate b, condition c).
+        host=False: the results stay on the device (for the observable kernels; `late` is their horizon rule)."""
         values = np.atleast_2d(np.asarray(values, np.float64))
         B, C = values.shape[0], len(conditions)
         cases = [c.data for c in conditions]
@@ -187,7 +200,9 @@ class RopeProblem(Problem):
         vel0 = np.stack([cs.vel0 for cs in cases])[pidx]
         # times from the start of each reference's motion: references may start their clocks anywhere
         res = self.sim.rollout(pos0, vel0, hand, pidx, rep, steps, t0=0.0,
-                               stop_at_hit=trajectory_every is None, trajectory_every=trajectory_every)
+                               stop_at_hit=trajectory_every is None, trajectory_every=trajectory_every, host=host)
+        if not host:
+            return res
         # a hit after a shorter condition's horizon does not count
         horizon = np.array([cs.steps for cs in cases])[pidx]
         late = (res.status == 1) & (res.hit_frame > horizon)
@@ -200,26 +215,40 @@ class RopeProblem(Problem):
         res = self.simulate(values, conditions)
         return res, from_rollout(res, self.n, 0.0)
 
+    def _scores(self, values: np.ndarray, conditions: Sequence[Condition], residual: bool = False):
+        """The observable on the chains' device (kernels/rope/critical.py): rollouts, critical states and their
+        errors stay there; the host gets per chain the terms (and residuals), status, hit time and contact."""
+        values = np.atleast_2d(values)
+        B, C = values.shape[0], len(conditions)
+        res = self.simulate(values, conditions, host=False)
+        cond = np.tile(np.arange(C, dtype=np.int32), B)
+        states = critical.chain_states(res.events, cond, [c.data.steps for c in conditions], res.dt, res.t0,
+                                       SAMPLES)
+        key = (self.device, tuple(id(c) for c in conditions))
+        if key not in self._targets:
+            self._targets[key] = stack_targets([c.data.target for c in conditions], self.device)
+        terms, r = critical.critical_terms(states, cond, self._targets[key], MISS, residual)
+        return terms, r, states
+
     def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
         """(B, C R) signed, weighted residuals of the critical state per condition (observable.Target), for the
         Gauss-Newton uncertainty; NaN where a chain never hits."""
-        B, C = np.atleast_2d(values).shape[0], len(conditions)
-        _, st = self._critical(values, conditions)
-        r = [c.data.target.residual(st.take(np.arange(B) * C + j)) for j, c in enumerate(conditions)]
-        return np.stack(r, axis=1).reshape(B, -1)
+        B = np.atleast_2d(values).shape[0]
+        return self._scores(values, conditions, residual=True)[1].reshape(B, -1)
 
     def error_terms(self, values: np.ndarray, conditions: Sequence[Condition]) -> dict:
         """The observable's error terms per (candidate, condition), (B, C) each; blow-ups cost inf."""
         B, C = np.atleast_2d(values).shape[0], len(conditions)
-        res, st = self._critical(values, conditions)
-        per = [c.data.target.terms(st.take(np.arange(B) * C + j)) for j, c in enumerate(conditions)]
-        terms = {k: np.stack([p[k] for p in per], axis=1) for k in per[0]}
-        status = res.status.reshape(B, C)
+        scores, _, states = self._scores(values, conditions)
+        terms = {k: scores[:, i].reshape(B, C) for i, k in enumerate(critical.TERMS)}
+        status = states.status.numpy().reshape(B, C)
         terms["total"] = finite_or_inf(np.where(status == 2, np.inf, terms["total"]))
         terms["status"] = status
         # on each reference's own clock, as its event time
-        terms["hit_time"] = res.hit_time.reshape(B, C) + np.array([float(c.data.ref.time[0]) for c in conditions])
-        terms["s_a"], terms["s_b"] = res.s_a.reshape(B, C), res.s_b.reshape(B, C)
+        terms["hit_time"] = states.time.numpy().reshape(B, C) + np.array([float(c.data.ref.time[0])
+                                                                          for c in conditions])
+        contact = states.s.numpy()
+        terms["s_a"], terms["s_b"] = contact[:, 0].reshape(B, C), contact[:, 1].reshape(B, C)
         return terms
 
     def errors(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:

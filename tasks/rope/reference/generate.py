@@ -501,15 +501,10 @@ def run_reference(args) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m wrenorm.tasks.rope.reference.generate",
-                                     description="Generate a fine reference rope trajectory with newton.")
-    add_reference_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run_reference(args)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    """`python -m wrenorm.tasks.rope.reference.generate ...` is `python -m wrenorm reference rope ...`."""
+    from wrenorm.cli import main as cli_main
+
+    return cli_main(["reference", "rope", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
