@@ -44,10 +44,10 @@ def _threads(cpus: int) -> None:
 
 def _error_line(log: str, rc: int) -> str:
     lines = [ln.strip() for ln in log.splitlines() if ln.strip()]
-    for prefix in ("wrenorm: error: ", "wrenorm: fit failed: "):
+    for prefix, keep in (("wrenorm: error: ", ""), ("wrenorm: fit failed: ", "fit failed: ")):
         hit = [ln for ln in lines if ln.startswith(prefix)]
         if hit:
-            return hit[-1][len("wrenorm: "):]
+            return keep + hit[-1][len(prefix):]
     return lines[-1] if lines else f"exit code {rc}"
 
 
