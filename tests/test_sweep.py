@@ -2,6 +2,7 @@
 2 CPUs and give the table; a failing cell is recorded and the others go on; a lost worker is recorded; a sweep
 killed with SIGKILL resumes to the same table, running only the missing cells; every cell's result equals what
 `fit` writes for the same options and seed."""
+import contextlib
 import csv
 import io
 import json
@@ -9,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -303,3 +305,59 @@ def test_a_lost_worker_is_recorded_and_the_other_cells_go_on(tmp_path):
     assert [r["status"] for r in rows].count("failed") == 1 and [r["status"] for r in rows].count("done") == 2
     lost = next(r for r in rows if r["status"] == "failed")
     assert "worker lost" in lost["error"], lost
+
+
+def test_a_sweep_joins_a_running_cluster_with_address(tmp_path):
+    """`ray start --head` on one machine, `--address` on the others: here both on this one (the head in a session of
+    its own, ended by its process group)."""
+    _ray()
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ray_cli = str(Path(sys.executable).parent / "ray")
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
+    head = subprocess.Popen([ray_cli, "start", "--head", "--block", "--num-cpus", "2", "--port", str(port),
+                             "--node-ip-address", "127.0.0.1", "--include-dashboard=false"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        started = []
+
+        def watch():  # `ray start` says when the head is up; keep reading so that it never blocks on a full pipe
+            for line in head.stdout:
+                if "Ray runtime started" in line:
+                    started.append(line)
+
+        threading.Thread(target=watch, daemon=True).start()
+        deadline = time.time() + 120
+        while time.time() < deadline and not started and head.poll() is None:
+            time.sleep(0.2)
+        assert started, "ray start --head did not come up"
+        spec = _write(tmp_path, 'task = "fit pd"\n[options]\nno-record = true\n[axes]\nf-sim = [100, 200]\n')
+        out = tmp_path / "out"
+        proc = subprocess.run([sys.executable, "-m", "wrenorm", "sweep", str(spec), "--out", str(out), "--address",
+                               f"127.0.0.1:{port}", "--quiet"], env=env, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        summary = json.loads((out / "sweep.json").read_text())
+        assert summary["ray"]["address"] == f"127.0.0.1:{port}" and summary["counts"]["done"] == 2
+    finally:
+        below = _descendants(head.pid)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGKILL)  # the head and everything it started: its own process group
+        head.wait()
+        _end(p for p in below if "ray" in _cmdline(p))
+
+
+def test_nothing_at_the_address_is_one_line_and_exit_2(tmp_path, capsys):
+    _ray()
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    spec = _write(tmp_path, 'task = "fit pd"\n')
+    assert main(["sweep", str(spec), "--out", str(tmp_path / "out"), "--address", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--address" in err and "ray start --head" in err
+    assert not (tmp_path / "out").exists()

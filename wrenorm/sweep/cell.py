@@ -88,14 +88,18 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
             "finished": _now(), "cell_seconds": time.perf_counter() - t0}
 
 
-def warm(argv: list, cpus: int = 1, device: str = "cpu") -> dict:
+def warm(argv: list, cpus: int = 1, device: str = "cpu", capture: bool = True) -> dict:
     """Import everything a cell uses and build (or load from Warp's kernel cache) the kernels of this cell's
     options, so the cells that follow pay neither. Run in the driver before any worker (so that workers do not
-    race to compile the same module) and once in every worker."""
+    race to compile the same module) and once in every worker. capture: swallow what it prints (never in a
+    thread beside others: sys.stdout and sys.stderr are the whole process's)."""
     t0 = time.perf_counter()
     _threads(cpus)
     info = {"host": socket.gethostname(), "pid": os.getpid()}
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    quiet = (contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())) if capture else ()
+    with contextlib.ExitStack() as stack:
+        for q in quiet:
+            stack.enter_context(q)
         try:
             _warm(list(argv), device)
         except Exception as e:  # the cell itself will report it properly

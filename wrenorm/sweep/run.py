@@ -17,6 +17,7 @@ terminal; its start-up is timed apart from the cells.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -116,8 +117,11 @@ def _todo(out: Path, spec, records: dict, results: dict, retry_failed: bool) -> 
 
 # --- Ray --------------------------------------------------------------------------------------------------------
 
-def _import_ray():
+def _import_ray(address: str | None = None):
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves this machine
+    if address and "RAY_AUTH_MODE" not in os.environ and _token_available():
+        # `ray start` (Ray >= 2.59) authenticates with a token; a driver joining it must say so, before Ray loads
+        os.environ["RAY_AUTH_MODE"] = "token"
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     os.environ.setdefault("RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO", "0")
     try:
@@ -135,7 +139,8 @@ def _start_ray(ray, args) -> dict:
         if args.address:
             ray.init(address=args.address, **kw)
         else:
-            ray.init(num_cpus=args.cpus or os.cpu_count() or 1, **kw)
+            # "local": always a fresh embedded Ray, never one that `ray start` left running on this machine
+            ray.init(address="local", num_cpus=args.cpus or os.cpu_count() or 1, **kw)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = "--address" if args.address else "ray"
         raise InputError(where, args.address or "local", f"cannot start or join Ray: {str(e).splitlines()[0]}") \
@@ -143,6 +148,46 @@ def _start_ray(ray, args) -> dict:
     res = ray.cluster_resources()
     return {"address": args.address or "local", "version": ray.__version__, "nodes": len(ray.nodes()),
             "cpus": float(res.get("CPU", 0)), "gpus": float(res.get("GPU", 0))}
+
+
+@contextlib.contextmanager
+def _ray_output_to(log: Path):
+    """While Ray runs, whatever its C++ core and Python internals write to stderr goes to `log`; the sweep's own
+    lines go to the terminal through the stream this yields."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    terminal = os.fdopen(os.dup(saved), "w", buffering=1)
+    with open(log, "ab") as f:
+        os.dup2(f.fileno(), 2)
+        try:
+            yield terminal
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            terminal.close()
+
+
+def _check_address(address: str) -> None:
+    """Something must answer at host:port before Ray is asked to join it (Ray itself retries for minutes)."""
+    import socket
+
+    if address == "auto":
+        return
+    text = address.split("://", 1)[-1]
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError("--address", address, "expected host:port (as `ray start --head` prints it) or 'auto'")
+    try:
+        socket.create_connection((host, int(port)), timeout=5).close()
+    except OSError as e:
+        raise InputError("--address", address, f"nothing answers there ({e.strerror or e}): is `ray start --head` "
+                                               "running on that machine?") from None
+
+
+def _token_available() -> bool:
+    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                or (Path.home() / ".ray" / "auth_token").is_file())
 
 
 def _slots(info: dict, args) -> int:
@@ -170,7 +215,9 @@ def cmd_sweep(args) -> int:
     from .spec import load
 
     spec = load(args.spec)  # every cell checked: a bad spec ends here, before Ray starts
-    ray = _import_ray()
+    ray = _import_ray(args.address)
+    if args.address:
+        _check_address(args.address)
     resume = args.resume or args.retry_failed
     out = args.out or Path("runs") / f"sweep-{spec.system}-{time.strftime('%Y%m%d-%H%M%S')}"
     records, results = {}, {}
@@ -186,8 +233,9 @@ def cmd_sweep(args) -> int:
     write_atomic(out / TOKEN_FILE, token + "\n")
     (out / "cells").mkdir(exist_ok=True)
     (out / "logs").mkdir(exist_ok=True)
-    say = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
-    say(f"wrenorm sweep {spec.task}: {len(spec.cells)} cells ({len(todo)} to run), writing {out}")
+    if not args.quiet:
+        print(f"wrenorm sweep {spec.task}: {len(spec.cells)} cells ({len(todo)} to run), writing {out}",
+              file=sys.stderr, flush=True)
 
     timing = {"started": _now()}
     t_start = time.perf_counter()
@@ -195,19 +243,23 @@ def cmd_sweep(args) -> int:
              "args": args}
     try:
         if todo:
-            _run(ray, args, spec, out, todo, token, sweep, say)
+            with _ray_output_to(out / "ray.log") as terminal:
+                say = (lambda text: None) if args.quiet else (lambda text: print(text, file=terminal, flush=True))
+                try:
+                    _run(ray, args, spec, out, todo, token, sweep, say, terminal)
+                finally:
+                    if ray.is_initialized():
+                        t = time.perf_counter()
+                        ray.shutdown()
+                        timing["ray_shutdown_s"] = time.perf_counter() - t
     finally:
-        if ray.is_initialized():
-            t = time.perf_counter()
-            ray.shutdown()
-            timing["ray_shutdown_s"] = time.perf_counter() - t
         timing["total_s"] = time.perf_counter() - t_start
         _write_tables(sweep)
     _finish(sweep)
     return 0 if all(records.get(c.id, {}).get("status") == "done" for c in spec.cells) else 3
 
 
-def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say) -> None:
+def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, terminal) -> None:
     from . import cell as cellmod
     from .progress import Progress
 
@@ -222,7 +274,7 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say) -
         for k, words in enumerate(_warm_configs(spec)):
             if k and ray_up.is_set():
                 break
-            cellmod.warm(words, args.cpus_per_cell, args.device)
+            cellmod.warm(words, args.cpus_per_cell, args.device, capture=False)  # a thread: never swap sys.stderr
             warm_info["configs"] = k + 1
         warm_info["seconds"] = time.perf_counter() - t
 
@@ -231,10 +283,10 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say) -
     warmer.start()
     try:
         info = _start_ray(ray, args)
+        timing["ray_start_s"] = time.perf_counter() - t0
     finally:
         ray_up.set()
-    timing["ray_start_s"] = time.perf_counter() - t0
-    warmer.join()
+        warmer.join()
     timing["driver_warm_s"], timing["driver_warm_configs"] = warm_info.get("seconds"), warm_info["configs"]
     sweep["ray"] = info
     slots = _slots(info, args)
@@ -263,7 +315,7 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say) -
                for c in todo}
     done_before = sum(1 for r in records.values() if r.get("status") == "done")
     failed_before = sum(1 for r in records.values() if r.get("status") == "failed")
-    progress = Progress(len(spec.cells), label=f"sweep {spec.task}", quiet=args.quiet)
+    progress = Progress(len(spec.cells), label=f"sweep {spec.task}", quiet=args.quiet, stream=terminal)
     progress.update(done_before, min(len(pending), slots), failed_before, force=True)
     last_table = time.perf_counter()
     try:
