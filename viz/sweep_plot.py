@@ -18,22 +18,6 @@ def _number(v):
         return None
 
 
-def fitted_names(rows: list[dict]) -> list[str]:
-    """Parameters that have a standard-deviation column and vary between cells or have a std (i.e. are fitted)."""
-    names = []
-    for row in rows:
-        for k in row:
-            if k.endswith("_std") and k[:-4] in row and k[:-4] not in names:
-                names.append(k[:-4])
-    fitted = []
-    for n in names:
-        values = {row.get(n) for row in rows if row.get("status") == "done"}
-        stds = [row.get(f"{n}_std") for row in rows if row.get("status") == "done"]
-        if len(values) > 1 or any(s is not None for s in stds):
-            fitted.append(n)
-    return fitted
-
-
 def _axes(spec, rows) -> list[str]:
     axes = [k for k in spec.axes if len(spec.axes[k]) > 1]
     if len(rows) > len({r["cell"] for r in rows}):
@@ -41,9 +25,9 @@ def _axes(spec, rows) -> list[str]:
     return axes or ["seed"]
 
 
-def plot_sweep(path: Path, spec, rows: list[dict]) -> bool:
+def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
+    """names: the fitted (free) parameters, one row of panels each."""
     done = [r for r in rows if r.get("status") == "done"]
-    names = fitted_names(done)
     if not done or not names:
         return False
     axes = _axes(spec, done)
@@ -87,14 +71,13 @@ def plot_sweep(path: Path, spec, rows: list[dict]) -> bool:
     seeds = len(spec.seeds)
     fig.suptitle(f"{spec.task}: fitted parameters against the swept axes"
                  + (f" (error bars: min-max over {seeds} seeds)" if seeds > 1 else ""), fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (3.0 * len(names))))
     save_figure(fig, path)
     plt.close(fig)
     return True
 
 
-def _markdown(spec, rows: list[dict]) -> str:
-    names = fitted_names(rows)
+def _markdown(spec, rows: list[dict], names: list[str]) -> str:
     cols = ["cell", "status", *names, "loss_fitted", "verdict"]
     lines = [f"# sweep: {spec.task}", "", f"{len(rows)} rows; axes: "
              + (", ".join(f"{k} = {v}" for k, v in spec.axes.items()) or "none") + f"; seeds {spec.seeds}", "",
@@ -108,7 +91,7 @@ def _markdown(spec, rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def record_sweep(path: Path, spec, rows: list[dict]) -> bool:
+def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
     """A Rerun recording: the table as text, and per fitted parameter its value on a `cell` timeline (one series
     per other-axes combination is left to the table; the timeline follows the cell order)."""
     from wrenorm.viz.record import Recorder, rerun_available
@@ -119,8 +102,7 @@ def record_sweep(path: Path, spec, rows: list[dict]) -> bool:
 
     rec = Recorder(path, recording_id=f"sweep-{spec.task.replace(' ', '-')}")
     try:
-        rec.log_text("sweep/table", _markdown(spec, rows))
-        names = fitted_names(rows)
+        rec.log_text("sweep/table", _markdown(spec, rows, names))
         numeric_axes = [a for a in spec.axes if all(_number(v) is not None for v in spec.axes[a])]
         for k, r in enumerate(rows):
             if r.get("status") != "done":

@@ -55,7 +55,7 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
              ship: bool | None = None) -> dict:
     """Run one cell. `ship` forces (True) or forbids (False) sending the files back; None: only when the worker
     does not see the sweep's folder."""
-    t0 = time.perf_counter()
+    t0, unix0 = time.perf_counter(), time.time()
     started = _now()
     _threads(cpus)
     ship = (not _shared(sweep_dir, token)) if ship is None else ship
@@ -75,6 +75,10 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
             rc = 130 if isinstance(e, KeyboardInterrupt) else 1
     log = buf.getvalue()
     verb = argv[0]
+    try:  # the command checks its options and builds its problem before it makes its run folder
+        setup = (out / ".wrenorm-run").stat().st_mtime - unix0
+    except OSError:
+        setup = None
     result = None
     path = out / result_file(verb)
     if rc == 0 and path.exists():
@@ -85,7 +89,8 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
         shutil.rmtree(tmp, ignore_errors=True)
     return {"cell": cell_id, "rc": rc, "error": None if rc == 0 else _error_line(log, rc), "result": result,
             "log": log, "files": files, "host": socket.gethostname(), "pid": os.getpid(), "started": started,
-            "finished": _now(), "cell_seconds": time.perf_counter() - t0}
+            "finished": _now(), "cell_seconds": time.perf_counter() - t0, "setup_seconds": setup,
+            "unix": [unix0, time.time()]}
 
 
 def warm(argv: list, cpus: int = 1, device: str = "cpu", capture: bool = True) -> dict:

@@ -357,7 +357,8 @@ def _record(out: Path, spec, c, res: dict, records: dict, results: dict) -> None
     wall = (res.get("result") or {}).get("wall_seconds")
     records[c.id] = {"status": "done" if res["rc"] == 0 else "failed", "error": res.get("error"), "rc": res["rc"],
                      "host": res.get("host"), "started": res.get("started"), "finished": res.get("finished"),
-                     "cell_seconds": res.get("cell_seconds"), "wall_seconds": wall}
+                     "cell_seconds": res.get("cell_seconds"), "wall_seconds": wall,
+                     "setup_seconds": res.get("setup_seconds"), "pid": res.get("pid"), "unix": res.get("unix")}
     if res["rc"] == 0:
         results[c.id] = res.get("result")
     else:
@@ -366,13 +367,34 @@ def _record(out: Path, spec, c, res: dict, records: dict, results: dict) -> None
 
 
 def _overhead(records: dict) -> dict | None:
-    gaps = [r["cell_seconds"] - r["wall_seconds"] for r in records.values()
-            if r.get("cell_seconds") is not None and r.get("wall_seconds") is not None]
-    if not gaps:
+    """What a cell costs beyond its command's own wall_seconds, and how much of that is the command's own set-up
+    (options, problem building: what `fit` does too before its clock starts) rather than the sweep's or Ray's."""
+    rs = [r for r in records.values() if r.get("cell_seconds") is not None and r.get("wall_seconds") is not None]
+    if not rs:
         return None
-    return {"mean_s": sum(gaps) / len(gaps), "max_s": max(gaps), "cells": len(gaps),
-            "meaning": "a cell's time in its worker (cell_seconds) minus its command's own wall_seconds: parsing, "
-                       "building the problem, Warp set-up; Ray's start-up and worker warm-up are timed apart"}
+    beyond = [r["cell_seconds"] - r["wall_seconds"] for r in rs]
+    setup = [r.get("setup_seconds") or 0.0 for r in rs]
+    rest = [b - s for b, s in zip(beyond, setup)]
+    gaps = []  # between one cell's end and the next one's start on the same worker: Ray's dispatch
+    by_worker: dict = {}
+    for r in records.values():
+        if r.get("unix") and r.get("pid") is not None:
+            by_worker.setdefault((r.get("host"), r["pid"]), []).append(r["unix"])
+    for spans in by_worker.values():
+        spans.sort()
+        gaps += [b[0] - a[1] for a, b in zip(spans, spans[1:])]
+    def mean(xs):
+        return sum(xs) / len(xs) if xs else None
+
+    return {"mean_s": mean(beyond), "max_s": max(beyond), "cells": len(rs),
+            "setup_mean_s": mean(setup), "beyond_setup_mean_s": mean(rest), "beyond_setup_max_s": max(rest),
+            "dispatch_gap_mean_s": mean(gaps), "dispatch_gap_max_s": max(gaps) if gaps else None,
+            "meaning": "mean_s / max_s: a cell's time in its worker (cell_seconds) minus its command's own "
+                       "wall_seconds; setup_mean_s: of that, the command's option checks and problem building "
+                       "before its run folder exists (a separate `fit` spends it too, outside wall_seconds); "
+                       "beyond_setup: the rest (the sweep's own work in the worker); dispatch_gap: from one cell's "
+                       "end to the next one's start on the same worker (Ray). Ray's start-up and the worker "
+                       "warm-up are timed apart (timing)"}
 
 
 def _write_tables(sweep: dict) -> None:
@@ -398,16 +420,18 @@ def _write_tables(sweep: dict) -> None:
 def _finish(sweep: dict) -> None:
     out, spec, records, timing, args = sweep["out"], sweep["spec"], sweep["records"], sweep["timing"], sweep["args"]
     rows = table.build(spec, records, sweep["results"])
+    names = table.free_names(spec.verb, {k: v for k, v in sweep["results"].items()
+                                         if records.get(k, {}).get("status") == "done"})
     try:
         from wrenorm.viz.sweep_plot import plot_sweep
 
-        plot_sweep(out / "sweep.png", spec, rows)
-    except ImportError:
+        plot_sweep(out / "sweep.png", spec, rows, names)
+    except ImportError:  # matplotlib missing: the plot is a convenience, never fatal
         pass
     if not args.no_record:
         from wrenorm.viz.sweep_plot import record_sweep
 
-        record_sweep(out / "recording.rrd", spec, rows)
+        record_sweep(out / "recording.rrd", spec, rows, names)
     failed = [c for c in spec.cells if records.get(c.id, {}).get("status") == "failed"]
     done = sum(1 for c in spec.cells if records.get(c.id, {}).get("status") == "done")
     print(f"\nsweep {spec.task}: {done}/{len(spec.cells)} cells done, {len(failed)} failed")
@@ -417,7 +441,7 @@ def _finish(sweep: dict) -> None:
         ov = _overhead({k: records[k] for k in records})
         print(f"Ray start-up {timing['ray_start_s']:.1f} s (+ warm-up {timing['startup_s'] - timing['ray_start_s']:.1f}"
               f" s), cells {timing.get('cells_s', 0):.1f} s on {timing.get('slots')} slots"
-              + (f"; per cell {ov['mean_s']:.2f} s (max {ov['max_s']:.2f} s) beyond the fit's own wall_seconds"
-                 if ov else ""))
+              + (f"; per cell {ov['mean_s']:.2f} s (max {ov['max_s']:.2f} s) beyond the command's own wall_seconds, "
+                 f"{ov['setup_mean_s']:.2f} s of it the command's set-up" if ov else ""))
     print(f"table: {out / 'sweep.csv'}  plot: {out / 'sweep.png'}"
           + ("" if args.no_record else f"  view: python -m wrenorm view {out}"))

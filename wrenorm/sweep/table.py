@@ -115,6 +115,18 @@ def write_csv(path, spec, rows: list[dict]) -> None:
     write_atomic(path, buf.getvalue())
 
 
+def free_names(verb: str, results: dict) -> list[str]:
+    """Parameters fitted (not frozen) in any finished cell, in the order the results list them."""
+    names = []
+    for r in results.values():
+        if not r:
+            continue
+        runs = r.get("runs", [r]) if verb == "fit" else r.get("points", []) if verb == "flow" else []
+        for run in runs:
+            names += [n for n, p in run.get("parameters", {}).items() if not p.get("frozen") and n not in names]
+    return names
+
+
 def stable(rows: list[dict]) -> list[dict]:
     """The rows without the columns that differ from run to run (what a resumed sweep must reproduce)."""
     return [{k: v for k, v in row.items() if k not in VOLATILE} for row in rows]
