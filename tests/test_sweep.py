@@ -181,6 +181,23 @@ def test_a_cell_on_a_worker_that_does_not_see_the_sweep_folder_sends_its_files_b
     assert bad["rc"] == 2 and "--restarts" in bad["error"] and bad["result"] is None
 
 
+def test_a_workers_further_pd_problems_reuse_the_reference_solve_with_the_same_bits():
+    """A worker builds one problem per cell: the pd reference (a 1.2 s DOP853 solve) is reused by its exact inputs,
+    and gives exactly what a fresh process computes."""
+    import numpy as np
+
+    from wrenorm.tasks.pd import problem as pd
+
+    pd.PDProblem(100.0)  # fills the cache
+    t = time.perf_counter()
+    again = pd.PDProblem(200.0, integrator="explicit")
+    assert time.perf_counter() - t < 0.6
+    pd._SOLVED.clear()
+    fresh = pd.PDProblem(200.0, integrator="explicit")
+    for a, b in zip(again.train + again.held_out, fresh.train + fresh.held_out):
+        assert np.array_equal(a.data["q_ref"], b.data["q_ref"])
+
+
 # --- on a local Ray with 2 CPUs --------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -278,6 +278,8 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, t
             warm_info["configs"] = k + 1
         warm_info["seconds"] = time.perf_counter() - t
 
+    where = f"joining {args.address}" if args.address else f"starting a local Ray ({args.cpus or os.cpu_count()} CPUs)"
+    say(f"{where} and building the cells' kernels ...")
     warmer = threading.Thread(target=warm_driver, daemon=True)
     t0 = time.perf_counter()
     warmer.start()
@@ -330,6 +332,8 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, t
                     res = {"rc": None, "error": f"worker lost ({type(e).__name__}): {first_line}", "result": None,
                            "log": str(e), "files": None, "host": None, "started": None, "finished": _now(),
                            "cell_seconds": None}
+                if res["rc"] == 130:  # the cell was interrupted (Ctrl-C reaches the workers too): still to run
+                    continue
                 _record(out, spec, c, res, records, results)
                 if res["rc"] != 0:
                     progress.note(f"cell {c.id} failed: {records[c.id]['error']}")
