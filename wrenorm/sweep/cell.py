@@ -52,12 +52,15 @@ def _error_line(log: str, rc: int) -> str:
 
 
 def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1, device: str = "cpu",
-             ship: bool | None = None) -> dict:
+             ship: bool | None = None, cwd: str | None = None) -> dict:
     """Run one cell. `ship` forces (True) or forbids (False) sending the files back; None: only when the worker
-    does not see the sweep's folder."""
+    does not see the sweep's folder. cwd: the folder the sweep was started from, where relative paths in the spec
+    point (entered when this machine has it)."""
     t0, unix0 = time.perf_counter(), time.time()
     started = _now()
     _threads(cpus)
+    if cwd and os.path.isdir(cwd):
+        os.chdir(cwd)
     ship = (not _shared(sweep_dir, token)) if ship is None else ship
     tmp = tempfile.mkdtemp(prefix=f"wrenorm-cell-{cell_id}-") if ship else None
     out = Path(tmp) / cell_id if ship else Path(sweep_dir) / "cells" / cell_id

@@ -313,8 +313,9 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, t
 
     task = ray.remote(cellmod.run_cell).options(**opts, max_retries=args.max_retries, retry_exceptions=False)
     t2 = time.perf_counter()
-    pending = {task.remote(list(c.argv), str(out.resolve()), c.id, token, args.cpus_per_cell, args.device): c
-               for c in todo}
+    here = os.getcwd()
+    pending = {task.remote(list(c.argv), str(out.resolve()), c.id, token, args.cpus_per_cell, args.device,
+                           None, here): c for c in todo}
     done_before = sum(1 for r in records.values() if r.get("status") == "done")
     failed_before = sum(1 for r in records.values() if r.get("status") == "failed")
     progress = Progress(len(spec.cells), label=f"sweep {spec.task}", quiet=args.quiet, stream=terminal)
