@@ -3,6 +3,7 @@
     python -m wrenorm fit <system> ...        fit a system's effective parameters
     python -m wrenorm flow <system> ...       effective parameters against resolution
     python -m wrenorm <verb> <system> ...     a system's extra commands (e.g. `reference rope`)
+    python -m wrenorm sweep SPEC.toml ...     many fits from one spec, as Ray tasks (wrenorm/sweep/)
     python -m wrenorm view RUN | bench
 
 Every user mistake (bad file, bad option value) ends with one line naming the file or option, the field
@@ -125,6 +126,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             sp = extra[c.verb].add_parser(s.name, help=c.help)
             if verb == c.verb and name == s.name:
                 resolve(c.add_arguments)(sp)
+    sweep = sub.add_parser("sweep", help="many fits from one TOML spec, as Ray tasks (local or on a cluster)")
+    if verb == "sweep":
+        from .sweep.run import add_arguments as add_sweep_arguments
+
+        add_sweep_arguments(sweep)
     view = sub.add_parser("view", help="open a run's recording in the Rerun viewer, or its report page")
     view.add_argument("run", type=Path)
     view.add_argument("--report", action="store_true",
@@ -334,6 +340,10 @@ def _dispatch(args) -> int:
         return cmd_flow(args)
     if args.command == "view":
         return cmd_view(args)
+    if args.command == "sweep":
+        from .sweep.run import cmd_sweep
+
+        return cmd_sweep(args)
     if args.command == "bench":
         from .bench import run
 

@@ -1,0 +1,363 @@
+"""Sweeps (issue #21): a bad spec is one line and exit 2 before Ray starts; cells run as Ray tasks on a local Ray with
+2 CPUs and give the table; a failing cell is recorded and the others go on; a lost worker is recorded; a sweep
+killed with SIGKILL resumes to the same table, running only the missing cells; every cell's result equals what
+`fit` writes for the same options and seed."""
+import contextlib
+import csv
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from wrenorm.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+VOLATILE_RESULT = {"wall_seconds", "timing"}  # what differs between two runs of the same fit
+
+# 6 cells: restarts = 1 is refused by `fit` itself (not by the parser), so two cells fail and two succeed; the slow
+# generations (a test hook of the engine) keep cells running long enough to kill the sweep or a worker mid-way
+SPEC = """
+task = "fit pd"
+description = "test sweep"
+
+[options]
+search = "cmaes"
+generations = 12
+popsize = 8
+no-record = true
+
+[axes]
+f-sim = [100, 200, 400]
+restarts = [0, 1]
+"""
+
+
+def _ray():
+    if os.environ.get("CI"):
+        import ray  # CI installs the `sweep` extra: a missing Ray is a failure there, not a skip
+
+        return ray
+    return pytest.importorskip("ray")
+
+
+def _write(tmp_path, text=SPEC, name="spec.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _sweep(spec, out, *extra, env=None, wait=True):
+    cmd = [sys.executable, "-m", "wrenorm", "sweep", str(spec), "--out", str(out), "--cpus", "2", "--quiet", *extra]
+    env = dict(os.environ, **(env or {}))
+    if not wait:
+        return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def _rows(out: Path) -> list[dict]:
+    return list(csv.DictReader(io.StringIO((out / "sweep.csv").read_text())))
+
+
+def _stable(rows):
+    from wrenorm.sweep.table import VOLATILE
+
+    return [{k: v for k, v in r.items() if k not in VOLATILE} for r in rows]
+
+
+def _descendants(pid: int) -> list[int]:
+    """Processes below `pid` (this test's own children and theirs), from /proc."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                pass
+    out, frontier = [], [pid]
+    while frontier:
+        kids = [p for p, pp in parent.items() if pp in frontier]
+        out += kids
+        frontier = kids
+    return out
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _end(pids) -> None:
+    for p in pids:
+        try:
+            os.kill(p, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+# --- the spec: no Ray needed ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("text, key", [
+    ('task = "fit nosuch"', "task"),
+    ('task = "view pd"', "task"),
+    ('task = "fit pd"\n[options]\nbogus = 1', "options.bogus"),
+    ('task = "fit pd"\n[options]\nseed = 3', "options.seed"),
+    ('task = "fit pd"\n[options]\nout = "x"', "options.out"),
+    ('task = "fit pd"\n[options]\narm = 3', "options.arm"),
+    ('task = "fit pd"\n[options]\ngenerations = 0', "--generations"),
+    ('task = "fit pd"\n[axes]\nf-sim = [100, 100]', "axes.f-sim"),
+    ('task = "fit pd"\n[axes]\nf-sim = [100, 1]', "axes.f-sim"),
+    ('task = "fit pd"\n[axes]\nf-sim = []', "axes.f-sim"),
+    ('task = "fit pd"\n[axes]\nintegrator = ["explicit", "rk4"]', "axes.integrator"),
+    ('task = "fit pd"\n[options]\nf-sim = 100\n[axes]\nf-sim = [200]', "options.f-sim"),
+    ('task = "fit pd"\nseeds = [1, 1]', "seeds"),
+    ('task = "fit pd"\n[axis]\nf-sim = [100]', "axis"),
+    ('task = fit pd', "toml"),
+])
+def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys, text, key):
+    spec = _write(tmp_path, text)
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("wrenorm: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert key in err, err
+    assert not out.exists()
+
+
+def test_a_spec_expands_into_cells_with_the_tasks_own_command_lines(tmp_path):
+    from wrenorm.sweep.spec import load
+
+    spec = load(_write(tmp_path, 'task = "fit swimmer"\nseeds = [0, 5]\n[options]\nno_record = true\n'
+                                 '[axes]\ntrain = [[1.0, 1.75], [0.5, 2.25]]\nvirtual-mass = [false, true]\n'))
+    assert len(spec.cells) == 8 and len({c.id for c in spec.cells}) == 8
+    first, last = spec.cells[0], spec.cells[-1]
+    assert first.argv == ("fit", "swimmer", "--no-record", "--train", "1.0", "1.75", "--seed", "0")
+    assert last.argv == ("fit", "swimmer", "--no-record", "--train", "0.5", "2.25", "--virtual-mass", "--seed", "5")
+    assert last.id == "007_train-0.5,2.25_virtual-mass-True_seed-5"
+    assert "--out" in first.command("DIR/cells/x")
+
+
+def test_progress_is_a_plain_line_off_a_terminal_and_nothing_when_quiet():
+    from wrenorm.sweep.progress import Progress
+
+    buf = io.StringIO()
+    p = Progress(4, label="sweep fit pd", stream=buf, every=0.0)
+    p.update(0, 2, 0)
+    p.update(1, 2, 1)  # a failure prints at once
+    p.close()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("sweep fit pd: 0/4 done, 2 running, 0 failed, elapsed")
+    assert "1/4 done, 2 running, 1 failed" in lines[1] and "left" in lines[1] and "\r" not in buf.getvalue()
+    quiet = io.StringIO()
+    q = Progress(4, stream=quiet, quiet=True)
+    q.update(1, 1, 1, force=True)
+    q.note("x")
+    q.close()
+    assert quiet.getvalue() == ""
+
+
+def test_a_cell_on_a_worker_that_does_not_see_the_sweep_folder_sends_its_files_back(tmp_path):
+    """A cluster without a shared file system: the cell runs in a local temporary folder and its run folder travels
+    back with the result."""
+    from wrenorm.sweep.cell import run_cell
+
+    argv = ["fit", "pd", "--no-record", "--f-sim", "100", "--seed", "0"]
+    res = run_cell(argv, str(tmp_path / "sweep"), "000_x", token="t", ship=None)
+    assert res["rc"] == 0 and res["error"] is None and res["files"]
+    assert "result.json" in res["files"] and ".wrenorm-run" in res["files"]
+    assert json.loads(res["files"]["result.json"]) == res["result"]
+    assert not (tmp_path / "sweep").exists()  # nothing written where the worker could not see the sweep
+    bad = run_cell([*argv[:-2], "--restarts", "1", "--seed", "0"], str(tmp_path / "sweep"), "001_x", token="t")
+    assert bad["rc"] == 2 and "--restarts" in bad["error"] and bad["result"] is None
+
+
+# --- on a local Ray with 2 CPUs --------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """The test spec swept once, uninterrupted."""
+    _ray()
+    tmp = tmp_path_factory.mktemp("sweep")
+    spec = _write(tmp)
+    out = tmp / "out"
+    proc = _sweep(spec, out)
+    return spec, out, proc
+
+
+def test_the_sweep_writes_one_row_per_cell_and_records_the_failing_ones(finished):
+    spec, out, proc = finished
+    assert proc.returncode == 3, proc.stderr  # some cells failed; the others' results are all there
+    assert proc.stderr == "" or "Traceback" not in proc.stderr
+    rows = _rows(out)
+    assert [r["cell"] for r in rows][:3] == ["000_f-sim-100_restarts-0_seed-0", "001_f-sim-100_restarts-1_seed-0",
+                                             "002_f-sim-200_restarts-0_seed-0"]
+    assert [r["status"] for r in rows] == ["done", "failed"] * 3
+    for r in rows:
+        assert r["f-sim"] in ("100", "200", "400") and r["restarts"] in ("0", "1") and r["seed"] == "0"
+        if r["status"] == "done":
+            assert float(r["J"]) > 0 and float(r["J_std"]) > 0 and r["verdict"] in ("absorbed", "expand")
+            assert float(r["loss_fitted"]) > 0 and float(r["loss_measured"]) > 0
+            assert float(r["heldout_sine_2.5Hz_fitted"]) >= 0 and float(r["wall_seconds"]) > 0
+            assert r["host"] and r["started"] and r["finished"] and not r["error"]
+        else:
+            assert "--restarts" in r["error"] and not r["J"]
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary["counts"] == {"done": 3, "failed": 3, "pending": 0}
+    assert summary["timing"]["ray_start_s"] > 0 and summary["timing"]["cells_s"] > 0
+    assert summary["cell_overhead"]["cells"] == 3
+    assert (out / "sweep.png").stat().st_size > 10_000
+    assert (out / "recording.rrd").exists() and (out / "spec.toml").read_text() == spec.read_text()
+    assert "3/6 cells done, 3 failed" in proc.stdout
+
+
+def test_every_cell_equals_what_fit_writes_for_the_same_options_and_seed(finished, tmp_path):
+    from wrenorm.sweep.spec import load
+
+    _, out, _ = finished
+    for cell in load(out / "spec.toml").cells:
+        mine = out / "cells" / cell.id / "result.json"
+        if not mine.exists():
+            continue
+        assert main([*cell.argv, "--out", str(tmp_path / cell.id), "--quiet"]) == 0
+        theirs = json.loads((tmp_path / cell.id / "result.json").read_text())
+        mine = json.loads(mine.read_text())
+        assert {k: v for k, v in mine.items() if k not in VOLATILE_RESULT} == \
+               {k: v for k, v in theirs.items() if k not in VOLATILE_RESULT}, cell.id
+
+
+def test_resume_of_a_finished_sweep_runs_nothing_and_keeps_the_table(finished, tmp_path):
+    _, out, _ = finished
+    before = (out / "sweep.csv").read_text()
+    assert main(["sweep", str(out / "spec.toml"), "--out", str(out), "--resume", "--quiet"]) == 3
+    assert (out / "sweep.csv").read_text() == before  # nothing re-run: even the timestamps are the same
+    other = _write(tmp_path, SPEC.replace("[100, 200, 400]", "[100, 800]"))
+    assert main(["sweep", str(other), "--out", str(out), "--resume", "--quiet"]) == 2  # another spec: refused
+    assert main(["sweep", str(other), "--out", str(out), "--quiet"]) == 2  # an existing sweep needs --force
+
+
+def test_a_sweep_killed_with_sigkill_resumes_to_the_same_table_running_only_missing_cells(finished, tmp_path):
+    spec, ref, _ = finished
+    out = tmp_path / "killed"
+    proc = _sweep(spec, out, env={"WRENORM_TEST_SLOW_GENERATION": "0.4"}, wait=False)
+    state, records, below = out / "sweep-state.json", {}, []
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            below = sorted(set(below) | set(_descendants(proc.pid)))
+            try:
+                records = json.loads(state.read_text()).get("records", {})
+            except (OSError, ValueError):
+                records = {}
+            if any(r["status"] == "done" for r in records.values()):
+                break
+            time.sleep(0.1)
+        below = sorted(set(below) | set(_descendants(proc.pid)))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        time.sleep(1.0)
+        _end(p for p in below if "ray" in _cmdline(p))  # Ray's helpers outlive a killed driver
+    assert 1 <= len(records) < 6, records
+    kept = {k: r["started"] for k, r in records.items()}
+    resumed = _sweep(spec, out, "--resume")
+    assert resumed.returncode == 3, resumed.stderr
+    after = json.loads(state.read_text())["records"]
+    assert {k: after[k]["started"] for k in kept} == kept  # the finished cells were not run again
+    assert len(after) == 6
+    assert _stable(_rows(out)) == _stable(_rows(ref))
+
+
+def test_a_lost_worker_is_recorded_and_the_other_cells_go_on(tmp_path):
+    _ray()
+    spec = _write(tmp_path, SPEC.replace("restarts = [0, 1]", ""))
+    out = tmp_path / "out"
+    proc = _sweep(spec, out, env={"WRENORM_TEST_SLOW_GENERATION": "0.4"}, wait=False)
+    victim, below = None, []
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None and victim is None:
+            below = sorted(set(below) | set(_descendants(proc.pid)))
+            cells = [p for p in below if _cmdline(p).startswith("ray::run_cell")]
+            if cells:
+                time.sleep(1.0)  # into its fit
+                victim = cells[0]
+                os.kill(victim, signal.SIGKILL)
+            time.sleep(0.1)
+        stdout, stderr = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        _end(p for p in below if "ray" in _cmdline(p))
+    assert victim is not None
+    assert proc.returncode == 3, stderr
+    rows = _rows(out)
+    assert [r["status"] for r in rows].count("failed") == 1 and [r["status"] for r in rows].count("done") == 2
+    lost = next(r for r in rows if r["status"] == "failed")
+    assert "worker lost" in lost["error"], lost
+
+
+def test_a_sweep_joins_a_running_cluster_with_address(tmp_path):
+    """`ray start --head` on one machine, `--address` on the others: here both on this one (the head in a session of
+    its own, ended by its process group)."""
+    _ray()
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ray_cli = str(Path(sys.executable).parent / "ray")
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
+    head = subprocess.Popen([ray_cli, "start", "--head", "--block", "--num-cpus", "2", "--port", str(port),
+                             "--node-ip-address", "127.0.0.1", "--include-dashboard=false"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        started = []
+
+        def watch():  # `ray start` says when the head is up; keep reading so that it never blocks on a full pipe
+            for line in head.stdout:
+                if "Ray runtime started" in line:
+                    started.append(line)
+
+        threading.Thread(target=watch, daemon=True).start()
+        deadline = time.time() + 120
+        while time.time() < deadline and not started and head.poll() is None:
+            time.sleep(0.2)
+        assert started, "ray start --head did not come up"
+        spec = _write(tmp_path, 'task = "fit pd"\n[options]\nno-record = true\n[axes]\nf-sim = [100, 200]\n')
+        out = tmp_path / "out"
+        proc = subprocess.run([sys.executable, "-m", "wrenorm", "sweep", str(spec), "--out", str(out), "--address",
+                               f"127.0.0.1:{port}", "--quiet"], env=env, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        summary = json.loads((out / "sweep.json").read_text())
+        assert summary["ray"]["address"] == f"127.0.0.1:{port}" and summary["counts"]["done"] == 2
+    finally:
+        below = _descendants(head.pid)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGKILL)  # the head and everything it started: its own process group
+        head.wait()
+        _end(p for p in below if "ray" in _cmdline(p))
+
+
+def test_nothing_at_the_address_is_one_line_and_exit_2(tmp_path, capsys):
+    _ray()
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    spec = _write(tmp_path, 'task = "fit pd"\n')
+    assert main(["sweep", str(spec), "--out", str(tmp_path / "out"), "--address", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--address" in err and "ray start --head" in err
+    assert not (tmp_path / "out").exists()

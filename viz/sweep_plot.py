@@ -1,0 +1,129 @@
+"""A sweep at a glance: each fitted parameter against each varied axis, the seed spread as error bars (min to max
+over seeds, every seed's value a faint dot), one line per combination of the other axes; and the same in Rerun."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.viz.plots import _figure, save_figure
+
+MAX_LINES = 8  # per panel; further combinations of the other axes are drawn without a legend entry
+
+
+def _number(v):
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _axes(spec, rows) -> list[str]:
+    axes = [k for k in spec.axes if len(spec.axes[k]) > 1]
+    if len(rows) > len({r["cell"] for r in rows}):
+        axes.append("resolution")  # cells that fit several resolutions each: every resolution is a point
+    return axes or ["seed"]
+
+
+def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
+    """names: the fitted (free) parameters, one row of panels each."""
+    done = [r for r in rows if r.get("status") == "done"]
+    if not done or not names:
+        return False
+    axes = _axes(spec, done)
+    plt = _figure()
+    fig, grid = plt.subplots(len(names), len(axes), figsize=(4.4 * len(axes), 3.0 * len(names)), squeeze=False)
+    for j, axis in enumerate(axes):
+        values = list(dict.fromkeys(r.get(axis) for r in done))
+        numeric = all(_number(v) is not None for v in values)
+        xs = {v: (_number(v) if numeric else i) for i, v in enumerate(values)}
+        others = [a for a in axes if a != axis and a != "seed"]
+        groups = {}
+        for r in done:
+            groups.setdefault(tuple(r.get(a) for a in others), []).append(r)
+        for i, name in enumerate(names):
+            ax = grid[i][j]
+            for g, (key, members) in enumerate(groups.items()):
+                x, mid, lo, hi = [], [], [], []
+                for v in values:
+                    ys = np.array([m[name] for m in members if m.get(axis) == v and m.get(name) is not None], float)
+                    if len(ys) == 0:
+                        continue
+                    x.append(xs[v])
+                    mid.append(ys.mean())
+                    lo.append(ys.mean() - ys.min())
+                    hi.append(ys.max() - ys.mean())
+                    ax.plot([xs[v]] * len(ys), ys, ".", color=f"C{g % 10}", alpha=0.35, ms=4)
+                label = ", ".join(f"{a}={k}" for a, k in zip(others, key)) if others and g < MAX_LINES else None
+                if x:
+                    order = np.argsort(x)
+                    ax.errorbar(np.array(x)[order], np.array(mid)[order],
+                                yerr=[np.array(lo)[order], np.array(hi)[order]], marker="o", ms=4, capsize=3,
+                                color=f"C{g % 10}", label=label)
+            if numeric and len(values) > 2 and min(xs.values()) > 0 and max(xs.values()) / min(xs.values()) > 20:
+                ax.set_xscale("log")
+            if not numeric:
+                ax.set_xticks(list(xs.values()), [str(v) for v in values], rotation=20, fontsize=7)
+            ax.set_xlabel(axis)
+            ax.set_ylabel(name)
+            if i == 0 and others and len(groups) > 1:
+                ax.legend(fontsize=6)
+    seeds = len(spec.seeds)
+    fig.suptitle(f"{spec.task}: fitted parameters against the swept axes"
+                 + (f" (error bars: min-max over {seeds} seeds)" if seeds > 1 else ""), fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (3.0 * len(names))))
+    save_figure(fig, path)
+    plt.close(fig)
+    return True
+
+
+def _markdown(spec, rows: list[dict], names: list[str]) -> str:
+    cols = ["cell", "status", *names, "loss_fitted", "verdict"]
+    lines = [f"# sweep: {spec.task}", "", f"{len(rows)} rows; axes: "
+             + (", ".join(f"{k} = {v}" for k, v in spec.axes.items()) or "none") + f"; seeds {spec.seeds}", "",
+             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            v = r.get(c)
+            cells.append(f"{v:.6g}" if isinstance(v, float) else ("" if v is None else str(v)))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
+    """A Rerun recording: the table as text, and per fitted parameter its value on a `cell` timeline (one series
+    per other-axes combination is left to the table; the timeline follows the cell order)."""
+    from wrenorm.viz.record import Recorder, rerun_available
+
+    if not rerun_available() or not rows:
+        return False
+    import rerun as rr
+
+    rec = Recorder(path, recording_id=f"sweep-{spec.task.replace(' ', '-')}")
+    try:
+        rec.log_text("sweep/table", _markdown(spec, rows, names))
+        numeric_axes = [a for a in spec.axes if all(_number(v) is not None for v in spec.axes[a])]
+        for k, r in enumerate(rows):
+            if r.get("status") != "done":
+                continue
+            rec.stream.set_time("cell", sequence=k)
+            for name in names:
+                if r.get(name) is not None:
+                    rec.stream.log(f"sweep/parameters/{name}", rr.Scalars(float(r[name])))
+            for key in ("loss_fitted", "heldout_mean_fitted"):
+                if r.get(key) is not None:
+                    rec.stream.log(f"sweep/{key}", rr.Scalars(float(r[key])))
+            for a in numeric_axes + ["seed"]:
+                if _number(r.get(a)) is not None:
+                    rec.stream.log(f"sweep/axes/{a}", rr.Scalars(_number(r.get(a))))
+        for name in names:
+            rec.add_view(f"{name} per cell", [f"/sweep/parameters/{name}"])
+        rec.add_view("losses per cell", ["/sweep/loss_fitted", "/sweep/heldout_mean_fitted"])
+        rec.add_view("axes per cell", ["/sweep/axes/**"])
+        rec.add_view("table", ["/sweep/table"], kind="text")
+        rec.close()
+    except BaseException:
+        rec.abort()
+        raise
+    return True

@@ -1,0 +1,239 @@
+"""A sweep's spec (TOML) and its cells.
+
+    task = "fit pd"                 # a command and a system, as typed after `python -m wrenorm`
+    seeds = [0, 1, 2]               # each cell's --seed (default [0])
+
+    [options]                       # the same for every cell: the task's options without "--"
+    search = "cmaes"
+    generations = 40
+    no-record = true                # a switch: true adds it, false leaves it out
+
+    [axes]                          # varied: every combination of these values, times the seeds
+    f-sim = [100, 200, 400]
+    integrator = ["semi-implicit", "explicit"]
+
+Option names may use "-" or "_" (`f-sim`, `f_sim`); an option that takes several values takes a list (and an axis
+of it a list of lists). `--out`, `--seed`, `--device`, `--resume`, `--force` and `--quiet` belong to the sweep.
+Every cell's command line is checked with the task's own parser before anything runs: an unknown task or option,
+a value out of range, an axis with repeated values is one line naming the key and the problem (exit 2).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import itertools
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from wrenorm.errors import InputError
+
+TOP_LEVEL = ("task", "seeds", "options", "axes", "description")
+RESERVED = {"out": "each cell's run folder is DIR/cells/<cell>", "seed": "use `seeds = [...]` at the top level",
+            "device": "pass --device to the sweep command", "resume": "pass --resume to the sweep command",
+            "force": "pass --force to the sweep command", "quiet": "cells always run quietly"}
+
+
+@dataclass(frozen=True)
+class Cell:
+    index: int
+    id: str
+    axes: dict  # axis key -> value, as written in the spec
+    seed: int
+    argv: tuple  # verb, system, options..., --seed S (the sweep adds --out, --quiet, --device)
+
+    def command(self, out: str | Path) -> str:
+        import shlex
+
+        return "python -m wrenorm " + " ".join(shlex.quote(a) for a in (*self.argv, "--out", str(out)))
+
+
+@dataclass
+class Spec:
+    path: Path
+    text: str
+    verb: str
+    system: str
+    options: dict
+    axes: dict
+    seeds: list
+    description: str = ""
+    cells: list = field(default_factory=list)
+
+    @property
+    def task(self) -> str:
+        return f"{self.verb} {self.system}"
+
+
+def _task_parser(verb: str, system: str) -> argparse.ArgumentParser | None:
+    """The parser of `verb system` (None if there is no such command)."""
+    from wrenorm.cli import build_parser
+
+    parser = build_parser([verb, system])
+    for level in (verb, system):
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None or level not in sub.choices:
+            return None
+        parser = sub.choices[level]
+    return parser
+
+
+def _tasks_text() -> str:
+    from wrenorm.system import systems
+
+    out = []
+    for s in systems().values():
+        out += [f"fit {s.name}"] + ([f"flow {s.name}"] if s.flow else []) + [f"{c.verb} {s.name}" for c in s.commands]
+    return ", ".join(out)
+
+
+def _action(parser: argparse.ArgumentParser, key: str) -> argparse.Action | None:
+    name = key.lstrip("-")
+    flags = {"--" + name, "--" + name.replace("_", "-")}
+    for a in parser._actions:
+        if flags & set(a.option_strings) or (a.option_strings and a.dest == name.replace("-", "_")):
+            return a
+    return None
+
+
+def _scalar(v, where: str, path: Path) -> str:
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise InputError(path, where, f"expected a number or a string, got {v!r}")
+    return repr(v) if isinstance(v, float) else str(v)
+
+
+def _tokens(action: argparse.Action, value, where: str, path: Path) -> list[str]:
+    """The command-line words that give `action` this value."""
+    flag = next(f for f in action.option_strings if f.startswith("--"))
+    if action.nargs == 0:  # a switch
+        if not isinstance(value, bool):
+            raise InputError(path, where, f"{flag} is a switch: give true or false, got {value!r}")
+        if isinstance(action, argparse.BooleanOptionalAction):
+            return [flag if value else "--no-" + flag[2:]]
+        return [flag] if value else []
+    many = action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
+    if isinstance(value, list):
+        if not many:
+            raise InputError(path, where, f"{flag} takes one value, got a list")
+        if not value:
+            raise InputError(path, where, f"{flag} needs at least one value")
+        return [flag, *(_scalar(v, where, path) for v in value)]
+    return [flag, _scalar(value, where, path)]
+
+
+def _parse(parser: argparse.ArgumentParser, head: list[str], words: list[str], where: str, path: Path, what: str):
+    """Parse with the task's own parser; its one-line error becomes ours, naming the spec's key."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return parser.parse_args([*words, "--out", "cell"])
+    except SystemExit:
+        msg = err.getvalue().strip().splitlines()
+        text = msg[-1] if msg else "rejected by the task's parser"
+        text = re.sub(r"^wrenorm: error: ", "", text)
+        text = re.sub(rf"^{re.escape(' '.join(head))}: ", "", text)
+        raise InputError(path, where, f"{what}{text}") from None
+
+
+def _seeds(raw, path: Path) -> list[int]:
+    if not isinstance(raw, list) or not raw:
+        raise InputError(path, "seeds", f"expected a non-empty list of integers, got {raw!r}")
+    for s in raw:
+        if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < 2**31:
+            raise InputError(path, "seeds", f"expected integers in [0, 2^31), got {s!r}")
+    if len(set(raw)) != len(raw):
+        raise InputError(path, "seeds", f"repeated seed {next(s for i, s in enumerate(raw) if s in raw[:i])}")
+    return list(raw)
+
+
+def _slug(value) -> str:
+    text = ",".join(map(str, value)) if isinstance(value, list) else str(value)
+    return re.sub(r"[^A-Za-z0-9.,+-]+", "_", text)[:40]
+
+
+def load(path: str | Path) -> Spec:
+    """Read, check and expand a spec; every problem is an InputError naming the key (the CLI: one line, exit 2)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise InputError(path, "spec", f"cannot be read: {e.strerror or e}") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(path, "toml", str(e)) from None
+    for key in raw:
+        if key not in TOP_LEVEL:
+            raise InputError(path, key, f"unknown key; a spec has {', '.join(TOP_LEVEL)}")
+    task = raw.get("task")
+    if not isinstance(task, str) or len(task.split()) != 2:
+        raise InputError(path, "task", f"expected a command and a system, e.g. \"fit pd\"; got {task!r}")
+    verb, system = task.split()
+    parser = _task_parser(verb, system)
+    if parser is None:
+        raise InputError(path, "task", f"unknown task {task!r}; known: {_tasks_text()}")
+    if _action(parser, "out") is None or _action(parser, "seed") is None:
+        raise InputError(path, "task", f"{task!r} takes no --out and --seed, so it cannot be a sweep's cell")
+    options, axes = raw.get("options", {}), raw.get("axes", {})
+    for key, table in (("options", options), ("axes", axes)):
+        if not isinstance(table, dict):
+            raise InputError(path, key, f"expected a table ([{key}]), got {table!r}")
+    seeds = _seeds(raw.get("seeds", [0]), path)
+    head = [verb, system]
+
+    fixed: list[str] = []
+    for key, value in options.items():
+        where = f"options.{key}"
+        _check_key(parser, key, where, path, task)
+        if key in axes:
+            raise InputError(path, where, f"is also an axis ([axes] {key}): fix it or vary it, not both")
+        fixed += _tokens(_action(parser, key), value, where, path)
+    _parse(parser, head, [*fixed], "options", path, "")
+
+    axis_words: dict[str, list[list[str]]] = {}
+    for key, values in axes.items():
+        where = f"axes.{key}"
+        action = _check_key(parser, key, where, path, task)
+        if not isinstance(values, list) or not values:
+            raise InputError(path, where, f"expected a non-empty list of values, got {values!r}")
+        words = [_tokens(action, v, where, path) for v in values]
+        for i, w in enumerate(words):
+            if w in words[:i]:
+                raise InputError(path, where, f"repeated value {values[i]!r}")
+            _parse(parser, head, [*fixed, *w], where, path, f"value {values[i]!r}: ")
+        axis_words[key] = words
+
+    spec = Spec(path=path, text=text, verb=verb, system=system, options=dict(options), axes=dict(axes), seeds=seeds,
+                description=str(raw.get("description", "")))
+    keys = list(axes)
+    combos = list(itertools.product(*[range(len(axes[k])) for k in keys]))
+    n = len(combos) * len(seeds)
+    width = max(3, len(str(n - 1)))
+    index = 0
+    for combo in combos:
+        words = [w for k, i in zip(keys, combo) for w in axis_words[k][i]]
+        values = {k: axes[k][i] for k, i in zip(keys, combo)}
+        if len(keys) > 1:  # options that are fine alone may clash together
+            where = "axes." + "+".join(keys)
+            _parse(parser, head, [*fixed, *words], where, path,
+                   "combination " + ", ".join(f"{k}={v!r}" for k, v in values.items()) + ": ")
+        for seed in seeds:
+            cid = f"{index:0{width}d}" + "".join(f"_{_slug(k)}-{_slug(v)}" for k, v in values.items()) + f"_seed-{seed}"
+            spec.cells.append(Cell(index=index, id=cid, axes=values, seed=seed,
+                                   argv=(*head, *fixed, *words, "--seed", str(seed))))
+            index += 1
+    return spec
+
+
+def _check_key(parser, key: str, where: str, path: Path, task: str) -> argparse.Action:
+    name = key.lstrip("-").replace("_", "-")
+    if name in RESERVED or name.replace("-", "_") in RESERVED:
+        raise InputError(path, where, f"is set by the sweep: {RESERVED[name.replace('-', '_')]}")
+    action = _action(parser, key)
+    if action is None or isinstance(action, argparse._HelpAction):
+        known = sorted(f for a in parser._actions for f in a.option_strings
+                       if f.startswith("--") and f[2:].replace("-", "_") not in RESERVED and f != "--help")
+        raise InputError(path, where, f"unknown option of {task!r}; it has {', '.join(f[2:] for f in known)}")
+    return action

@@ -1,0 +1,132 @@
+"""A sweep's table: one row per cell (one per resolution when a cell fits several), flat enough for a
+spreadsheet.
+
+Columns: cell, the axes, seed, status, resolution; per parameter its fitted value (`J`) and standard deviation
+(`J_std`); loss_measured, loss_fitted; per held-out condition heldout_<name>_measured / _fitted, heldout_mean_fitted,
+verdict; error; then the columns that differ from run to run of the same cell (VOLATILE): the fit's own
+wall_seconds, the cell's cell_seconds (as the worker saw it), host, started, finished.
+"""
+from __future__ import annotations
+
+import csv
+import io
+
+from wrenorm.results import write_atomic
+
+LEADING = ("cell", "seed", "status", "resolution")
+VOLATILE = ("wall_seconds", "cell_seconds", "host", "started", "finished")
+
+
+def _text(value) -> str:
+    if isinstance(value, list):
+        return " ".join(map(_text, value))
+    if isinstance(value, dict):
+        return ";".join(f"{k}={_text(v)}" for k, v in value.items())
+    return str(value)
+
+
+def _fit_rows(r: dict) -> list[dict]:
+    rows = []
+    for run in r.get("runs", [r]):
+        row = {"resolution": _text(run.get("resolution", ""))}
+        for name, p in run.get("parameters", {}).items():
+            row[name] = p.get("fitted")
+            row[f"{name}_std"] = p.get("std")
+        loss = run.get("loss", {})
+        row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+        v = run.get("validation", {})
+        for cond, c in v.get("conditions", {}).items():
+            row[f"heldout_{cond}_measured"] = c.get("measured_error")
+            row[f"heldout_{cond}_fitted"] = c.get("fitted_error")
+        row["heldout_mean_fitted"] = v.get("mean_fitted_error")
+        row["verdict"] = v.get("verdict")
+        row["wall_seconds"] = run.get("wall_seconds", r.get("wall_seconds"))
+        rows.append(row)
+    return rows
+
+
+def _flow_rows(r: dict) -> list[dict]:
+    rows = []
+    for pt in r.get("points", []):
+        row = {"resolution": _text(pt.get("resolution", ""))}
+        for name, p in pt.get("parameters", {}).items():
+            row[name] = p.get("fitted")
+            row[f"{name}_std"] = p.get("std_restarts")
+        loss = pt.get("loss", {})
+        row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+        row["wall_seconds"] = r.get("wall_seconds")
+        rows.append(row)
+    return rows
+
+
+def _other_rows(r: dict) -> list[dict]:
+    """Any other command's result: its top-level numbers, strings and switches."""
+    row = {k: v for k, v in r.items() if isinstance(v, (int, float, str, bool)) and k not in ("schema",)}
+    return [row]
+
+
+def result_rows(verb: str, result: dict | None) -> list[dict]:
+    if not result:
+        return [{}]
+    return {"fit": _fit_rows, "flow": _flow_rows}.get(verb, _other_rows)(result) or [{}]
+
+
+def build(spec, records: dict, results: dict) -> list[dict]:
+    """Rows in cell order: every cell of the spec, finished or not (status pending)."""
+    rows = []
+    for cell in spec.cells:
+        rec = records.get(cell.id) or {}
+        base = {"cell": cell.id, **{k: _text(v) for k, v in cell.axes.items()}, "seed": cell.seed,
+                "status": rec.get("status", "pending")}
+        extra = result_rows(spec.verb, results.get(cell.id)) if rec.get("status") == "done" else [{}]
+        for part in extra:
+            row = dict(base)
+            row.update({k: v for k, v in part.items() if k not in VOLATILE})
+            row["error"] = rec.get("error")
+            row["wall_seconds"] = part.get("wall_seconds")
+            for k in VOLATILE[1:]:
+                row[k] = rec.get(k)
+            rows.append(row)
+    return rows
+
+
+def columns(spec, rows: list[dict]) -> list[str]:
+    cols = ["cell", *spec.axes, *LEADING[1:]]
+    for row in rows:
+        cols += [k for k in row if k not in cols and k not in VOLATILE and k != "error"]
+    return cols + ["error", *VOLATILE]
+
+
+def _cell(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return repr(value)
+    return _text(value)
+
+
+def write_csv(path, spec, rows: list[dict]) -> None:
+    cols = columns(spec, rows)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    for row in rows:
+        w.writerow([_cell(row.get(c)) for c in cols])
+    write_atomic(path, buf.getvalue())
+
+
+def free_names(verb: str, results: dict) -> list[str]:
+    """Parameters fitted (not frozen) in any finished cell, in the order the results list them."""
+    names = []
+    for r in results.values():
+        if not r:
+            continue
+        runs = r.get("runs", [r]) if verb == "fit" else r.get("points", []) if verb == "flow" else []
+        for run in runs:
+            names += [n for n, p in run.get("parameters", {}).items() if not p.get("frozen") and n not in names]
+    return names
+
+
+def stable(rows: list[dict]) -> list[dict]:
+    """The rows without the columns that differ from run to run (what a resumed sweep must reproduce)."""
+    return [{k: v for k, v in row.items() if k not in VOLATILE} for row in rows]
