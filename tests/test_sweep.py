@@ -20,7 +20,7 @@ from wrenorm.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
-VOLATILE_RESULT = {"wall_seconds", "timing"}  # what differs between two runs of the same fit
+VOLATILE_RESULT = {"wall_seconds", "timing", "command"}  # what differs between two runs of the same fit
 
 # 6 cells: restarts = 1 is refused by `fit` itself (not by the parser), so two cells fail and two succeed; the slow
 # generations (a test hook of the engine) keep cells running long enough to kill the sweep or a worker mid-way
@@ -156,8 +156,8 @@ def test_progress_is_a_plain_line_off_a_terminal_and_nothing_when_quiet():
     p.update(1, 2, 1)  # a failure prints at once
     p.close()
     lines = buf.getvalue().splitlines()
-    assert lines[0].startswith("sweep fit pd: 0/4 done, 2 running, 0 failed, elapsed")
-    assert "1/4 done, 2 running, 1 failed" in lines[1] and "left" in lines[1] and "\r" not in buf.getvalue()
+    assert lines[0].startswith("[sweep fit pd] 0/4 cells  done 0  running 2  failed 0")
+    assert "2/4 cells  done 1  running 2  failed 1" in lines[1] and "left" in lines[1] and "\r" not in buf.getvalue()
     quiet = io.StringIO()
     q = Progress(4, stream=quiet, quiet=True)
     q.update(1, 1, 1, force=True)

@@ -56,7 +56,7 @@ def _side_eye(points) -> tuple[list[float], list[float]]:
 
 
 # timelines counted in integers; every other timeline is a duration in seconds
-SEQUENCE_TIMELINES = ("generation", "resolution", "segments", "bodies", "trial")
+SEQUENCE_TIMELINES = ("generation", "resolution", "segments", "bodies", "trial", "cell")
 
 
 class LiveRecorder:

@@ -98,8 +98,6 @@ def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
 
     if not rerun_available() or not rows:
         return False
-    import rerun as rr
-
     rec = Recorder(path, recording_id=f"sweep-{spec.task.replace(' ', '-')}")
     try:
         rec.log_text("sweep/table", _markdown(spec, rows, names))
@@ -107,16 +105,15 @@ def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
         for k, r in enumerate(rows):
             if r.get("status") != "done":
                 continue
-            rec.stream.set_time("cell", sequence=k)
             for name in names:
                 if r.get(name) is not None:
-                    rec.stream.log(f"sweep/parameters/{name}", rr.Scalars(float(r[name])))
+                    rec.log_scalar(f"sweep/parameters/{name}", k, float(r[name]), timeline="cell")
             for key in ("loss_fitted", "heldout_mean_fitted"):
                 if r.get(key) is not None:
-                    rec.stream.log(f"sweep/{key}", rr.Scalars(float(r[key])))
+                    rec.log_scalar(f"sweep/{key}", k, float(r[key]), timeline="cell")
             for a in numeric_axes + ["seed"]:
                 if _number(r.get(a)) is not None:
-                    rec.stream.log(f"sweep/axes/{a}", rr.Scalars(_number(r.get(a))))
+                    rec.log_scalar(f"sweep/axes/{a}", k, _number(r.get(a)), timeline="cell")
         for name in names:
             rec.add_view(f"{name} per cell", [f"/sweep/parameters/{name}"])
         rec.add_view("losses per cell", ["/sweep/loss_fitted", "/sweep/heldout_mean_fitted"])

@@ -21,9 +21,10 @@ def _fmt_s(s: float) -> str:
 
 class Progress:
     def __init__(self, total: int | None, what: str, quiet: bool = False, unit: str = "", stream=None,
-                 done: int = 0):
+                 done: int = 0, every: float = LINE_EVERY_S):
         self.total, self.what, self.quiet, self.unit = total, what, quiet, unit
         self.stream = stream or sys.stderr
+        self.every = every
         self.n = done
         self.t0 = time.perf_counter()
         self._last_line = -1e9
@@ -43,7 +44,8 @@ class Progress:
                 self._bar.total = total
                 self._bar.refresh()
 
-    def update(self, n: int = 1, **fields) -> None:
+    def update(self, n: int = 1, force: bool = False, **fields) -> None:
+        """n more done; `fields` shown beside the count; force: a plain line now (e.g. at a failure)."""
         self.n += n
         self._fields.update(fields)
         if self.quiet:
@@ -54,7 +56,7 @@ class Progress:
                 self._bar.set_postfix({k: v for k, v in self._fields.items()}, refresh=False)
             return
         now = time.perf_counter()
-        if now - self._last_line >= LINE_EVERY_S or (self.total is not None and self.n >= self.total):
+        if force or now - self._last_line >= self.every or (self.total is not None and self.n >= self.total):
             self._line(now)
 
     def _line(self, now: float) -> None:
