@@ -4,17 +4,13 @@ rerun-sdk is imported here only, so simulation and fitting run without it (the G
 minimal installs). A recording is written to a temporary file that is renamed into place on close,
 so a killed run never leaves a recording that looks complete.
 
-Importing rerun-sdk takes about a second, as long as a whole PD fit. So a command that records starts a
-writer process first (`start_writer`), which imports rerun on the other core while this process fits; a
-`Recorder` then keeps its calls and hands them to the writer on close. Without a writer (or if it fails) the
-calls are replayed here: the same recording either way.
+Importing rerun-sdk takes about half a second. Writing the recording in a second process that imports it
+while the fit runs was tried and measured slower on two cores (whole `fit pd` processes, median 1.7 s against
+1.1 s in-process, alternating runs): the cores are never idle enough to pay for a second interpreter.
 """
 from __future__ import annotations
 
 import os
-import pickle
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +55,7 @@ def _side_eye(points) -> tuple[list[float], list[float]]:
 SEQUENCE_TIMELINES = ("generation", "resolution", "segments", "bodies", "trial", "cell")
 
 
-class LiveRecorder:
+class Recorder:
     """Thin wrapper over a rerun RecordingStream saving to `path` (atomically, on close)."""
 
     def __init__(self, path: str | os.PathLike, application_id: str = "wrenorm", recording_id: str | None = None):
@@ -167,100 +163,3 @@ class LiveRecorder:
         finally:
             if self._tmp.exists():
                 self._tmp.unlink()
-
-
-class WriterFailed(RuntimeError):
-    pass
-
-
-class _Writer:
-    """The child process that writes recordings (python -m wrenorm.viz.record_writer)."""
-
-    def __init__(self):
-        env = dict(os.environ)
-        env.setdefault("RERUN_ANALYTICS", "0")
-        self.proc = subprocess.Popen([sys.executable, "-m", "wrenorm.viz.record_writer"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-
-    @property
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def write(self, args: tuple, calls: list) -> None:
-        data = pickle.dumps({"args": args, "calls": calls}, protocol=pickle.HIGHEST_PROTOCOL)
-        try:
-            self.proc.stdin.write(len(data).to_bytes(8, "little") + data)
-            self.proc.stdin.flush()
-            reply = self.proc.stdout.readline().decode().strip()
-        except (BrokenPipeError, OSError) as e:
-            raise WriterFailed(f"the recording writer is gone ({e})") from None
-        if reply != "ok":
-            if not reply and self.proc.poll() is not None:
-                reply = self.proc.stderr.read().decode(errors="replace").strip()[-500:]
-            raise WriterFailed(reply or "the recording writer stopped")
-
-    def stop(self) -> None:
-        try:
-            self.proc.stdin.close()
-            self.proc.wait(timeout=5)
-        except (OSError, subprocess.TimeoutExpired):
-            self.proc.kill()
-
-
-_WRITER: _Writer | None = None
-
-
-def start_writer() -> None:
-    """Start the recording writer now (idempotent), if rerun-sdk is installed: it loads while the caller works."""
-    global _WRITER
-    if os.environ.get("WRENORM_RECORDING_WRITER", "1") == "0":  # record in this process (one core, debugging)
-        return
-    if (_WRITER is None or not _WRITER.alive) and rerun_available():
-        import atexit
-
-        _WRITER = _Writer()
-        atexit.register(_WRITER.stop)
-
-
-class Recorder:
-    """The recording API (see LiveRecorder's methods): with a writer process, calls are kept and written there
-    on close; otherwise they go straight to a LiveRecorder here."""
-
-    def __init__(self, path: str | os.PathLike, application_id: str = "wrenorm", recording_id: str | None = None):
-        self.path = Path(path)
-        self._args = (str(path), application_id, recording_id)
-        self._calls: list | None = [] if _WRITER is not None and _WRITER.alive else None
-        self._live = None if self._calls is not None else LiveRecorder(path, application_id, recording_id)
-
-    def __getattr__(self, name: str):
-        if name.startswith("_") or not callable(getattr(LiveRecorder, name, None)):
-            raise AttributeError(name)
-        if self._live is not None:
-            return getattr(self._live, name)
-        return lambda *a, **k: self._calls.append((name, a, k))
-
-    def close(self) -> Path:
-        if self._live is not None:
-            return self._live.close()
-        try:
-            _WRITER.write(self._args, self._calls)
-        except WriterFailed as e:
-            print(f"wrenorm: recording writer failed ({e}); writing the recording here", file=sys.stderr)
-            replay(self._args, self._calls)
-        return self.path
-
-    def abort(self) -> None:
-        if self._live is not None:
-            self._live.abort()
-        self._calls = []
-
-
-def replay(args: tuple, calls: list) -> Path:
-    rec = LiveRecorder(*args)
-    try:
-        for name, a, k in calls:
-            getattr(rec, name)(*a, **k)
-        return rec.close()
-    except BaseException:
-        rec.abort()
-        raise

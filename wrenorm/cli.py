@@ -361,10 +361,6 @@ def main(argv=None) -> int:
         from .warp_init import init_warp
 
         previous_sigint = install(resume_hint(args))
-        if getattr(args, "no_record", True) is False:
-            from wrenorm.viz.record import start_writer
-
-            start_writer()  # rerun-sdk loads in a writer process on the other core while Warp starts and we fit
         # before any task module initialises Warp: no banner or missing-driver line in users' output
         init_warp(getattr(args, "device", "cpu") or "cpu", args.verbose)
         return _dispatch(args)
