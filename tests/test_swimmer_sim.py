@@ -151,7 +151,7 @@ def test_errors_are_inf_for_broken_candidates(rates):
 def test_known_truth_speeds_recovered_by_cma(rates):
     """Speeds simulated with hidden coefficients are matched by a short CMA-ES from the published ones."""
     hidden = np.array([0.8, 3.0, 1.2, 1.5, 0.6])
-    prob = swimmer.SwimmerProblem(rates, [0.5, 1.0, 1.75, 2.25], dt=0.008)
+    prob = swimmer.SwimmerProblem(rates, [0.5, 1.0, 1.75, 2.25], dt=0.008, free_viscosity=False)
     truth = prob.speeds(hidden[None], prob.train + prob.held_out)[0]
     for c, v in zip(prob.train + prob.held_out, truth):
         c.meta["speed"] = float(v)
