@@ -150,3 +150,28 @@ def test_simulated_fish_in_the_view_start_at_the_real_head_and_follow_the_real_p
             assert abs(off) < 1e-6
         else:
             assert abs(off) > 5.0  # started at the real head pose, the straight-swimming model drifts off
+
+
+def test_known_truth_features_and_determined_coefficients_recovered(rates):
+    """A simulated fish stands in for the real one: its speed, yaw and 2f surge at the training rates become the
+    'real' features; the least-squares search from the published coefficients (no prior) reproduces them, and
+    recovers the coefficients the data determine (blunt drag, Kutta lift, the viscosity) where Gauss-Newton says
+    they are determined."""
+    from wrenorm.least_squares import levenberg_marquardt
+    from wrenorm.uncertainty import uncertainty
+
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016, prior_scale=None)
+    hidden = np.array([0.3, 0.5, 2.0, 1.3, 0.25, 0.05])
+    sim = prob.simulate(hidden[None], prob.train)
+    for j, c in enumerate(prob.train):
+        c.meta["features"] = dict(c.meta["features"], **{f: float(sim[f][0, j]) for f in prob.features})
+    start = prob.space.measured.copy()
+    start[5] = 0.02
+    res, r, _ = levenberg_marquardt(prob, start, iterations=40, quiet=True)
+    assert res.best_loss < 1e-2 * float(np.sum(prob.residuals(start[None], prob.train) ** 2))
+    assert np.abs(r).max() < 0.5  # every feature within half its noise
+    unc = uncertainty(prob, res.best_values)
+    assert {"blunt_drag", "kutta_lift"} <= set(unc["determined_by_data"])
+    for n in unc["determined_by_data"]:
+        i = prob.space.index(n)
+        assert abs(np.log(res.best_values[i] / hidden[i])) < 3 * unc["std"][n] / res.best_values[i] + 0.02, n
