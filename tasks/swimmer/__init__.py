@@ -12,7 +12,7 @@ from wrenorm.tasks.swimmer import options
 
 SYSTEM = from_package(
     __name__, "a real robotic fish's five stateless fluid coefficients, fitted to its swimming speed and gait features",
-    search=SearchDefaults(method="cmaes+least-squares", generations=60, popsize=32, restarts=4),
+    search=SearchDefaults(method="cmaes+least-squares", generations=40, popsize=24, restarts=4),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.swimmer.problem:flow_problems",
               "time steps [s] (--axis bodies: tail bodies)", generations=80),
     commands=(ExtraCommand("select", "choose the fit's features, prior scale and parameter set on the training clips",

@@ -301,6 +301,9 @@ class SwimmerProblem(Problem):
                 "stride_m": {"real": c.meta["speed"] / c.meta["tail_freq"],
                              "fitted": float(sim["speed"][0, j]) / c.meta["tail_freq"]},
                 "beats": c.meta["feature_spread"]["beats"], "features": fe,
+                "real_speed_per_beat": feat.real_features(self.rates[c.name])[2]["speed"].tolist(),
+                "real_path_speed": path_speed(self.rates[c.name]),
+                "gait": gait_summary(self.rates[c.name], self.gaits[c.name]),
                 "real_heading": {k: v for k, v in real_heading(self.rates[c.name]).items()
                                  if k != "path_direction_deg"}}
         val = [f"{c.meta['label']:.2f}" for c in self.held_out]
@@ -455,6 +458,30 @@ class SwimmerProblem(Problem):
             R = np.array([[c, -s], [s, c]])
             out = [(tt, start + (pts - start) @ R.T) for tt, pts in out]
         return out
+
+
+def path_speed(rate) -> float:
+    """Arc length of the head path averaged over one beat (moving mean), per second: the speed along a curved
+    path, beside the straight-line speed (they differ where the real fish turns)."""
+    head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])
+    n = max(1, int(round(rate.fps / rate.tail_freq)))
+    k = np.ones(n) / n
+    smooth = np.stack([np.convolve(head[:, i], k, mode="valid") for i in range(2)], 1)
+    if len(smooth) < 2:
+        return float("nan")
+    return float(np.linalg.norm(np.diff(smooth, axis=0), axis=1).sum() / ((len(smooth) - 1) / rate.fps))
+
+
+def gait_summary(rate, g) -> dict:
+    """How far the tail tip swings [m]: the tip marker, the gait's wave at the tip, the rigid chain's fin tip; and
+    which tail markers the wave was fitted to (a video can lose markers onto one point)."""
+    t = np.linspace(0.0, 1.0 / g["freq"], 200, endpoint=False)
+    local, keep = rate.meta["local"], rate.meta["tail_markers"]
+    wave = body.wave_eval(g, np.array([body.TAIL_TIP_X]), t)[0][:, 0]
+    return {"tip_amplitude_markers_m": float(np.ptp(local[:, keep[-1], 1]) / 2),
+            "tip_amplitude_wave_m": float(np.ptp(wave) / 2),
+            "tip_amplitude_chain_m": float(np.ptp(body.tail_points(g, t)[:, -1, 1]) / 2),
+            "tail_markers": [int(i) for i in keep], "wave_fit_rms_m": float(g["wave_rms"])}
 
 
 def real_heading(rate) -> dict:
