@@ -53,7 +53,7 @@ def part_mass(am: wp.vec3, mj: wp.vec2, vm: float, cp: float, sp: float):
 
 @wp.kernel
 def swim_kernel_direct(offset: int, n_cond: int,
-                coef: wp.array2d(dtype=float),        # (B, 5)
+                coef: wp.array2d(dtype=float),        # (B, 5) or (B, 6): + viscosity [Pa s]
                 table: wp.array3d(dtype=float),       # (samples, parts, ROW)
                 semi: wp.array(dtype=wp.vec3),        # (parts,) zero: no fluid
                 geo: wp.array(dtype=geo9),            # (parts,) fluid_geometry(semi)
@@ -63,10 +63,10 @@ def swim_kernel_direct(offset: int, n_cond: int,
                 rec_stride: int, traj: wp.array3d(dtype=float),   # (n, frames, 4): X, Y, theta, sample
                 speed: wp.array(dtype=float), state: wp.array2d(dtype=float)):
     tid = wp.tid() + offset
-    c, cb, cs, ca, ck, cm = slot_coefficients(coef, tid, n_cond)
+    c, cb, cs, ca, ck, cm, mu = slot_coefficients(coef, tid, n_cond, water.mu)
     n_parts = semi.shape[0]
     vm = float(water.virtual_mass)
-    rho, mu, ref_x = water.rho, water.mu, water.ref_x
+    rho, ref_x = water.rho, water.ref_x
     off, per, dt = sched.tab_off[c], sched.n_per[c], sched.dt[c]
     nw, nm = sched.n_warm[c], sched.n_meas[c]
 
@@ -104,6 +104,7 @@ def swim_kernel_direct(offset: int, n_cond: int,
     mw = sched.max_warm[c]
     beat_u = float(0.0)
     prev_u = float(1.0e9)
+    calm = int(0)
     while meas_start < 0 or step < meas_start + nm:
         row = off + k
         ct = wp.cos(th)
@@ -111,7 +112,7 @@ def swim_kernel_direct(offset: int, n_cond: int,
         if meas_start >= 0:
             acc = line_sums_add(acc, wp.float64(float(step - meas_start) * dt), wp.float64(X + ct * ref_x),
                                 wp.float64(Y + st * ref_x), ct, st)
-        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, X, Y, th, k)
+        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, 0, meas_start, X, Y, th, k)
 
         # 3x3 symmetric system A [du, dv, dw] = r
         A = sym6()
@@ -165,8 +166,8 @@ def swim_kernel_direct(offset: int, n_cond: int,
         X += dt * (ct * u - st * v)
         Y += dt * (st * u + ct * v)
         th += dt * w
-        k, step, meas_start, beat_u, prev_u = beat_advance(k, step, per, meas_start, beat_u, prev_u, u, nw, mw,
-                                                           sched.settle_abs, sched.settle_rel)
+        k, step, meas_start, beat_u, prev_u, calm = beat_advance(k, step, per, meas_start, beat_u, prev_u, calm, u,
+                                                                 nw, mw, sched.settle_abs, sched.settle_rel)
 
     speed[tid] = line_speed(acc)
     state[tid, 0] = X

@@ -39,7 +39,7 @@ def test_merged_tail_keeps_length_mass_inertia_area_volume(bodies):
 
 def test_all_bodies_is_the_default_fish_bit_for_bit(rates):
     assert sb.merge_links(len(sb.LINKS)) == sb.LINKS
-    vals = np.array([swimmer.parameter_space().measured, [0.2, 5.0, 1.0, 2.0, 0.1]])
+    vals = np.array([swimmer.parameter_space().measured, [0.2, 5.0, 1.0, 2.0, 0.1, swimmer.VISCOSITY]])
     default = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
     full = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016, bodies=6)
     conds = default.train + default.held_out

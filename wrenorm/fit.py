@@ -119,7 +119,11 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             fitted = g.best_values
         polish_report = {"iterations": settings.polish, "loss_before": res.best_loss, "loss_after": g.best_loss,
                          "kept": improved}
-    losses, _ = searches.mean_loss(problem, np.stack([measured, fitted]), problem.train)
+    both = np.stack([measured, fitted])
+    # the training error (the observable's units) and, apart, what the search minimised (errors or squared
+    # residuals, plus the prior's squared deviations)
+    losses = finite_or_inf(problem.errors(both, problem.train)).mean(axis=1)
+    objectives = searches.objective(problem, both)
     unc = uncertainty(problem, fitted, jac=jac)
     params = {}
     for i, p in enumerate(space.parameters):
@@ -135,14 +139,19 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         }
         if p.prior is not None:
             params[p.name]["prior"] = {"centre": p.prior[0], "scale": p.prior[1]}
-            params[p.name]["data_only_std"] = unc.get("data_only_std", {}).get(p.name)
+        if "data_only_std" in unc and not p.frozen:  # where any parameter has a prior: every free one's
+            params[p.name]["data_only_std"] = unc["data_only_std"].get(p.name)
     t_validate = time.perf_counter()
     result = {
         "schema": SCHEMA,
         "task": problem.task,
         "resolution": problem.resolution,
         "parameters": params,
-        "loss": {"measured": float(losses[0]), "fitted": float(losses[1]), "meaning": problem.error_doc},
+        "loss": {"measured": float(losses[0]), "fitted": float(losses[1]), "meaning": problem.error_doc,
+                 "objective": {"measured": float(objectives[0]), "fitted": float(objectives[1]),
+                               "meaning": ("sum of squared residuals" if problem.least_squares else
+                                           "mean training error") + (" plus the prior's squared normalised "
+                                                                     "deviations" if space.priors else "")}},
         "train": [c.name for c in problem.train],
         "validation": _validation(problem, measured, fitted),
         "uncertainty": {k: v for k, v in unc.items() if k not in ("std", "data_only_std")},
@@ -173,7 +182,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         seeds = [settings.seed + 1 + k for k in range(settings.restarts)]
         result["restarts"] = identifiability_restarts(problem, fitted, seeds, popsize=settings.popsize,
                                                       generations=settings.generations, sigma0=settings.sigma0,
-                                                      quiet=quiet)
+                                                      quiet=quiet, method=settings.method)
     result.update(problem.report(fitted, measured))
     t_write = time.perf_counter()
     if record:

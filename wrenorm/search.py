@@ -51,7 +51,9 @@ def mean_loss(problem: Problem, values: np.ndarray, conditions) -> tuple[np.ndar
         loss = errs.mean(axis=1)
     prior = problem.space.prior_residuals(values)
     if prior.shape[-1]:
-        loss = loss + np.sum(prior ** 2, axis=-1)
+        with np.errstate(invalid="ignore"):
+            loss = loss + np.sum(prior ** 2, axis=-1)
+        loss = np.where(np.isfinite(loss), loss, np.inf)  # a NaN parameter value costs the candidate, as a blow-up
     return loss, errs
 
 

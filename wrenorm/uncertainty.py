@@ -18,9 +18,19 @@ UNDETERMINED_FRACTION = 0.25  # std larger than this share of the (normalised) b
 
 
 def _std(J: np.ndarray, sigma2: float):
+    """Covariance sigma^2 (J^T J)^+ and the std per column; a column with any share in a direction that J does not
+    see at all (fewer independent rows than columns) gets an infinite std: the pseudo-inverse would give that
+    direction zero variance, i.e. call it perfectly determined."""
     JtJ = J.T @ J
     cov = sigma2 * np.linalg.pinv(JtJ, rcond=1e-12)
-    return cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), JtJ
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    if J.size:
+        _, s, vt = np.linalg.svd(J, full_matrices=True)
+        rank = int(np.sum(s > 1e-6 * max(s.max(initial=0.0), 1e-300))) if s.size else 0
+        null = vt[rank:]
+        if len(null):
+            std = np.where(np.linalg.norm(null, axis=0) > 1e-6, np.inf, std)
+    return cov, std, JtJ
 
 
 DETERMINED = 0.3  # a parameter is determined by the data when its data-only std is below this share of its value

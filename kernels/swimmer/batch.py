@@ -97,11 +97,21 @@ class SwimBatch:
         self.water = Water()
         self.water.rho, self.water.mu, self.water.virtual_mass, self.water.ref_x = (self.rho, self.mu,
                                                                                     self.virtual_mass, self.ref_x)
+        # host copies: steps per beat, step [s] and measured steps per condition
+        self.n_per_host = np.asarray(n_per, np.int64)
+        self.dt_host = np.asarray(dt, np.float64)
+        self.n_meas_host = np.asarray(n_meas, np.int64)
         self.steps = np.asarray(n_warm) + np.asarray(n_meas)  # at least; warm-up may run longer
         self.sim_seconds = self.steps * np.asarray(dt, np.float64)
 
-    def run(self, coef: np.ndarray, rec_stride: int = 0, rec_frames: int = 0):
+    def run(self, coef: np.ndarray, rec_stride: int = 0, rec_frames: int = 0, rec_meas: bool = False):
+        """Speeds (B, C) for coefficients (B, 5), or (B, 6) whose last column is the viscosity [Pa s] (else the
+        water's); with rec_stride > 0 also the recorded (B, C, rec_frames, 4) trajectory (X, Y, theta, beat
+        sample) every rec_stride steps, from the start or (rec_meas) from the first measured step (a beat
+        start), and the final state (B, C, 7)."""
         coef = np.atleast_2d(np.asarray(coef, np.float32))
+        if coef.shape[1] not in (5, 6):
+            raise ValueError(f"coefficients must have 5 or 6 columns, got {coef.shape[1]}")
         n = coef.shape[0] * self.n_cond
         d = self.device
         coef_wp = wp.array(coef, dtype=float, device=d)
@@ -114,7 +124,7 @@ class SwimBatch:
             wp.launch(swim_kernel, dim=count, device=d, inputs=[
                 offset, self.n_cond, coef_wp, self.tab, self.n_fluid, self.geo, self.amass, self.v0,
                 self.schedule, self.water, self.scheme,
-                int(rec_stride), traj, speed, yaw, state])
+                int(rec_stride), int(bool(rec_meas)), traj, speed, yaw, state])
 
         launch_sliced(launch, n, d)
         shape = (coef.shape[0], self.n_cond)

@@ -179,12 +179,18 @@ def line_speed(acc: vec12d) -> float:
     return float((dx * ctx + dy * cty) / ctt)
 
 
+SETTLE_BEATS = wp.constant(2)  # consecutive calm beat-to-beat changes that end the warm-up
+
+
 @wp.func
-def beat_advance(k: int, step: int, per: int, meas_start: int, beat_u: float, prev_u: float, u: float, nw: int,
-                 mw: int, settle_abs: float, settle_rel: float):
+def beat_advance(k: int, step: int, per: int, meas_start: int, beat_u: float, prev_u: float, calm: int, u: float,
+                 nw: int, mw: int, settle_abs: float, settle_rel: float):
     """One step along the tail beat. Warm-up runs whole beats until the beat-averaged surge settles (at least
     nw steps, at most mw; quadratic drag makes slow candidates creep up to cruising speed for many beats),
-    then the measurement starts. Returns (k, step, meas_start, beat_u, prev_u)."""
+    then the measurement starts. Settled: SETTLE_BEATS consecutive beat-to-beat changes within tolerance; one
+    alone is met at a turning point of a slow start-up (e.g. Kutta lift x0.95 near blunt 0.26, slender 0.54:
+    measured at 2.7 s instead of 13 s, speed 0.0075 instead of 0.080 m/s), which made the speed jump between
+    neighbouring coefficients. Returns (k, step, meas_start, beat_u, prev_u, calm)."""
     k += 1
     step += 1
     if meas_start < 0:
@@ -193,21 +199,32 @@ def beat_advance(k: int, step: int, per: int, meas_start: int, beat_u: float, pr
         k = 0
         if meas_start < 0:
             avg = beat_u / float(per)
+            if wp.abs(avg - prev_u) <= settle_abs + settle_rel * wp.abs(avg):
+                calm += 1
+            else:
+                calm = 0
             if step >= nw:
-                if wp.abs(avg - prev_u) <= settle_abs + settle_rel * wp.abs(avg) or step >= mw:
+                if calm >= SETTLE_BEATS or step >= mw:
                     meas_start = step
             prev_u = avg
             beat_u = float(0.0)
-    return k, step, meas_start, beat_u, prev_u
+    return k, step, meas_start, beat_u, prev_u, calm
 
 
 @wp.func
-def record_pose(traj: wp.array3d(dtype=float), tid: int, rec_i: int, step: int, rec_stride: int, X: float, Y: float,
-                th: float, k: int) -> int:
-    """Every rec_stride steps, the head pose and tail phase sample into traj[tid]; returns the next slot."""
+def record_pose(traj: wp.array3d(dtype=float), tid: int, rec_i: int, step: int, rec_stride: int, rec_meas: int,
+                meas_start: int, X: float, Y: float, th: float, k: int) -> int:
+    """Every rec_stride steps, the head pose and tail phase sample into traj[tid]; returns the next slot. Counted
+    from the start, or (rec_meas) from the measurement start, so that the recorded frames are the states the
+    speed's line fit sees."""
     out = rec_i
-    if rec_stride > 0:
-        if step % rec_stride == 0 and rec_i < traj.shape[1]:
+    rec_step = step
+    if rec_meas != 0:
+        rec_step = step - meas_start
+        if meas_start < 0:
+            rec_step = -1
+    if rec_stride > 0 and rec_step >= 0:
+        if rec_step % rec_stride == 0 and rec_i < traj.shape[1]:
             traj[tid, rec_i, 0] = X
             traj[tid, rec_i, 1] = Y
             traj[tid, rec_i, 2] = th
@@ -217,15 +234,19 @@ def record_pose(traj: wp.array3d(dtype=float), tid: int, rec_i: int, step: int, 
 
 
 @wp.func
-def slot_coefficients(coef: wp.array2d(dtype=float), tid: int, n_cond: int):
-    """Slot tid = candidate b x condition c: (c, the candidate's five coefficients)."""
+def slot_coefficients(coef: wp.array2d(dtype=float), tid: int, n_cond: int, mu: float):
+    """Slot tid = candidate b x condition c: (c, the candidate's five coefficients, its viscosity): a sixth
+    column of coef, where there is one, is the viscosity [Pa s] (an effective parameter); else the water's."""
     b = tid / n_cond
-    return tid - b * n_cond, coef[b, 0], coef[b, 1], coef[b, 2], coef[b, 3], coef[b, 4]
+    visc = mu
+    if coef.shape[1] > 5:
+        visc = coef[b, 5]
+    return tid - b * n_cond, coef[b, 0], coef[b, 1], coef[b, 2], coef[b, 3], coef[b, 4], visc
 
 
 @wp.kernel
 def swim_kernel(offset: int, n_cond: int,
-                coef: wp.array2d(dtype=float),        # (B, 5)
+                coef: wp.array2d(dtype=float),        # (B, 5) or (B, 6): + viscosity [Pa s]
                 tab: wp.array2d(dtype=float),         # (samples, INERTIAL + FLUID_ROW * fluid parts)
                 n_fluid: int,
                 geo: wp.array(dtype=geo9),            # (fluid parts,) fluid_geometry(semi)
@@ -233,17 +254,17 @@ def swim_kernel(offset: int, n_cond: int,
                 v0: wp.array(dtype=wp.vec3),          # (conditions,) zero-momentum start velocity
                 sched: Schedule, water: Water,
                 scheme: int,
-                rec_stride: int, traj: wp.array3d(dtype=float),   # (n, frames, 4): X, Y, theta, sample
+                rec_stride: int, rec_meas: int,
+                traj: wp.array3d(dtype=float),        # (n, frames, 4): X, Y, theta, beat sample
                 speed: wp.array(dtype=float), yaw: wp.array(dtype=float), state: wp.array2d(dtype=float)):
     tid = wp.tid() + offset
-    c, cb, cs, ca, ck, cm = slot_coefficients(coef, tid, n_cond)
+    c, cb, cs, ca, ck, cm, mu = slot_coefficients(coef, tid, n_cond, water.mu)
     off = sched.tab_off[c]
     per = sched.n_per[c]
     dt = sched.dt[c]
     nw = sched.n_warm[c]
     nm = sched.n_meas[c]
     rho = water.rho
-    mu = water.mu
     ref_x = water.ref_x
     vm = float(water.virtual_mass)
     gam = float(ROS2_GAMMA)
@@ -270,6 +291,7 @@ def swim_kernel(offset: int, n_cond: int,
     mw = sched.max_warm[c]
     beat_u = float(0.0)
     prev_u = float(1.0e9)
+    calm = int(0)
     while meas_start < 0 or step < meas_start + nm:
         ct = wp.cos(th)
         st = wp.sin(th)
@@ -278,7 +300,7 @@ def swim_kernel(offset: int, n_cond: int,
             s_ws += w * tab[off + k, 16]
             acc = line_sums_add(acc, wp.float64(float(step - meas_start) * dt), wp.float64(X + ct * ref_x),
                                 wp.float64(Y + st * ref_x), ct, st)
-        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, X, Y, th, k)
+        rec_i = record_pose(traj, tid, rec_i, step, rec_stride, rec_meas, meas_start, X, Y, th, k)
 
         s1 = fish_rhs(tab, off + k, n_fluid, u, v, w, geo, amass, cb, cs, ca, ck, cm, rho, mu, vm)
         if scheme == 1:
@@ -325,8 +347,8 @@ def swim_kernel(offset: int, n_cond: int,
             u += dt * (1.5 * k1[0] + 0.5 * k2[0])
             v += dt * (1.5 * k1[1] + 0.5 * k2[1])
             w += dt * (1.5 * k1[2] + 0.5 * k2[2])
-        k, step, meas_start, beat_u, prev_u = beat_advance(k, step, per, meas_start, beat_u, prev_u, u, nw, mw,
-                                                           sched.settle_abs, sched.settle_rel)
+        k, step, meas_start, beat_u, prev_u, calm = beat_advance(k, step, per, meas_start, beat_u, prev_u, calm, u,
+                                                                 nw, mw, sched.settle_abs, sched.settle_rel)
 
     speed[tid] = line_speed(acc)
     yaw[tid] = 2.0 * wp.sqrt(s_wc * s_wc + s_ws * s_ws) / (float(nm) * 2.0 * 3.14159265358979 / (float(per) * dt))

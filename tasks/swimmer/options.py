@@ -9,6 +9,21 @@ from wrenorm.options import add_list, add_number
 DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/test_swimmer_sim.py)
 TAIL_BODIES = 6  # the robot's five plates and the fin (tasks/swimmer/body.py LINKS)
 DEFAULT_TRAIN = [1.00, 1.75]  # the published fit's training rates
+VISCOSITY = 0.0013  # Pa s, the published model's water
+# feature sets (features.FEATURES); the speed is always first, the headline
+FEATURE_SETS = {
+    "speed": ("speed",),
+    "yaw": ("speed", "yaw_amp", "yaw_phase"),
+    "sway": ("speed", "sway_amp", "sway_phase"),
+    "surge2": ("speed", "surge2_amp", "surge2_phase"),
+    "surge1": ("speed", "surge1_amp", "surge1_phase"),
+    "yaw+surge2": ("speed", "yaw_amp", "yaw_phase", "surge2_amp", "surge2_phase"),
+    "all": ("speed", "yaw_amp", "yaw_phase", "sway_amp", "sway_phase", "surge2_amp", "surge2_phase",
+            "surge1_amp", "surge1_phase"),
+}
+DEFAULT_FEATURES = "yaw+surge2"  # chosen on the training clips: tasks/swimmer/select.py
+DEFAULT_PRIOR_SCALE = 0.5  # e-folds of the Gaussian prior around the published values (0: off); chosen likewise
+FREE_VISCOSITY = True  # the viscosity fitted as an effective parameter (--freeze viscosity: the five alone); likewise
 FLOW_DT = [0.002, 0.004, 0.008, 0.016]
 FLOW_BODIES = [2, 3, 6]
 
@@ -29,9 +44,15 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gait", choices=["chain", "wave"], default="chain",
                    help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave "
                         "(wave)")
-    add_number(p, "--yaw-weight", default=0.0, lo=0.0, hi=100.0, unit="m/s/rad", metavar="M/S/RAD",
-               help="also fit the head's yaw oscillation amplitude per rate, weighted into a speed-equivalent "
-                    "error (e.g. 0.1: 1 degree counts like 1.7 mm/s); 0: speed only, as in the paper")
+    p.add_argument("--features", default=DEFAULT_FEATURES, metavar="SET|LIST",
+                   help=f"trajectory features fitted per training rate, each normalised by its beat-to-beat noise: a "
+                        f"set {list(FEATURE_SETS)} or a comma-separated list of {list(FEATURE_SETS['all'])}; the "
+                        f"speed is always fitted (default: {DEFAULT_FEATURES})")
+    add_number(p, "--prior-scale", default=DEFAULT_PRIOR_SCALE, lo=0.0, hi=20.0, unit="e-folds",
+               help="std of the Gaussian prior on ln(coefficient) around the published values (ln 3 = 1.10: a "
+                    "factor of 3); 0: no prior")
+    add_number(p, "--speed-weight", default=1.0, lo=0.0, lo_open=True, hi=1000.0,
+               help="factor on the speed's normalised residuals (1: each feature by its noise alone)")
     p.add_argument("--integrator", choices=["ros2", "euler"], default="ros2",
                    help="ros2: second-order Rosenbrock (default); euler: linearly implicit Euler, first order")
 

@@ -1,11 +1,22 @@
 """Robotic fish (paper section 4): a continuous fluid field replaced by five coefficients.
 
-Observable: the forward cruising speed at each motor rate. Model: the robot's head free in the
-plane, its tail following the measured gait, every part carrying MuJoCo's ellipsoid fluid model
-with one shared vector of five coefficients (blunt drag, slender drag, angular drag, Kutta lift,
-Magnus lift); water density 1000 kg/m^3 and viscosity 0.0013 Pa s fixed. Measured values are the
-published fit (Michelis et al.); training rates 1.00 and 1.75 as in that paper, every other rate
-is held out. Baseline: elongated-body theory with two constants fitted on the training rates.
+Observable: the forward cruising speed at each motor rate stays the headline (`errors`, the validation, the
+verdict). The fit also uses what the training clips hold beyond two numbers: per rate, trajectory features of
+the head over the tail beat (features.py: yaw amplitude and phase, the forward surge at twice the beat
+frequency, ...), measured identically on the real markers and on the simulated head, each residual divided by
+its measurement noise (the beat-to-beat spread pooled over the training clips). The residuals are therefore in
+units of their noise (`noise_normalised`) and the engine minimises their sum of squares (`least_squares`) plus,
+where the coefficients carry a Gaussian prior around the published values (Parameter.prior, in e-folds of ln c),
+the prior's: a MAP fit. Features, prior scale and search are chosen on the training clips alone (select.py).
+
+Model: the robot's head free in the plane, its tail following the measured gait, every part carrying MuJoCo's
+ellipsoid fluid model with one shared vector of five coefficients (blunt drag, slender drag, angular drag, Kutta
+lift, Magnus lift); water density 1000 kg/m^3; and a sixth parameter, the viscosity (measured: the water's
+0.0013 Pa s), fitted by default as an effective viscosity: MuJoCo's linear Stokes drag, the only term of the
+model that is not quadratic in the speed (select.py step 4 frees it; --freeze viscosity fits the five alone).
+Measured values are the published fit (Michelis et al.); training rates 1.00 and 1.75 as in that paper, every
+other rate is held out. Baseline: elongated-body theory with two constants fitted on the training
+rates.
 """
 from __future__ import annotations
 
@@ -15,26 +26,80 @@ from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
 from wrenorm.tasks.swimmer import body, data
-from wrenorm.tasks.swimmer.options import FLOW_BODIES, FLOW_DT
+from wrenorm.tasks.swimmer import features as feat
+from wrenorm.tasks.swimmer.options import (
+    DEFAULT_FEATURES,
+    DEFAULT_PRIOR_SCALE,
+    FEATURE_SETS,
+    FLOW_BODIES,
+    FLOW_DT,
+    FREE_VISCOSITY,
+    VISCOSITY,
+)
 
 PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kutta_lift": 3.84, "magnus_lift": 0.27}
+COEFFICIENTS = tuple(PUBLISHED)
 DEFAULT_TRAIN = "1.00,1.75"
 TOLERANCE = 0.02  # m/s
 
 
-def parameter_space() -> ParameterSpace:
+def parameter_space(prior_scale: float | None = None, free_viscosity: bool = FREE_VISCOSITY) -> ParameterSpace:
+    """The five coefficients (measured: the published fit), each with a Gaussian prior in ln c around its
+    published value of std `prior_scale` e-folds (None: no prior), and the viscosity (measured: the water's, no
+    prior), fitted as an effective parameter unless frozen."""
     doc = "MuJoCo ellipsoid fluid coefficient, shared by every body part"
-    return ParameterSpace([
-        Parameter("blunt_drag", PUBLISHED["blunt_drag"], 0.01, 20.0, "log", doc=doc),
-        Parameter("slender_drag", PUBLISHED["slender_drag"], 0.05, 100.0, "log", doc=doc),
-        Parameter("angular_drag", PUBLISHED["angular_drag"], 0.05, 100.0, "log", doc=doc),
-        Parameter("kutta_lift", PUBLISHED["kutta_lift"], 0.01, 50.0, "log", doc=doc),
-        Parameter("magnus_lift", PUBLISHED["magnus_lift"], 0.005, 10.0, "log", doc=doc),
-    ])
+    bounds = {"blunt_drag": (0.01, 20.0), "slender_drag": (0.05, 100.0), "angular_drag": (0.05, 100.0),
+              "kutta_lift": (0.01, 50.0), "magnus_lift": (0.005, 10.0)}
+    prior = (lambda n: (PUBLISHED[n], float(prior_scale))) if prior_scale is not None else (lambda n: None)
+    return ParameterSpace([Parameter(n, PUBLISHED[n], *bounds[n], "log", doc=doc, prior=prior(n))
+                           for n in COEFFICIENTS] + [
+        Parameter("viscosity", VISCOSITY, 1e-4, 10.0, "log", frozen=not free_viscosity, unit="Pa s",
+                  doc="the water's dynamic viscosity in MuJoCo's linear (Stokes) drag; freed, an effective "
+                      "viscosity that gives the drag a part linear in the speed")])
+
+
+def parse_features(text) -> tuple:
+    """A FEATURE_SETS name or a comma-separated list of features.FEATURES; the speed is always first."""
+    if isinstance(text, (tuple, list)):
+        names = [str(n).strip() for n in text]
+        if len(names) == 1 and names[0] in FEATURE_SETS:
+            return FEATURE_SETS[names[0]]
+    elif str(text) in FEATURE_SETS:
+        return FEATURE_SETS[str(text)]
+    else:
+        names = [n.strip() for n in str(text).split(",") if n.strip()]
+    bad = [n for n in names if n not in feat.FEATURES]
+    if bad or not names:
+        raise InputError("--features", ",".join(bad) or "(empty)",
+                         f"unknown feature; known: {list(feat.FEATURES)} or a set {list(FEATURE_SETS)}")
+    if len(set(names)) != len(names):
+        raise InputError("--features", ",".join(names), "repeated feature")
+    return ("speed",) + tuple(n for n in names if n != "speed")
+
+
+def noise_model(conditions, names) -> dict:
+    """Per-beat noise of each feature, pooled over the given (training) clips: the within-clip sample
+    variance over beats, weighted by its degrees of freedom (beats - 1); amplitudes pooled as a fraction of
+    the clip's amplitude, the speed and phases in their own units. The noise of a clip's feature (its mean
+    over n beats) is that per-beat std / sqrt(n)."""
+    out = {}
+    for f in names:
+        num, dof = 0.0, 0
+        for c in conditions:
+            sp, val, n = c.meta["feature_spread"][f], c.meta["features"][f], c.meta["feature_spread"]["beats"]
+            if n < 2 or not np.isfinite(sp):
+                continue
+            x = sp / abs(val) if f.endswith("_amp") else sp
+            num += (n - 1) * x * x
+            dof += n - 1
+        if dof == 0:
+            raise InputError("training clips", f, "fewer than two complete beats in every training clip: "
+                                                  "no noise estimate")
+        out[f] = {"per_beat": float(np.sqrt(num / dof)), "relative": f.endswith("_amp"), "dof": dof}
+    return out
 
 
 # --- elongated-body theory baseline ----------------------------------------------------------
-
 def ebt_moments(gait: dict, samples: int = 256) -> tuple[float, float]:
     """<h_t^2> and <h_t h_x> of the tail tip over one beat (head frame, x towards the tail)."""
     t = np.arange(samples) / (samples * gait["freq"])
@@ -70,72 +135,145 @@ def fit_ebt(moments: list, speeds: list) -> tuple[float, float]:
 
 class SwimmerProblem(Problem):
     task = "swimmer"
+    least_squares = True  # the normalised feature residuals are the observable (a Gaussian likelihood)
+    noise_normalised = True  # ... in units of their measurement noise
 
     def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = body.DEFAULT_DT,
                  warm_seconds: float = 2.0, meas_seconds: float = 3.0, virtual_mass: bool = False,
-                 gait_mode: str = "chain", source: str = "built-in", yaw_weight: float = 0.0, scheme: int = 2,
-                 bodies: int = len(body.LINKS)):
+                 gait_mode: str = "chain", source: str = "built-in", features=DEFAULT_FEATURES,
+                 prior_scale: float | None = DEFAULT_PRIOR_SCALE, speed_weight: float = 1.0, scheme: int = 2,
+                 bodies: int = len(body.LINKS), free_viscosity: bool = FREE_VISCOSITY):
         self.device = device
         self.bodies = int(bodies)
         self.links = body.merge_links(self.bodies)  # the tail's rigid bodies (all: the robot's five plates + fin)
-        self.space = parameter_space()
+        if prior_scale is not None and not (np.isfinite(prior_scale) and prior_scale > 0):
+            raise InputError("--prior-scale", "prior_scale", f"must be a positive number of e-folds, got {prior_scale}")
+        if not (np.isfinite(speed_weight) and speed_weight > 0):
+            raise InputError("--speed-weight", "speed_weight", f"must be a positive number, got {speed_weight}")
+        self.prior_scale = None if prior_scale is None else float(prior_scale)
+        self.speed_weight = float(speed_weight)
+        self.space = parameter_space(self.prior_scale, free_viscosity)
         self.tolerance = TOLERANCE
         self.dt, self.warm_seconds, self.meas_seconds, self.virtual_mass = dt, warm_seconds, meas_seconds, virtual_mass
-        self.yaw_weight, self.scheme = float(yaw_weight), int(scheme)
+        self.scheme = int(scheme)
+        self.features = parse_features(features)
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
                            "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
         self.error_doc = ("|v_sim - v_real| in m/s: forward cruising speed, slope of a straight-line fit of the "
-                          "head position along the swimming direction against time")
-        if self.yaw_weight > 0:
-            self.error_doc = (f"sqrt(dv^2 + ({self.yaw_weight:g} m/s/rad * dyaw)^2): dv the forward cruising speed "
-                              "error [m/s] (slope of a straight-line fit of the head position), dyaw the error [rad] "
-                              "in the amplitude of the head's yaw oscillation at the tail-beat frequency")
+                          "head position along the swimming direction against time (the fit itself minimises the "
+                          "noise-normalised feature residuals of `features`, plus the prior)")
         self.source = source
         self.rates = {r.name: r for r in rates}
         self.gaits = {r.name: body.gait(r, gait_mode, self.bodies) for r in rates}
-        conds = [Condition(r.name, data=r, meta={"label": r.label, "speed": r.speed, "tail_freq": r.tail_freq,
-                                                  "yaw_amp": r.yaw_amp})
-                 for r in rates]
+        conds = []
+        for r in rates:
+            fv, spread, _ = feat.real_features(r)
+            conds.append(Condition(r.name, data=r, meta={"label": r.label, "speed": r.speed, "tail_freq": r.tail_freq,
+                                                         "yaw_amp": r.yaw_amp, "features": fv,
+                                                         "feature_spread": spread}))
         self.train = [c for c in conds if c.meta["label"] in train_labels]
         self.held_out = [c for c in conds if c.meta["label"] not in train_labels]
+        self.noise = noise_model(self.train, feat.FEATURES)
         self._batches: dict = {}
+
+    def sigma(self, cond, name: str) -> float:
+        """Noise of a clip's feature: the training-pooled per-beat std / sqrt(beats of this clip)."""
+        nz = self.noise[name]
+        s = nz["per_beat"] * (abs(cond.meta["features"][name]) if nz["relative"] else 1.0)
+        return float(s / np.sqrt(cond.meta["feature_spread"]["beats"]))
 
     def batch(self, conditions):
         key = tuple(c.name for c in conditions)
         if key not in self._batches:
-            self._batches[key] = body.build_batch(
+            sim = body.build_batch(
                 [self.rates[n] for n in key], device=self.device, dt=self.dt, warm_seconds=self.warm_seconds,
                 meas_seconds=self.meas_seconds, virtual_mass=self.virtual_mass,
                 gaits=[self.gaits[n] for n in key], scheme=self.scheme, bodies=self.bodies)
+            # the beat clock of each condition's measured window (t from a beat start) and the phase reference:
+            # the tail-tip marker's lateral motion as the gait's wave fit of the markers has it (the chain's fin
+            # tip lags it by ~7 deg; the head's response is referred to the real tail)
+            sim.clock = []
+            for j, n in enumerate(key):
+                per, step, nm = int(sim.n_per_host[j]), float(sim.dt_host[j]), int(sim.n_meas_host[j])
+                tip = body.wave_eval(self.gaits[n], np.array([body.TAIL_TIP_X]), np.arange(per) * step)[0][:, 0]
+                sim.clock.append((np.arange(nm) * step, tip[np.arange(nm) % per]))
+            self._batches[key] = sim
         return self._batches[key]
 
-    def simulate(self, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
-        """Cruising speeds [m/s] and head yaw amplitudes [rad], each (B, C)."""
+    def simulate(self, values: np.ndarray, conditions, features=None) -> dict:
+        """Simulated features {name: (B, C)} (features.py, measured as on the real markers); the head's
+        trajectory is recorded over the measured window only when a feature beyond the speed is asked for.
+        Also "yaw_amp_kernel": the kernel's on-the-fly yaw amplitude."""
+        names = self.features if features is None else tuple(features)
         values = np.atleast_2d(np.asarray(values, dtype=np.float64))
         sim = self.batch(conditions)
-        speed = sim.run(values)
-        return speed, sim.last_yaw
+        if names == ("speed",):
+            speed = sim.run(values)
+            return {"speed": speed, "yaw_amp_kernel": sim.last_yaw}
+        speed, beats = self._beats(values, conditions)
+        out = {k: np.full(speed.shape, np.nan) for k in feat.FEATURES}
+        out["speed"] = speed
+        for j, b in enumerate(beats):
+            with np.errstate(invalid="ignore"):
+                fv = feat.clip_features(b, speed[:, j])
+            for k in feat.FEATURES:
+                if k != "speed":
+                    out[k][:, j] = fv[k]
+        out["yaw_amp_kernel"] = sim.last_yaw
+        return out
+
+    def _beats(self, values, conditions):
+        """Speeds (B, C) and, per condition, features.beat_features of the simulated head markers over the
+        measured window (recorded every step from the measurement start)."""
+        sim = self.batch(conditions)
+        frames = int(sim.n_meas_host.max())
+        speed, traj, _ = sim.run(values, rec_stride=1, rec_frames=frames, rec_meas=True)
+        beats = []
+        for j, c in enumerate(conditions):
+            t, tip = sim.clock[j]
+            tr = traj[:, j, :len(t)]
+            m0 = tr[..., :2].astype(np.float64)
+            th = tr[..., 2].astype(np.float64)
+            m1 = m0 + body.HEAD_MARKER_X1 * np.stack([np.cos(th), np.sin(th)], -1)
+            with np.errstate(invalid="ignore"):
+                beats.append(feat.beat_features(t, m0, m1, tip, self.gaits[c.name]["freq"]))
+        return speed, beats
+
+    def waveforms(self, values, conditions, samples: int = 64) -> list:
+        """Per condition, the mean waveforms over a beat (features.waveforms) of the real clip and of the
+        simulated fish for each row of values: [(real, simulated (B, samples) arrays)]."""
+        values = np.atleast_2d(np.asarray(values, dtype=np.float64))
+        _, beats = self._beats(values, conditions)
+        out = []
+        for c, b in zip(conditions, beats):
+            _, _, real_beats = feat.real_features(self.rates[c.name])
+            out.append((feat.waveforms(real_beats, samples), feat.waveforms(b, samples)))
+        return out
 
     def speeds(self, values: np.ndarray, conditions) -> np.ndarray:
-        return self.simulate(values, conditions)[0]
+        return self.simulate(values, conditions, features=("speed",))["speed"]
+
+    def residuals_from(self, sim: dict, conditions, names=None) -> np.ndarray:
+        """(B, C * features) normalised residuals (sim - real) / noise, condition-major; the speed's times
+        speed_weight."""
+        cols = []
+        for j, c in enumerate(conditions):
+            for f in (self.features if names is None else names):
+                d = feat.feature_difference(sim[f][:, j], c.meta["features"][f], f)
+                cols.append(d / self.sigma(c, f) * (self.speed_weight if f == "speed" else 1.0))
+        return np.stack(cols, axis=1)
 
     def residuals(self, values, conditions):
-        """Signed residuals (B, R): v_sim - v_real per condition [m/s], then, with a yaw weight,
-        yaw_weight * (yaw_sim - yaw_real) per condition (speed-equivalent m/s)."""
-        speed, yaw = self.simulate(values, conditions)
-        res = speed - np.array([c.meta["speed"] for c in conditions])[None, :]
-        if self.yaw_weight > 0:
-            dyaw = yaw - np.array([c.meta["yaw_amp"] for c in conditions])[None, :]
-            res = np.concatenate([res, self.yaw_weight * dyaw], axis=1)
-        return res
+        """Signed normalised data residuals (B, C * features): per condition, per feature (sim - real) / noise
+        (phases wrapped). The prior's residuals are the engine's (ParameterSpace.prior_residuals)."""
+        return self.residuals_from(self.simulate(values, conditions), conditions)
 
     def errors(self, values, conditions):
-        r = self.residuals(values, conditions)
-        n = len(conditions)
+        """|v_sim - v_real| [m/s] per condition: the headline, also on held-out rates."""
+        sp = self.speeds(values, conditions)
         with np.errstate(invalid="ignore"):
-            err = np.abs(r[:, :n]) if self.yaw_weight <= 0 else np.hypot(r[:, :n], r[:, n:])
-            return finite_or_inf(err)
+            return finite_or_inf(np.abs(sp - np.array([c.meta["speed"] for c in conditions])[None, :]))
 
     # --- reporting ------------------------------------------------------------------------------
     def ebt(self) -> dict:
@@ -145,28 +283,51 @@ class SwimmerProblem(Problem):
 
     def report(self, fitted, measured) -> dict:
         conds = self.train + self.held_out
-        sp, yaw = self.simulate(np.stack([fitted, measured]), conds)
+        sim = self.simulate(np.stack([fitted, measured]), conds, features=feat.FEATURES)
         ebt = self.ebt()
         speeds = {}
         for j, c in enumerate(conds):
+            fe = {}
+            for f in feat.FEATURES:
+                real = c.meta["features"][f]
+                fe[f] = {"real": real, "fitted": float(sim[f][0, j]), "measured": float(sim[f][1, j]),
+                         "noise": self.sigma(c, f), "in_fit": f in self.features,
+                         "fitted_normalised_residual":
+                             float(feat.feature_difference(sim[f][0, j], real, f) / self.sigma(c, f))}
             speeds[f"{c.meta['label']:.2f}"] = {
-                "real": c.meta["speed"], "fitted": float(sp[0, j]), "measured": float(sp[1, j]),
+                "real": c.meta["speed"], "fitted": float(sim["speed"][0, j]), "measured": float(sim["speed"][1, j]),
+                "fitted_relative_error": float(sim["speed"][0, j] / c.meta["speed"] - 1.0),
                 "ebt": ebt["speeds"][c.name], "train": c in self.train, "tail_freq": c.meta["tail_freq"],
-                "yaw_amp_deg": {"real": float(np.degrees(c.meta["yaw_amp"])), "fitted": float(np.degrees(yaw[0, j])),
-                                "measured": float(np.degrees(yaw[1, j]))},
+                "stride_m": {"real": c.meta["speed"] / c.meta["tail_freq"],
+                             "fitted": float(sim["speed"][0, j]) / c.meta["tail_freq"]},
+                "beats": c.meta["feature_spread"]["beats"], "features": fe,
+                "real_speed_per_beat": feat.real_features(self.rates[c.name])[2]["speed"].tolist(),
+                "real_path_speed": path_speed(self.rates[c.name]),
+                "gait": gait_summary(self.rates[c.name], self.gaits[c.name]),
                 "real_heading": {k: v for k, v in real_heading(self.rates[c.name]).items()
                                  if k != "path_direction_deg"}}
         val = [f"{c.meta['label']:.2f}" for c in self.held_out]
         mae = {k: float(np.mean([abs(speeds[v][k] - speeds[v]["real"]) for v in val])) if val else None
                for k in ("fitted", "measured", "ebt")}
-        return {"speeds": speeds, "speed_mae": mae, "ebt_constants": {"c1": ebt["c1"], "c2": ebt["c2"]},
-                "data_source": self.source, "yaw_weight": self.yaw_weight,
+        worst = max((abs(speeds[v]["fitted_relative_error"]) for v in val), default=None)
+        return {"speeds": speeds, "speed_mae": mae, "worst_relative_speed_error": worst,
+                "ebt_constants": {"c1": ebt["c1"], "c2": ebt["c2"]}, "data_source": self.source,
+                "features": {"fitted": list(self.features), "speed_weight": self.speed_weight,
+                             "doc": feat.__doc__.split("\n\n")[2].strip(), "units": feat.UNITS,
+                             "noise": {f: dict(v, meaning="per-beat std pooled over the training clips (amplitudes "
+                                                          "as a fraction of the clip's); a clip's noise is it / "
+                                                          "sqrt(beats)") for f, v in self.noise.items()}},
+                "prior": {"on": self.prior_scale is not None, "centre": dict(PUBLISHED),
+                          "scale_efolds": self.prior_scale,
+                          "meaning": "Gaussian in ln(c) around the published values (Michelis et al.), per "
+                                     "coefficient; a MAP fit"},
                 "published": {"speed_mae_model": 0.019, "speed_mae_ebt": 0.134,
                               "note": "Michelis et al., eight rates, full MuJoCo model, Bayesian optimisation"}}
 
     def record(self, recorder, fitted, measured) -> None:
         """Per rate, one 2-D view of the real markers (grey) with the fish simulated with the fitted
-        (blue) and the published (orange) coefficients, all started at the real fish's pose; then
+        (blue) and the published (orange) coefficients, all started at the real fish's pose; per rate the
+        head's yaw, sway and forward-speed fluctuation over a beat (real, fitted, published); then
         speed against motor rate for real, fitted, published and the EBT baseline (green)."""
         conds = self.train + self.held_out
         for c in sorted(conds, key=lambda c: c.meta["label"]):
@@ -189,9 +350,33 @@ class SwimmerProblem(Problem):
             split = "train" if c in self.train else "held out"
             recorder.add_view(f"{rate.label:.2f} Hz ({split}): real grey, fitted blue, published orange",
                               [f"/{who}/{lab}/**" for who in ("reference", "measured", "fitted")], "spatial2d")
+        self._record_waveforms(recorder, fitted, measured, conds)
         self._record_speed_plot(recorder, fitted, measured, conds)
         recorder.add_view("speed [m/s] vs motor rate [Hz]", ["/plot/**"], "spatial2d")
         recorder.add_view("summary", ["/summary"], "text")
+
+    def _record_waveforms(self, recorder, fitted, measured, conds) -> None:
+        """Per rate, the head's yaw [deg], lateral sway [mm] and forward-speed fluctuation [mm/s] over one beat
+        (time from the tail tip's maximum, timeline beat_time): real (the clip's mean over its beats, grey),
+        fitted (blue), published coefficients (orange); harmonics 1..3, measured alike (features.py)."""
+        conds = sorted(conds, key=lambda c: c.meta["label"])
+        waves = self.waveforms(np.stack([fitted, measured]), conds)
+        scale = {"yaw": np.degrees(1.0), "sway": 1000.0, "surge": 1000.0}
+        unit = {"yaw": "deg", "sway": "mm", "surge": "mm/s"}
+        for c, (real, sim) in zip(conds, waves):
+            lab = f"f{c.meta['label']:.2f}"
+            period = 1.0 / c.meta["tail_freq"]
+            t = np.append(real["phase"], 1.0) * period
+            for k in ("yaw", "sway", "surge"):
+                for who, w in (("reference", real[k]), ("fitted", sim[k][0]), ("measured", sim[k][1])):
+                    recorder.log_series(f"beat/{lab}/{k}/{who}", t, scale[k] * np.append(w, w[0]),
+                                        timeline="beat_time")
+            split = "train" if c in self.train else "held out"
+            for k in ("yaw", "sway"):
+                recorder.add_view(f"{c.meta['label']:.2f} Hz ({split}): {k} over a beat [{unit[k]}], real grey, "
+                                  "fitted blue, published orange", [f"/beat/{lab}/{k}/**"], "timeseries")
+            recorder.add_view(f"{c.meta['label']:.2f} Hz ({split}): forward speed over a beat, minus its mean "
+                              "[mm/s]", [f"/beat/{lab}/surge/**"], "timeseries")
 
     def _record_speed_plot(self, recorder, fitted, measured, conds) -> None:
         """A static x-y plot in a 2-D view (image axes: y grows downwards, so speed is drawn as -y);
@@ -275,6 +460,30 @@ class SwimmerProblem(Problem):
         return out
 
 
+def path_speed(rate) -> float:
+    """Arc length of the head path averaged over one beat (moving mean), per second: the speed along a curved
+    path, beside the straight-line speed (they differ where the real fish turns)."""
+    head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])
+    n = max(1, int(round(rate.fps / rate.tail_freq)))
+    k = np.ones(n) / n
+    smooth = np.stack([np.convolve(head[:, i], k, mode="valid") for i in range(2)], 1)
+    if len(smooth) < 2:
+        return float("nan")
+    return float(np.linalg.norm(np.diff(smooth, axis=0), axis=1).sum() / ((len(smooth) - 1) / rate.fps))
+
+
+def gait_summary(rate, g) -> dict:
+    """How far the tail tip swings [m]: the tip marker, the gait's wave at the tip, the rigid chain's fin tip; and
+    which tail markers the wave was fitted to (a video can lose markers onto one point)."""
+    t = np.linspace(0.0, 1.0 / g["freq"], 200, endpoint=False)
+    local, keep = rate.meta["local"], rate.meta["tail_markers"]
+    wave = body.wave_eval(g, np.array([body.TAIL_TIP_X]), t)[0][:, 0]
+    return {"tip_amplitude_markers_m": float(np.ptp(local[:, keep[-1], 1]) / 2),
+            "tip_amplitude_wave_m": float(np.ptp(wave) / 2),
+            "tip_amplitude_chain_m": float(np.ptp(body.tail_points(g, t)[:, -1, 1]) / 2),
+            "tail_markers": [int(i) for i in keep], "wave_fit_rms_m": float(g["wave_rms"])}
+
+
 def real_heading(rate) -> dict:
     """How the real fish's heading behaves over its clip: the head path's net direction, the turn of
     the mean head axis from the first beat to the last, and the crab angle (net path direction
@@ -305,13 +514,17 @@ def _check_dt(dt: float, source: str = "--dt") -> float:
     return dt
 
 
+def _prior_scale(args) -> float | None:
+    v = getattr(args, "prior_scale", DEFAULT_PRIOR_SCALE)
+    return None if v is None or float(v) == 0.0 else float(v)
+
+
 def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LINKS)) -> SwimmerProblem:
-    yw = float(getattr(args, "yaw_weight", 0.0))
-    if not (np.isfinite(yw) and yw >= 0):
-        raise InputError("--yaw-weight", "yaw_weight", f"must be a finite number >= 0, got {yw}")
     return SwimmerProblem(rates, labels, device=device, dt=dt,
                           virtual_mass=bool(getattr(args, "virtual_mass", False)),
-                          gait_mode=getattr(args, "gait", "chain"), source=source, yaw_weight=yw,
+                          gait_mode=getattr(args, "gait", "chain"), source=source,
+                          features=getattr(args, "features", DEFAULT_FEATURES), prior_scale=_prior_scale(args),
+                          speed_weight=float(getattr(args, "speed_weight", 1.0)),
                           scheme=1 if getattr(args, "integrator", "ros2") == "euler" else 2,
                           bodies=bodies)
 

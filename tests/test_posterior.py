@@ -1,0 +1,114 @@
+"""The engine's MAP fit against closed forms: a problem linear in ln(c) with noise-normalised residuals and a
+Gaussian prior per parameter (Parameter.prior); the least-squares search, the Gauss-Newton posterior and data-only
+std, which parameters the data determine and which the prior holds, and the polished identifiability restarts."""
+import numpy as np
+import pytest
+
+from wrenorm.least_squares import levenberg_marquardt
+from wrenorm.params import Parameter, ParameterSpace
+from wrenorm.problem import Condition, Problem
+from wrenorm.restarts import identifiability_restarts
+from wrenorm.search import objective
+from wrenorm.uncertainty import uncertainty
+
+NOISE = 0.2
+# residuals (A ln c - y) / NOISE: data-only std 0.1 e-folds for a and b, 0.8 for c (barely seen)
+A = np.array([[1.0, 2.0, 0.0], [0.5, -1.0, 0.3], [2.0, 0.1, 0.0], [0.0, 1.0, 0.0]]) / NOISE
+Y = np.array([0.3, -0.2, 1.1, 0.4]) / NOISE
+MEASURED = np.array([1.0, 2.0, 0.5])
+
+
+class Linear(Problem):
+    """Residuals A ln(c) - Y in units of their noise; held out: one more row."""
+
+    task = "linear"
+    least_squares = True
+    noise_normalised = True
+
+    def __init__(self, A=A, prior_scale=None):
+        self.A = A
+        prior = (lambda m: (m, prior_scale)) if prior_scale else (lambda m: None)
+        self.space = ParameterSpace([Parameter(n, m, 1e-3, 1e3, "log", prior=prior(m))
+                                     for n, m in zip("abc", MEASURED)])
+        self.train = [Condition("rows")]
+        self.held_out = [Condition("extra")]
+        self.tolerance, self.resolution = 0.1, {}
+
+    def residuals(self, values, conditions):
+        z = np.log(np.atleast_2d(values))
+        if conditions[0].name == "extra":
+            return z @ np.array([[1.0, 1.0, 1.0]]).T - 0.5
+        return z @ self.A.T - Y[None]
+
+    def errors(self, values, conditions):
+        return np.abs(self.residuals(values, conditions)).mean(axis=1, keepdims=True)
+
+
+def closed_form_map(A, scale):
+    z0 = np.log(MEASURED)
+    P = np.eye(3) / scale ** 2
+    z = np.linalg.solve(A.T @ A + P, A.T @ Y + P @ z0)
+    return z, np.sum((A @ z - Y) ** 2) + np.sum((z - z0) ** 2) / scale ** 2, np.linalg.inv(A.T @ A + P)
+
+
+def test_least_squares_reaches_the_closed_form_map_and_the_prior_joins_the_objective():
+    p = Linear(prior_scale=0.7)
+    z_map, cost, _ = closed_form_map(A, 0.7)
+    res, r, J = levenberg_marquardt(p, np.array([5.0, 0.1, 3.0]), quiet=True)
+    np.testing.assert_allclose(np.log(res.best_values), z_map, atol=1e-6)
+    assert res.best_loss == pytest.approx(cost, rel=1e-7)
+    assert objective(p, res.best_values[None])[0] == pytest.approx(cost, rel=1e-7)
+    np.testing.assert_allclose(p.space.prior_residuals(res.best_values[None])[0],
+                               (np.log(res.best_values) - np.log(MEASURED)) / 0.7)
+
+
+def test_posterior_and_data_only_std_match_the_closed_forms():
+    p = Linear(prior_scale=0.7)
+    res, _, _ = levenberg_marquardt(p, MEASURED, quiet=True)
+    v = res.best_values
+    unc = uncertainty(p, v, step=1e-4)
+    _, _, post = closed_form_map(A, 0.7)
+    data = np.linalg.inv(A.T @ A)
+    # std in value units = value x std of ln(value)
+    np.testing.assert_allclose([unc["std"][n] / x for n, x in zip("abc", v)], np.sqrt(np.diag(post)), rtol=1e-4)
+    np.testing.assert_allclose([unc["data_only_std"][n] / x for n, x in zip("abc", v)], np.sqrt(np.diag(data)),
+                               rtol=1e-4)
+    # data-only std: a and b 0.1 e-folds (determined, < 30 %), c 0.8 (the prior holds it)
+    np.testing.assert_allclose(np.sqrt(np.diag(data)), [0.0996, 0.0995, 0.794], atol=1e-3)
+    assert unc["determined_by_data"] == ["a", "b"] and unc["held_by_prior"] == ["c"]
+    # the noise is known: chi2/dof is reported, the std is not scaled by it
+    r = A @ np.log(v) - Y
+    assert unc["chi2_per_dof"] == pytest.approx(r @ r / (4 - 3), rel=1e-4)
+
+
+def test_a_direction_the_data_never_see_has_no_data_only_std_and_the_prior_holds_it():
+    A2 = A.copy()
+    A2[:, 2] = 0.0
+    p = Linear(A2, prior_scale=0.5)
+    res, _, _ = levenberg_marquardt(p, MEASURED, quiet=True)
+    unc = uncertainty(p, res.best_values, step=1e-4)
+    assert np.isinf(unc["data_only_std"]["c"])  # not zero: the pseudo-inverse alone would call it exact
+    assert unc["std"]["c"] / res.best_values[2] == pytest.approx(0.5, rel=1e-4)  # the prior's own width
+    assert res.best_values[2] == pytest.approx(MEASURED[2], rel=1e-6)
+    assert "c" in unc["held_by_prior"] and "c" in unc["undetermined"]
+    # fewer independent rows than parameters, no prior: every parameter touching the unseen direction is unbounded
+    rank1 = Linear(np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 2.0]]))
+    u1 = uncertainty(rank1, MEASURED, step=1e-4)
+    assert np.isinf(u1["std"]["a"]) and np.isinf(u1["std"]["b"]) and np.isfinite(u1["std"]["c"])
+
+
+def test_restarts_are_polished_like_the_fit_and_report_the_held_out_spread():
+    p = Linear(prior_scale=0.7)
+    z_map, _, _ = closed_form_map(A, 0.7)
+    fitted = np.exp(z_map)
+    rs = identifiability_restarts(p, fitted, seeds=[1, 2, 3], popsize=8, generations=3,
+                                  method="cmaes+least-squares")
+    assert rs["search"] == "cmaes+least-squares"
+    for o in rs["optima"]:
+        np.testing.assert_allclose(np.log(list(o["values"].values())), z_map, atol=1e-5)
+    assert rs["searches_fitting_as_well"] == 3
+    assert rs["held_out_mean_error_spread"] < 1e-5 and rs["held_out_spread"]["extra"] < 1e-5
+    # three generations of CMA-ES alone end anywhere: no search fits as well, and the spread over all says so
+    crude = identifiability_restarts(p, fitted, seeds=[1, 2, 3], popsize=8, generations=3)
+    assert crude["search"] == "cmaes" and crude["searches_fitting_as_well"] < 3
+    assert crude["held_out_mean_error_spread_all"] > 1e-3
