@@ -36,7 +36,7 @@ def test_a_fit_writes_a_report_that_says_what_its_result_says(pd_run):
     result = json.loads((pd_run / "result.json").read_text())
     text = (pd_run / "report.html").read_text()
     assert f"<b>{result['validation']['verdict']}</b>" in text
-    for name, p in result["parameters"].items():
+    for name in result["parameters"]:
         assert f"<td>{name}</td>" in text
     for cond in result["validation"]["conditions"]:
         assert f"<td>{cond}</td>" in text
@@ -145,7 +145,8 @@ def _chunks(data: bytes, kind: bytes):
 
 def test_a_flow_writes_its_report(tmp_path):
     out = tmp_path / "flow"
-    r = _run(["flow", "pd", "--resolutions", "100", "400", "--restarts", "2", "--no-record", "--quiet", "--out", str(out)])
+    r = _run(["flow", "pd", "--resolutions", "100", "400", "--restarts", "2", "--no-record", "--quiet",
+              "--out", str(out)])
     assert r.returncode == 0, r.stderr
     text = (out / "report.html").read_text()
     flow = json.loads((out / "flow.json").read_text())

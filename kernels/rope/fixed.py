@@ -13,7 +13,8 @@ the hardware executes it:
 
 Each kernel is its own Warp module ("unique"), so building the kernel for a new chain size never forces
 the others to recompile. On the CPU, chains of up to 64 nodes run in lanes.py instead (16 chains per
-thread in vector lanes); this kernel serves CUDA (one chain per thread) and longer chains.
+thread in vector lanes), on CUDA chains of up to 16 in tiled.py (registers and shared memory: on sm_90 this
+kernel needs a 1.4 KB stack frame per thread at N = 16); this kernel serves the other sizes.
 """
 from __future__ import annotations
 

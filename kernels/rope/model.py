@@ -2,8 +2,8 @@
 structs (every rollout variant takes the same four), and the pieces of its step (per-chain constants,
 node prediction, the bending and link projections, segment distance, the first-contact candidate).
 
-Every rollout variant (generic.py, fixed.py, lanes.py, grad.py) steps the model through these, so all of them
-step the same model; the faster variants are tested bit for bit against generic.py.
+Every rollout variant (generic.py, fixed.py, lanes.py, tiled.py, grad.py) steps the model through these, so all
+of them step the same model; the faster variants are tested bit for bit against generic.py.
 """
 from __future__ import annotations
 
@@ -203,7 +203,8 @@ def first_contact(gap: float, qa0: wp.vec3, qa1: wp.vec3, qb0: wp.vec3, qb1: wp.
     return nb, na, nj
 
 
-# The one signature of every rollout variant (generic.py, fixed.py, lanes.py): the same launch serves them all.
+# The one signature of every rollout variant (generic.py, fixed.py, lanes.py, tiled.py): the same launch serves
+# them all.
 ROLLOUT_ARGUMENTS = {
     "state": ChainState,
     "hand": wp.array2d(dtype=wp.vec3),  # (paths, steps + 1) hand samples

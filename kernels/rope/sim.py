@@ -77,7 +77,7 @@ class RopeSim:
     def __init__(self, n_nodes: int, link_length: float, dt: float = 0.005, device: str = "cpu",
                  iterations: int = 4, cull: bool = True, margin: float | None = None,
                  gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True,
-                 lanes: int | None = None):
+                 lanes: int | None = None, tiled: bool | None = None):
         if not (3 <= int(n_nodes) <= 256):
             raise ValueError(f"n_nodes must be in [3, 256], got {n_nodes}")
         wp.init()
@@ -91,18 +91,29 @@ class RopeSim:
         self.gravity = tuple(float(g) for g in gravity)
         self.workers = workers
         self.min_sep = max(2, int(min_sep))
-        # fixed: a per-size kernel (fixed.py, or lanes.py on the CPU), same results as the generic one, faster.
-        # Only the kernel that runs is built: building one costs a second or more per process.
+        # fixed: a per-size kernel (lanes.py on the CPU, tiled.py on a GPU, else fixed.py), same results as the
+        # generic one, faster. Only the kernel that runs is built: building one costs a second or more per process.
         self.kernel = rollout_kernel
         self.lanes = 0  # chains per thread of the SIMD-lane kernel; 0: one
+        self.block = 0  # threads per block of the tiled kernel; 0: Warp's default launch
         if fixed:
             from wrenorm.kernels.rope import fixed as fixed_kernels
             from wrenorm.kernels.rope import lanes as lane_kernels
+            from wrenorm.kernels.rope import tiled as tiled_kernels
 
-            # lanes fill a CPU's vector units; a GPU runs one chain per thread
+            cpu = self.device.startswith("cpu")
+            # lanes fill a CPU's vector units; a GPU runs one chain per thread, its state in registers and
+            # shared memory (tiled.py) up to tiled.MAX_NODES nodes
+            if tiled is None:
+                tiled = not cpu and self.n <= tiled_kernels.MAX_NODES and not lanes
             if lanes is None:
-                lanes = lane_kernels.LANES if self.device.startswith("cpu") and self.n <= lane_kernels.MAX_NODES else 0
-            if lanes:
+                lanes = lane_kernels.LANES if cpu and self.n <= lane_kernels.MAX_NODES and not tiled else 0
+            if tiled and lanes:
+                raise ValueError("choose the tiled kernel or the lane kernel, not both")
+            if tiled:
+                self.kernel = tiled_kernels.tiled_kernel(self.n)
+                self.block = tiled_kernels.BLOCK
+            elif lanes:
                 self.kernel = lane_kernels.lanes_kernel(self.n, lanes)
                 self.lanes = int(lanes)
             elif self.n <= fixed_kernels.MAX_NODES:
@@ -160,10 +171,13 @@ class RopeSim:
 
             def launch(offset, count, s0=s0, ns=ns):
                 threads = -(-count // self.lanes) if self.lanes else count
-                wp.launch(self.kernel, dim=threads, device=dev, inputs=[
+                if self.block:  # whole blocks: every thread of a block takes part in its barriers
+                    threads = -(-count // self.block) * self.block
+                wp.launch(self.kernel, dim=threads, device=dev, block_dim=self.block or 256, inputs=[
                     state, hand_w, pidx, prm, cfg, s0, ns, int(stop_at_hit), ev, offset, offset + count])
 
-            launch_sliced(launch, B, dev, self.workers)
+            # Warp's CPU tiles share one static buffer per module: concurrent slices would race on it
+            launch_sliced(launch, B, dev, 1 if self.block and dev.startswith("cpu") else self.workers)
             if frames is not None:
                 frames.append(pos.numpy().copy())  # CPU .numpy() is a view
         wp.synchronize_device(dev)
