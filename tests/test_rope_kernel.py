@@ -303,3 +303,25 @@ def test_tiled_kernel_is_the_cuda_default_and_the_cpu_keeps_its_lanes():
         tiled.tiled_kernel(tiled.MAX_NODES + 1)
     with pytest.raises(ValueError):
         rope.RopeSim(16, 0.1, tiled=True, lanes=16)
+
+
+@pytest.mark.parametrize("stop", [False, True])
+@pytest.mark.parametrize("variant", ["generic", "lanes", "fixed", "tiled"])
+def test_every_variant_records_its_trajectory_in_one_launch(variant, stop):
+    """The kernels write the trajectory frames themselves (no launch per frame): frame k is the final state of a
+    rollout of min(k * every, steps) steps, for chains that run on, hit and stop, or blow up part way."""
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _tiled_case(16, B=70, steps=150)
+    kw = {"generic": dict(fixed=False), "lanes": dict(), "fixed": dict(lanes=0, tiled=False),
+          "tiled": dict(tiled=True)}[variant]
+    sim = rope.RopeSim(n, link, dt, **kw)
+    every = 17
+    res = sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=stop, trajectory_every=every)
+    marks = np.minimum(np.arange(res.trajectory.shape[0]) * every, steps)
+    assert res.trajectory.shape == (len(marks), 70, n, 3) and marks[-1] == steps and marks[-2] < steps
+    assert np.array_equal(res.trajectory_times, marks * dt)
+    assert np.array_equal(res.trajectory[0], pos0) and np.array_equal(res.trajectory[-1], res.final_pos,
+                                                                        equal_nan=True)
+    assert res.status[5] == 2 and (res.status == 1).sum() >= 3
+    for k in range(1, len(marks) - 1):
+        short = sim.rollout(pos0, v0, paths, pidx, params, int(marks[k]), stop_at_hit=stop)
+        assert np.array_equal(res.trajectory[k], short.final_pos, equal_nan=True), k

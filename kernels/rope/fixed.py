@@ -24,6 +24,8 @@ from wrenorm.kernels.rope.collide import collide_func, types
 from wrenorm.kernels.rope.model import (
     bend_project,
     chain_constants,
+    frame_after,
+    frames_from,
     inverse_masses,
     link_project,
     predict,
@@ -148,6 +150,10 @@ def _build(n: int):
                 for i in range(N):
                     state.pos[b, i] = P[i]
                     state.vel[b, i] = V[i]
+                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                for k in range(fr[0], fr[1] + 1):
+                    for i in range(N):
+                        state.frames[k, b, i] = P[i]
                 return
             best, best_a, best_b, cl, KB, CP, G = collide(P, Q, KB, CP, G, cl, st, two_r, cfg.margin, cfg.min_sep,
                                                           cfg.cull, link, nm1)
@@ -159,7 +165,15 @@ def _build(n: int):
                     for i in range(N):
                         state.pos[b, i] = P[i]
                         state.vel[b, i] = V[i]
+                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                    for k in range(fr[0], fr[1] + 1):
+                        for i in range(N):
+                            state.frames[k, b, i] = P[i]
                     return
+            frame = frame_after(step, cfg.frame_every, cfg.frame_end)
+            if frame >= 0:
+                for i in range(N):
+                    state.frames[frame, b, i] = P[i]
         events.clearance[b] = cl
         for i in range(N):
             state.pos[b, i] = P[i]

@@ -140,6 +140,13 @@ class RopeSim:
         state.lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         state.lam_link = wp.zeros((B, n), dtype=float, device=dev)
         state.seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
+        # the kernels record the trajectory themselves: a whole rollout stays one launch (no host step per frame)
+        every = int(trajectory_every or 0)
+        n_frames = -(-steps // every) + 1 if every else 1
+        frames = np.zeros((n_frames, B, n, 3) if every else (1, 1, 1, 3), np.float32)
+        if every:
+            frames[0] = pos0
+        state.frames = wp.array(frames, dtype=wp.vec3, device=dev)
         hand_w = v3(hand)
         pidx = wp.array(np.ascontiguousarray(path_index), dtype=wp.int32, device=dev)
         prm = ChainParameters()
@@ -149,6 +156,7 @@ class RopeSim:
         cfg.n, cfg.min_sep, cfg.link, cfg.dt = n, self.min_sep, self.link, self.dt
         cfg.gravity, cfg.iters, cfg.cull = wp.vec3(*self.gravity), self.iterations, int(self.cull)
         cfg.margin, cfg.vmax = self.margin, VMAX
+        cfg.frame_every, cfg.frame_end = every, steps
         ev = ChainEvents()
         ev.status = wp.zeros(B, dtype=wp.int32, device=dev)
         ev.hit_frame = wp.array(np.full(B, -1, np.int32), dtype=wp.int32, device=dev)
@@ -157,13 +165,11 @@ class RopeSim:
         ev.crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         ev.crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         ev.clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
-        pos = state.pos
         if not self._loaded:
             # build before the sliced launch: two threads meeting an unbuilt module both compile it
             wp.load_module(self.kernel.module, device=dev)
             self._loaded = True
-        chunk = int(trajectory_every or chunk or steps)
-        frames = [pos.numpy().copy()] if trajectory_every else None
+        chunk = max(1, int(chunk or steps))
         wp.synchronize_device(dev)
         t_kernel = time.perf_counter()
         for s0 in range(0, steps, chunk):
@@ -178,8 +184,6 @@ class RopeSim:
 
             # Warp's CPU tiles share one static buffer per module: concurrent slices would race on it
             launch_sliced(launch, B, dev, 1 if self.block and dev.startswith("cpu") else self.workers)
-            if frames is not None:
-                frames.append(pos.numpy().copy())  # CPU .numpy() is a view
         wp.synchronize_device(dev)
         # launches alone, without host<->device copies: what a GPU kernel sustains
         self.last_kernel_seconds = time.perf_counter() - t_kernel
@@ -194,9 +198,8 @@ class RopeSim:
             s_a=np.where(hit, hs[:, 0], np.nan), s_b=np.where(hit, hs[:, 1], np.nan),
             crit_pos=ev.crit_pos.numpy(), crit_vel=ev.crit_vel.numpy(), clearance=ev.clearance.numpy(),
             final_pos=state.pos.numpy(), final_vel=state.vel.numpy(),
-            trajectory=None if frames is None else np.stack(frames),
-            trajectory_times=None if frames is None else t0 + self.dt * np.minimum(
-                np.arange(len(frames)) * chunk, steps))
+            trajectory=state.frames.numpy() if every else None,
+            trajectory_times=t0 + self.dt * np.minimum(np.arange(n_frames) * every, steps) if every else None)
 
 
 # ---------------------------------------------------------------------------------- helpers

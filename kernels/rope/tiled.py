@@ -29,6 +29,8 @@ from wrenorm.kernels.rope.model import (
     bend_project,
     chain_constants,
     first_contact,
+    frame_after,
+    frames_from,
     link_project,
     node_w,
     predict,
@@ -166,6 +168,10 @@ def _build(n: int):
                 for i in range(N):
                     state.pos[b, i] = P[i]
                     state.vel[b, i] = (P[i] - X[prv, i, lane]) * inv_dt
+                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                for k in range(fr[0], fr[1] + 1):
+                    for i in range(N):
+                        state.frames[k, b, i] = P[i]
             # ---- self-collision, on the shared copies (the pair loops index nodes at run time)
             for i in range(N):
                 X[cur, i, lane] = P[i]
@@ -219,6 +225,14 @@ def _build(n: int):
                         p1 = X[cur, i, lane]
                         state.pos[b, i] = p1
                         state.vel[b, i] = (p1 - X[prv, i, lane]) * inv_dt
+                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                    for k in range(fr[0], fr[1] + 1):
+                        for i in range(N):
+                            state.frames[k, b, i] = X[cur, i, lane]
+            frame = frame_after(step, cfg.frame_every, cfg.frame_end)
+            if act != 0 and frame >= 0:
+                for i in range(N):
+                    state.frames[frame, b, i] = X[cur, i, lane]
             if wp.tile_max(wp.tile(act))[0] == 0:  # the block's chains have all finished
                 break
         if act != 0 and nsteps > 0:  # chains that ran every step (with none, the state stays as it was)
