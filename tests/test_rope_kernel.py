@@ -252,7 +252,7 @@ def _tiled_case(n, B=203, steps=220):
 
 
 @pytest.mark.parametrize("cpu_blocks", [False, True])
-@pytest.mark.parametrize("n,stop,chunk", [(8, True, None), (16, False, 37), (16, True, 50)])
+@pytest.mark.parametrize("n,stop,chunk", [(8, True, None), (12, False, None), (16, False, 37), (16, True, 50)])
 def test_tiled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, cpu_blocks):
     """kernels/rope/tiled.py (the CUDA default) against the generic kernel testing every pair, every output field.
     With cpu_blocks the CPU runs real blocks of tiled.BLOCK threads that meet at every barrier (Warp's CPU fibers),
