@@ -70,6 +70,20 @@ def rollout(
 # --- tape-safe variant: every step writes its own row, so wp.Tape can replay it backwards ---
 
 
+@wp.func
+def _tape_step(k: int, s: int, params: wp.array2d(dtype=wp.float64), cond: wp.array(dtype=int),
+               q_des: wp.array2d(dtype=wp.float64), qd_des: wp.array2d(dtype=wp.float64),
+               qdd_des: wp.array2d(dtype=wp.float64), integrator: int, dt: wp.float64,
+               q: wp.array2d(dtype=wp.float64), v: wp.array2d(dtype=wp.float64)):
+    """Step k of slot s: reads row k of q and v, writes row k + 1 (nothing carried in local variables)."""
+    c = cond[s]
+    tau = (params[s, 1] * (q_des[c, k] - q[k, s]) + params[s, 2] * (qd_des[c, k] - v[k, s])
+           + params[s, 3] * qd_des[c, k] + params[s, 4] * qdd_des[c, k])
+    qn, vn = _step(integrator, dt, params[s, 0], tau, q[k, s], v[k, s])
+    q[k + 1, s] = qn
+    v[k + 1, s] = vn
+
+
 @wp.kernel
 def step_kernel(
     k: int,
@@ -83,13 +97,28 @@ def step_kernel(
     q: wp.array2d(dtype=wp.float64),
     v: wp.array2d(dtype=wp.float64),
 ):
+    """One step per launch: the form rollout_steps_kernel is tested against."""
+    _tape_step(k, wp.tid(), params, cond, q_des, qd_des, qdd_des, integrator, dt, q, v)
+
+
+@wp.kernel
+def rollout_steps_kernel(
+    n_steps: int,
+    params: wp.array2d(dtype=wp.float64),
+    cond: wp.array(dtype=int),
+    q_des: wp.array2d(dtype=wp.float64),
+    qd_des: wp.array2d(dtype=wp.float64),
+    qdd_des: wp.array2d(dtype=wp.float64),
+    integrator: int,
+    dt: wp.float64,
+    q: wp.array2d(dtype=wp.float64),
+    v: wp.array2d(dtype=wp.float64),
+):
+    """Every step in one launch (no host work per step). Its adjoint replays the loop backwards, step by step, each
+    step from the rows it read, which are never overwritten: the same gradients as one launch per step."""
     s = wp.tid()
-    c = cond[s]
-    tau = (params[s, 1] * (q_des[c, k] - q[k, s]) + params[s, 2] * (qd_des[c, k] - v[k, s])
-           + params[s, 3] * qd_des[c, k] + params[s, 4] * qdd_des[c, k])
-    qn, vn = _step(integrator, dt, params[s, 0], tau, q[k, s], v[k, s])
-    q[k + 1, s] = qn
-    v[k + 1, s] = vn
+    for k in range(n_steps):
+        _tape_step(k, s, params, cond, q_des, qd_des, qdd_des, integrator, dt, q, v)
 
 
 @wp.kernel
@@ -160,8 +189,9 @@ def simulate(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, r
     return errors, (traj.numpy().reshape(B, C, T + 1) if record else None)
 
 
-def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float):
-    """errors (B, C) and d errors / d params (B, C, P) through wp.Tape."""
+def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, per_step: bool = False):
+    """errors (B, C) and d errors / d params (B, C, P) through wp.Tape: the whole rollout in one launch (per_step:
+    one launch per step, the reference it is tested against)."""
     B, C, T = values.shape[0], cmds.n_cond, cmds.n_steps
     slot_params, cond = _slots(np.asarray(values, np.float64), C)
     S = B * C
@@ -175,10 +205,12 @@ def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt
     tape = wp.Tape()
     with tape:
         wp.launch(init_kernel, dim=S, device=dev, inputs=[cond_w, cmds.init, q, v])
-        for k in range(T):
-            wp.launch(step_kernel, dim=S, device=dev,
-                      inputs=[k, params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, int(integrator), wp.float64(dt),
-                              q, v])
+        rest = [params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, int(integrator), wp.float64(dt), q, v]
+        if per_step:
+            for k in range(T):
+                wp.launch(step_kernel, dim=S, device=dev, inputs=[k, *rest])
+        else:
+            wp.launch(rollout_steps_kernel, dim=S, device=dev, inputs=[T, *rest])
         wp.launch(sq_error_kernel, dim=(T, S), device=dev, inputs=[q, cond_w, cmds.q_ref, acc])
         wp.launch(rms_kernel, dim=S, device=dev, inputs=[acc, cond_w, cmds.ref_scale, T, err])
     tape.backward(grads={err: wp.ones(S, dtype=wp.float64, device=dev)})

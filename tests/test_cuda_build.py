@@ -24,6 +24,19 @@ def test_per_thread_frame_grows_with_chain_size(built):
     assert built["rope_fast[N=16]"]["frame_bytes"] > built["rope_fast[N=8]"]["frame_bytes"]
 
 
+@pytest.mark.parametrize("n", [8, 16])
+def test_tiled_rope_kernel_keeps_its_chain_out_of_local_memory(built, n):
+    # the CUDA default (kernels/rope/tiled.py): registers and shared memory only, at most a few spilled words
+    res = built[f"rope_tiled[N={n}]"]
+    assert res["registers"] <= 255 and res["frame_bytes"] <= 256, res
+    assert res["frame_bytes"] < built[f"rope_fast[N={n}]"]["frame_bytes"] or res["frame_bytes"] == 0
+
+
+def test_swimmer_builds_its_forward_kernel_only(built):
+    # nothing differentiates the swimmer: no adjoint kernel (255 registers and a 448-byte frame) in the module
+    assert built["swimmer"]["registers"] < 255 and built["swimmer"]["frame_bytes"] <= 256, built["swimmer"]
+
+
 def test_cubin_reader_rejects_other_files(tmp_path):
     f = tmp_path / "x.cubin"
     f.write_bytes(b"not an elf file")

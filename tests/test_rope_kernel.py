@@ -236,3 +236,92 @@ def test_lane_kernel_with_spatial_culling_is_bit_identical_to_all_pairs(stop, ch
     assert (a.status == 1).sum() >= 20
     for f in ("status", "hit_frame", "hit_alpha", "crit_pos", "crit_vel", "clearance", "final_pos", "final_vel"):
         assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+
+
+def _tiled_case(n, B=203, steps=220):
+    """Swung chains of every kind for the tiled kernel: hits, near misses, stiff chains that stay clear, uneven
+    masses, stretchy links, one chain that is NaN from the start and one whose negative drag makes it blow up part
+    way; B is not a multiple of the block, so the last block is partly past the end of the batch."""
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _swing(B=B, n=n, steps=steps, seed=0)
+    params.bend_k[::3] *= 40.0
+    params.mass_slope[:] = np.linspace(-0.6, 0.6, B)
+    params.stretch[:] = np.linspace(0.0, 1e-3, B)
+    params.node_mass[5] = np.nan
+    params.drag_lin[40] = -20.0  # negative drag: the chain speeds up every step until it passes VMAX
+    return pos0, v0, paths, pidx, params, n, link, dt, steps
+
+
+@pytest.mark.parametrize("cpu_blocks", [False, True])
+@pytest.mark.parametrize("n,stop,chunk", [(8, True, None), (12, False, None), (16, False, 37), (16, True, 50)])
+def test_tiled_kernel_is_bit_identical_to_all_pairs(n, stop, chunk, cpu_blocks):
+    """kernels/rope/tiled.py (the CUDA default) against the generic kernel testing every pair, every output field.
+    With cpu_blocks the CPU runs real blocks of tiled.BLOCK threads that meet at every barrier (Warp's CPU fibers),
+    as a GPU does: chains that finish early keep stepping beside the others but must write nothing more."""
+    from wrenorm.kernels.rope import tiled
+
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _tiled_case(n)
+    kw = dict(stop_at_hit=stop, chunk=chunk)
+    sim = rope.RopeSim(n, link, dt, tiled=True)
+    assert sim.kernel is tiled.tiled_kernel(n) and sim.block == tiled.BLOCK and sim.lanes == 0
+    old = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = cpu_blocks
+    try:
+        a = sim.rollout(pos0, v0, paths, pidx, params, steps, **kw)
+    finally:
+        wp.config.enable_cpu_blocks = old
+    b = rope.RopeSim(n, link, dt, cull=False, fixed=False).rollout(pos0, v0, paths, pidx, params, steps, **kw)
+    assert a.status[5] == 2 and (stop or a.status[40] == 2)
+    assert (a.status == 1).sum() >= 20 and (a.status == 0).sum() >= 50
+    assert np.any((a.status == 0) & (a.clearance < 0.25 * link) & (a.clearance > 0))  # near misses
+    for f in ("status", "hit_frame", "hit_alpha", "hit_time", "s_a", "s_b", "crit_pos", "crit_vel", "clearance",
+              "final_pos", "final_vel"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+
+
+def test_the_negative_drag_chain_blows_up_part_way():
+    """_tiled_case's chain 40 blows up after some steps, not at once (chain 5 does at once): the bit-identity test
+    above covers a chain that leaves its block part way through a launch."""
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _tiled_case(16)
+    sim = rope.RopeSim(n, link, dt, cull=False, fixed=False)
+    short = sim.rollout(pos0, v0, paths, pidx, params, 20, stop_at_hit=False)
+    full = sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)
+    assert short.status[40] == 0 and full.status[40] == 2 and short.status[5] == 2
+    assert np.all(np.isfinite(full.final_pos[40])) and not np.all(np.isfinite(full.final_pos[5]))
+
+
+def test_tiled_kernel_is_the_cuda_default_and_the_cpu_keeps_its_lanes():
+    from wrenorm.kernels.rope import fixed, lanes, tiled
+
+    gpu = rope.RopeSim(16, 0.1, device="cuda:0")
+    assert gpu.kernel is tiled.tiled_kernel(16) and gpu.block == tiled.BLOCK and gpu.lanes == 0
+    cpu = rope.RopeSim(16, 0.1)
+    assert cpu.kernel is lanes.lanes_kernel(16) and cpu.lanes == lanes.LANES and cpu.block == 0
+    longer = rope.RopeSim(tiled.MAX_NODES + 1, 0.1, device="cuda:0")
+    assert longer.kernel is fixed.fast_kernel(tiled.MAX_NODES + 1) and longer.block == 0
+    assert rope.RopeSim(16, 0.1, device="cuda:0", tiled=False).kernel is fixed.fast_kernel(16)
+    with pytest.raises(ValueError):
+        tiled.tiled_kernel(tiled.MAX_NODES + 1)
+    with pytest.raises(ValueError):
+        rope.RopeSim(16, 0.1, tiled=True, lanes=16)
+
+
+@pytest.mark.parametrize("stop", [False, True])
+@pytest.mark.parametrize("variant", ["generic", "lanes", "fixed", "tiled"])
+def test_every_variant_records_its_trajectory_in_one_launch(variant, stop):
+    """The kernels write the trajectory frames themselves (no launch per frame): frame k is the final state of a
+    rollout of min(k * every, steps) steps, for chains that run on, hit and stop, or blow up part way."""
+    pos0, v0, paths, pidx, params, n, link, dt, steps = _tiled_case(16, B=70, steps=150)
+    kw = {"generic": dict(fixed=False), "lanes": dict(), "fixed": dict(lanes=0, tiled=False),
+          "tiled": dict(tiled=True)}[variant]
+    sim = rope.RopeSim(n, link, dt, **kw)
+    every = 17
+    res = sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=stop, trajectory_every=every)
+    marks = np.minimum(np.arange(res.trajectory.shape[0]) * every, steps)
+    assert res.trajectory.shape == (len(marks), 70, n, 3) and marks[-1] == steps and marks[-2] < steps
+    assert np.array_equal(res.trajectory_times, marks * dt)
+    assert np.array_equal(res.trajectory[0], pos0) and np.array_equal(res.trajectory[-1], res.final_pos,
+                                                                        equal_nan=True)
+    assert res.status[5] == 2 and (res.status == 1).sum() >= 3
+    for k in range(1, len(marks) - 1):
+        short = sim.rollout(pos0, v0, paths, pidx, params, int(marks[k]), stop_at_hit=stop)
+        assert np.array_equal(res.trajectory[k], short.final_pos, equal_nan=True), k

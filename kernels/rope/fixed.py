@@ -13,7 +13,8 @@ the hardware executes it:
 
 Each kernel is its own Warp module ("unique"), so building the kernel for a new chain size never forces
 the others to recompile. On the CPU, chains of up to 64 nodes run in lanes.py instead (16 chains per
-thread in vector lanes); this kernel serves CUDA (one chain per thread) and longer chains.
+thread in vector lanes), on CUDA chains of up to 16 in tiled.py (registers and shared memory: on sm_90 this
+kernel needs a 1.4 KB stack frame per thread at N = 16); this kernel serves the other sizes.
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ from wrenorm.kernels.rope.collide import collide_func, types
 from wrenorm.kernels.rope.model import (
     bend_project,
     chain_constants,
+    frame_after,
+    frames_from,
     inverse_masses,
     link_project,
     predict,
@@ -147,6 +150,10 @@ def _build(n: int):
                 for i in range(N):
                     state.pos[b, i] = P[i]
                     state.vel[b, i] = V[i]
+                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                for k in range(fr[0], fr[1] + 1):
+                    for i in range(N):
+                        state.frames[k, b, i] = P[i]
                 return
             best, best_a, best_b, cl, KB, CP, G = collide(P, Q, KB, CP, G, cl, st, two_r, cfg.margin, cfg.min_sep,
                                                           cfg.cull, link, nm1)
@@ -158,7 +165,15 @@ def _build(n: int):
                     for i in range(N):
                         state.pos[b, i] = P[i]
                         state.vel[b, i] = V[i]
+                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                    for k in range(fr[0], fr[1] + 1):
+                        for i in range(N):
+                            state.frames[k, b, i] = P[i]
                     return
+            frame = frame_after(step, cfg.frame_every, cfg.frame_end)
+            if frame >= 0:
+                for i in range(N):
+                    state.frames[frame, b, i] = P[i]
         events.clearance[b] = cl
         for i in range(N):
             state.pos[b, i] = P[i]

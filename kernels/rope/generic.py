@@ -47,6 +47,8 @@ from wrenorm.kernels.rope.model import (
     bend_project,
     chain_constants,
     first_contact,
+    frame_after,
+    frames_from,
     link_project,
     node_w,
     predict,
@@ -127,6 +129,10 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
         if not (vv < vmax2):
             events.status[b] = 2
             events.clearance[b] = cl
+            fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+            for k in range(fr[0], fr[1] + 1):
+                for i in range(n):
+                    state.frames[k, b, i] = pos[b, i]
             return
         # 5: self-collision
         for a in range(nseg):
@@ -169,5 +175,13 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
             events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nseg), (float(best_b) + res[2]) / float(nseg))
             if stop_at_hit != 0:
                 events.clearance[b] = cl
+                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                for k in range(fr[0], fr[1] + 1):
+                    for i in range(n):
+                        state.frames[k, b, i] = pos[b, i]
                 return
+        frame = frame_after(step, cfg.frame_every, cfg.frame_end)
+        if frame >= 0:
+            for i in range(n):
+                state.frames[frame, b, i] = pos[b, i]
     events.clearance[b] = cl

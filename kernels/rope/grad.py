@@ -29,7 +29,11 @@ _CACHE: dict = {}
 GRAD_FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_quad", "stretch", "mass_slope")
 
 
-def _step_kernel(n: int, iters: int):
+def _kernels(n: int, iters: int):
+    """(step_kernel, rollout_kernel) for chains of n nodes and `iters` constraint passes: one step per launch, and
+    every step in one launch. Both step through the same function; the rollout kernel's adjoint replays its step
+    loop backwards, each step from the states it read (never overwritten), so its gradients are the per-step
+    launches' (tested bit for bit)."""
     key = (int(n), int(iters))
     if key in _CACHE:
         return _CACHE[key]
@@ -40,17 +44,8 @@ def _step_kernel(n: int, iters: int):
     Mat = wp.types.matrix(shape=(n, 3), dtype=wp.float32)
     Vec = wp.types.vector(length=n, dtype=wp.float32)
 
-    @wp.kernel(module="unique", module_options={"enable_backward": True, "max_unroll": 256})
-    def step_kernel(
-        xs: wp.array3d(dtype=wp.vec3),  # (steps + 1, B, N)
-        vs: wp.array3d(dtype=wp.vec3),
-        hand: wp.array2d(dtype=wp.vec3),
-        path_index: wp.array(dtype=wp.int32),
-        params: ChainParameters,
-        cfg: ChainSettings,
-        s: int,
-    ):
-        b = wp.tid()
+    def chain_step(xs: wp.array3d(dtype=wp.vec3), vs: wp.array3d(dtype=wp.vec3), hand: wp.array2d(dtype=wp.vec3),
+                   path_index: wp.array(dtype=wp.int32), params: ChainParameters, cfg: ChainSettings, s: int, b: int):
         m, ml, slope, alpha_t, gamma, at_s, dl, dq = chain_constants(params, cfg, b)
         link = cfg.link
         dt = cfg.dt
@@ -90,8 +85,38 @@ def _step_kernel(n: int, iters: int):
             xs[s + 1, b, i] = P[i]
             vs[s + 1, b, i] = (P[i] - Q[i]) / dt
 
-    _CACHE[key] = step_kernel
-    return step_kernel
+    chain_step.__name__ = f"chain_step_{n}_{iters}"
+    step_func = wp.func(chain_step, module="unique")
+    options = {"enable_backward": True, "max_unroll": 256}
+
+    @wp.kernel(module="unique", module_options=options)
+    def step_kernel(
+        xs: wp.array3d(dtype=wp.vec3),  # (steps + 1, B, N)
+        vs: wp.array3d(dtype=wp.vec3),
+        hand: wp.array2d(dtype=wp.vec3),
+        path_index: wp.array(dtype=wp.int32),
+        params: ChainParameters,
+        cfg: ChainSettings,
+        s: int,
+    ):
+        step_func(xs, vs, hand, path_index, params, cfg, s, wp.tid())
+
+    @wp.kernel(module="unique", module_options=options)
+    def rollout_kernel(
+        xs: wp.array3d(dtype=wp.vec3),
+        vs: wp.array3d(dtype=wp.vec3),
+        hand: wp.array2d(dtype=wp.vec3),
+        path_index: wp.array(dtype=wp.int32),
+        params: ChainParameters,
+        cfg: ChainSettings,
+        steps: int,
+    ):
+        b = wp.tid()
+        for s in range(steps):
+            step_func(xs, vs, hand, path_index, params, cfg, s, b)
+
+    _CACHE[key] = (step_kernel, rollout_kernel)
+    return _CACHE[key]
 
 
 class GradRope:
@@ -102,19 +127,22 @@ class GradRope:
         wp.init()
         self.n, self.link, self.dt, self.iterations = int(n_nodes), float(link_length), float(dt), int(iterations)
         self.device, self.gravity = device, wp.vec3(*[float(g) for g in gravity])
-        self.kernel = _step_kernel(self.n, self.iterations)
+        self.step_kernel, self.kernel = _kernels(self.n, self.iterations)
         # P[i] = ... on the local state must be copy-on-write for correct adjoints; Warp takes
-        # that from a global flag at build time, so set it only while this module builds
+        # that from a global flag at build time, so set it only while these modules build
         old = wp.config.enable_vector_component_overwrites
         wp.config.enable_vector_component_overwrites = True
         try:
             wp.load_module(self.kernel.module, device=device)
+            wp.load_module(self.step_kernel.module, device=device)
         finally:
             wp.config.enable_vector_component_overwrites = old
 
-    def value_and_grad(self, pos0, vel0, hand, path_index, params: ChainParams, steps: int, weights):
+    def value_and_grad(self, pos0, vel0, hand, path_index, params: ChainParams, steps: int, weights,
+                       per_step: bool = False):
         """J_b = sum(weights_b * x_b(steps)) per chain; returns (J (B,), {field: dJ/dfield (B,)},
-        final positions (B, N, 3)). weights (B, N, 3) or broadcastable."""
+        final positions (B, N, 3)). weights (B, N, 3) or broadcastable. The rollout is one launch (per_step: one
+        launch per step, the reference it is tested against)."""
         dev, n, B = self.device, self.n, params.batch
         xs = wp.zeros((steps + 1, B, n), dtype=wp.vec3, device=dev, requires_grad=True)
         vs = wp.zeros((steps + 1, B, n), dtype=wp.vec3, device=dev, requires_grad=True)
@@ -138,8 +166,11 @@ class GradRope:
         J = wp.zeros(B, dtype=float, device=dev, requires_grad=True)
         tape = wp.Tape()
         with tape:
-            for s in range(steps):
-                wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, s])
+            if per_step:
+                for s in range(steps):
+                    wp.launch(self.step_kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, s])
+            else:
+                wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, steps])
             wp.launch(_weighted_sum, dim=(B, n), device=dev, inputs=[xs, wts, steps], outputs=[J])
         tape.backward(grads={J: wp.ones(B, dtype=float, device=dev)})
         grads = {f: pa[f].grad.numpy().copy() for f in GRAD_FIELDS}

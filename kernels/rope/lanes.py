@@ -21,7 +21,16 @@ import warp as wp
 
 from wrenorm.kernels.rope.collide import TEMPORAL_MAX_NODES, collide_func, types
 from wrenorm.kernels.rope.fixed import MAX_NODES, OPTIONS
-from wrenorm.kernels.rope.model import bend_lanes, chain_constants, node_w, record_hit, rollout_variant, running
+from wrenorm.kernels.rope.model import (
+    bend_lanes,
+    chain_constants,
+    frame_after,
+    frames_from,
+    node_w,
+    record_hit,
+    rollout_variant,
+    running,
+)
 
 LANES = 16  # 16 float32 = one AVX-512 register; 8 lanes ran the constraint passes a third slower per chain
 _CACHE: dict = {}
@@ -265,6 +274,7 @@ def _build(n: int, lanes: int):
                 VZ[i] = vz
                 vv = vv + (wp.cw_mul(vx, vx) + wp.cw_mul(vy, vy) + wp.cw_mul(vz, vz))
             # ---- per lane: blow-up, then the scalar self-collision test (collide.py)
+            frame = frame_after(step, cfg.frame_every, cfg.frame_end)
             for l in range(nl):
                 if ACT[l] == 0:
                     continue
@@ -277,6 +287,10 @@ def _build(n: int, lanes: int):
                     for i in range(N):
                         state.pos[b, i] = P[i]
                         state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                    for k in range(fr[0], fr[1] + 1):
+                        for i in range(N):
+                            state.frames[k, b, i] = P[i]
                     ACT[l] = 0
                     n_act -= 1
                     continue
@@ -304,8 +318,16 @@ def _build(n: int, lanes: int):
                         for i in range(N):
                             state.pos[b, i] = P[i]
                             state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                        fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                        for k in range(fr[0], fr[1] + 1):
+                            for i in range(N):
+                                state.frames[k, b, i] = P[i]
                         ACT[l] = 0
                         n_act -= 1
+                        continue
+                if frame >= 0:
+                    for i in range(N):
+                        state.frames[frame, b, i] = P[i]
             if n_act == 0:
                 return
         for l in range(nl):

@@ -2,8 +2,8 @@
 structs (every rollout variant takes the same four), and the pieces of its step (per-chain constants,
 node prediction, the bending and link projections, segment distance, the first-contact candidate).
 
-Every rollout variant (generic.py, fixed.py, lanes.py, grad.py) steps the model through these, so all of them
-step the same model; the faster variants are tested bit for bit against generic.py.
+Every rollout variant (generic.py, fixed.py, lanes.py, tiled.py, grad.py) steps the model through these, so all
+of them step the same model; the faster variants are tested bit for bit against generic.py.
 """
 from __future__ import annotations
 
@@ -79,7 +79,8 @@ def node_w(i: int, n: int, m: float, ml: float, slope: float) -> float:
 @wp.struct
 class ChainState:
     """Per chain and node: positions, velocities, positions at the start of the step, bending and link
-    multipliers, and segment bounding spheres (midpoint, half length)."""
+    multipliers, and segment bounding spheres (midpoint, half length); and the recorded trajectory, frames[f]
+    the positions after step min(f * frame_every, frame_end) (ChainSettings), written by the kernel itself."""
 
     pos: wp.array2d(dtype=wp.vec3)
     vel: wp.array2d(dtype=wp.vec3)
@@ -87,6 +88,7 @@ class ChainState:
     lam: wp.array2d(dtype=wp.vec3)
     lam_link: wp.array2d(dtype=float)
     seg: wp.array2d(dtype=wp.vec4)
+    frames: wp.array3d(dtype=wp.vec3)  # (frames, chains, nodes); frame 0, the initial state, is the caller's
 
 
 @wp.struct
@@ -117,6 +119,8 @@ class ChainSettings:
     cull: int  # 1: skip pairs that provably cannot touch (results identical to testing all pairs)
     margin: float  # m, the clearance below which a pair counts toward `clearance`
     vmax: float  # m/s, faster means the step blew up
+    frame_every: int  # steps between recorded frames (ChainState.frames); 0: no trajectory
+    frame_end: int  # the rollout's last step, recorded whether or not a multiple of frame_every
 
 
 @wp.struct
@@ -203,7 +207,8 @@ def first_contact(gap: float, qa0: wp.vec3, qa1: wp.vec3, qb0: wp.vec3, qb1: wp.
     return nb, na, nj
 
 
-# The one signature of every rollout variant (generic.py, fixed.py, lanes.py): the same launch serves them all.
+# The one signature of every rollout variant (generic.py, fixed.py, lanes.py, tiled.py): the same launch serves
+# them all.
 ROLLOUT_ARGUMENTS = {
     "state": ChainState,
     "hand": wp.array2d(dtype=wp.vec3),  # (paths, steps + 1) hand samples
@@ -252,6 +257,30 @@ def record_hit(events: ChainEvents, b: int, step: int, best: float, best_a: int,
         events.crit_vel[b, i] = V[i]
     res = seg_closest(P[best_a], P[best_a + 1], P[best_b], P[best_b + 1])
     events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nm1), (float(best_b) + res[2]) / float(nm1))
+
+
+@wp.func
+def frame_after(step: int, every: int, end: int) -> int:
+    """The trajectory frame that records the positions after `step`, -1 if none records them (or no trajectory is
+    recorded: every = 0). Frames every `every` steps, and one at the rollout's last step `end`."""
+    s = step + 1
+    f = int(-1)
+    if every > 0:
+        if s % every == 0:
+            f = s // every
+        elif s == end:
+            f = s // every + 1
+    return f
+
+
+@wp.func
+def frames_from(step: int, every: int, end: int) -> wp.vec2i:
+    """The frames [first, last] a chain that finishes in `step` (blows up, or stops at its hit) fills with its
+    final state: every frame recorded after `step`, to the end of the rollout ([0, -1] without a trajectory)."""
+    out = wp.vec2i(0, -1)
+    if every > 0:
+        out = wp.vec2i((step + every) // every, (end + every - 1) // every)
+    return out
 
 
 @wp.func

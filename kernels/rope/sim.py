@@ -81,7 +81,7 @@ class RopeSim:
     def __init__(self, n_nodes: int, link_length: float, dt: float = 0.005, device: str = "cpu",
                  iterations: int = 4, cull: bool = True, margin: float | None = None,
                  gravity=GRAVITY, workers: int | None = None, min_sep: int = 2, fixed: bool = True,
-                 lanes: int | None = None):
+                 lanes: int | None = None, tiled: bool | None = None):
         if not (3 <= int(n_nodes) <= 256):
             raise ValueError(f"n_nodes must be in [3, 256], got {n_nodes}")
         wp.init()
@@ -95,18 +95,29 @@ class RopeSim:
         self.gravity = tuple(float(g) for g in gravity)
         self.workers = workers
         self.min_sep = max(2, int(min_sep))
-        # fixed: a per-size kernel (fixed.py, or lanes.py on the CPU), same results as the generic one, faster.
-        # Only the kernel that runs is built: building one costs a second or more per process.
+        # fixed: a per-size kernel (lanes.py on the CPU, tiled.py on a GPU, else fixed.py), same results as the
+        # generic one, faster. Only the kernel that runs is built: building one costs a second or more per process.
         self.kernel = rollout_kernel
         self.lanes = 0  # chains per thread of the SIMD-lane kernel; 0: one
+        self.block = 0  # threads per block of the tiled kernel; 0: Warp's default launch
         if fixed:
             from wrenorm.kernels.rope import fixed as fixed_kernels
             from wrenorm.kernels.rope import lanes as lane_kernels
+            from wrenorm.kernels.rope import tiled as tiled_kernels
 
-            # lanes fill a CPU's vector units; a GPU runs one chain per thread
+            cpu = self.device.startswith("cpu")
+            # lanes fill a CPU's vector units; a GPU runs one chain per thread, its state in registers and
+            # shared memory (tiled.py) up to tiled.MAX_NODES nodes
+            if tiled is None:
+                tiled = not cpu and self.n <= tiled_kernels.MAX_NODES and not lanes
             if lanes is None:
-                lanes = lane_kernels.LANES if self.device.startswith("cpu") and self.n <= lane_kernels.MAX_NODES else 0
-            if lanes:
+                lanes = lane_kernels.LANES if cpu and self.n <= lane_kernels.MAX_NODES and not tiled else 0
+            if tiled and lanes:
+                raise ValueError("choose the tiled kernel or the lane kernel, not both")
+            if tiled:
+                self.kernel = tiled_kernels.tiled_kernel(self.n)
+                self.block = tiled_kernels.BLOCK
+            elif lanes:
                 self.kernel = lane_kernels.lanes_kernel(self.n, lanes)
                 self.lanes = int(lanes)
             elif self.n <= fixed_kernels.MAX_NODES:
@@ -134,6 +145,13 @@ class RopeSim:
         state.lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         state.lam_link = wp.zeros((B, n), dtype=float, device=dev)
         state.seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)
+        # the kernels record the trajectory themselves: a whole rollout stays one launch (no host step per frame)
+        every = int(trajectory_every or 0)
+        n_frames = -(-steps // every) + 1 if every else 1
+        frames = np.zeros((n_frames, B, n, 3) if every else (1, 1, 1, 3), np.float32)
+        if every:
+            frames[0] = pos0
+        state.frames = wp.array(frames, dtype=wp.vec3, device=dev)
         hand_w = v3(hand)
         pidx = wp.array(np.ascontiguousarray(path_index), dtype=wp.int32, device=dev)
         prm = ChainParameters()
@@ -143,6 +161,7 @@ class RopeSim:
         cfg.n, cfg.min_sep, cfg.link, cfg.dt = n, self.min_sep, self.link, self.dt
         cfg.gravity, cfg.iters, cfg.cull = wp.vec3(*self.gravity), self.iterations, int(self.cull)
         cfg.margin, cfg.vmax = self.margin, VMAX
+        cfg.frame_every, cfg.frame_end = every, steps
         ev = ChainEvents()
         ev.status = wp.zeros(B, dtype=wp.int32, device=dev)
         ev.hit_frame = wp.array(np.full(B, -1, np.int32), dtype=wp.int32, device=dev)
@@ -151,13 +170,11 @@ class RopeSim:
         ev.crit_pos = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         ev.crit_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         ev.clearance = wp.array(np.full(B, self.margin, np.float32), dtype=float, device=dev)
-        pos = state.pos
         if not self._loaded:
             # build before the sliced launch: two threads meeting an unbuilt module both compile it
             wp.load_module(self.kernel.module, device=dev)
             self._loaded = True
-        chunk = int(trajectory_every or chunk or steps)
-        frames = [pos.numpy().copy()] if trajectory_every else None
+        chunk = max(1, int(chunk or steps))
         wp.synchronize_device(dev)
         t_kernel = time.perf_counter()
         for s0 in range(0, steps, chunk):
@@ -165,12 +182,13 @@ class RopeSim:
 
             def launch(offset, count, s0=s0, ns=ns):
                 threads = -(-count // self.lanes) if self.lanes else count
-                wp.launch(self.kernel, dim=threads, device=dev, inputs=[
+                if self.block:  # whole blocks: every thread of a block takes part in its barriers
+                    threads = -(-count // self.block) * self.block
+                wp.launch(self.kernel, dim=threads, device=dev, block_dim=self.block or 256, inputs=[
                     state, hand_w, pidx, prm, cfg, s0, ns, int(stop_at_hit), ev, offset, offset + count])
 
-            launch_sliced(launch, B, dev, self.workers)
-            if frames is not None:
-                frames.append(pos.numpy().copy())  # CPU .numpy() is a view
+            # Warp's CPU tiles share one static buffer per module: concurrent slices would race on it
+            launch_sliced(launch, B, dev, 1 if self.block and dev.startswith("cpu") else self.workers)
         wp.synchronize_device(dev)
         # launches alone, without host<->device copies: what a GPU kernel sustains
         self.last_kernel_seconds = time.perf_counter() - t_kernel
@@ -187,9 +205,9 @@ class RopeSim:
             s_a=np.where(hit, hs[:, 0], np.nan), s_b=np.where(hit, hs[:, 1], np.nan),
             crit_pos=ev.crit_pos.numpy(), crit_vel=ev.crit_vel.numpy(), clearance=ev.clearance.numpy(),
             final_pos=state.pos.numpy(), final_vel=state.vel.numpy(),
-            trajectory=None if frames is None else np.stack(frames),
-            trajectory_times=None if frames is None else t0 + self.dt * np.minimum(
-                np.arange(len(frames)) * chunk, steps), events=ev, dt=self.dt, t0=t0)
+            trajectory=state.frames.numpy() if every else None,
+            trajectory_times=t0 + self.dt * np.minimum(np.arange(n_frames) * every, steps) if every else None,
+            events=ev, dt=self.dt, t0=t0)
 
 
 # ---------------------------------------------------------------------------------- helpers

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward only, like kernel.py
+
 MINVAL = 1e-15  # mjMINVAL
 
 

@@ -26,8 +26,9 @@ def benchmark(n_nodes: int = 16, batch: int = 4096, steps: int = 200, device: st
               variant: str = "culled", repeats: int = 2) -> dict:
     """Chain-steps per second of a swung-rope rollout (chains keep running after their first hit).
 
-    variant: "culled" (the default kernel: SIMD lanes on the CPU), "allpairs" (all cores, no culling),
-    "culled-1core" (one slice), "scalar" (rope_fast.py, one chain per thread), "generic" (the
+    variant: "culled" (the default kernel: SIMD lanes on the CPU, tiled.py on a GPU), "allpairs" (all cores, no
+    culling), "culled-1core" (one slice), "scalar" (fixed.py, one chain per thread, its state in local memory),
+    "tiled" (tiled.py, one chain per thread, its state in registers and shared memory), "generic" (the
     size-generic kernel, culled), "numpy" | "torch" (vectorised baselines of the same step).
     `kernel_chain_steps_per_s` counts the launches only (on CUDA the copies to and from the host
     are otherwise a large share at a million chains).
@@ -51,7 +52,8 @@ def benchmark(n_nodes: int = 16, batch: int = 4096, steps: int = 200, device: st
     else:
         sim = RopeSim(n_nodes, link, dt, device, iterations=4, cull=variant != "allpairs",
                       workers=1 if variant.endswith("1core") else None, fixed=variant != "generic",
-                      lanes=0 if variant == "scalar" else None)
+                      lanes=0 if variant in ("scalar", "tiled") else None,
+                      tiled={"scalar": False, "tiled": True}.get(variant))
         run = lambda: sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=False)  # noqa: E731
         warm = ChainParams(**{f: getattr(params, f)[:64] for f in ChainParams.FIELDS})
         sim.rollout(pos0[:64], v0, paths, pidx[:64], warm, 2)
@@ -87,7 +89,9 @@ def bench(device: str, batches: list[int], quick: bool) -> tuple[list[dict], str
     b = 1024 if quick else (4096 if not gpu else 262144)
     base_steps = 20 if quick else 50
     peers = ("numpy", "torch")
-    variants = ["culled", "allpairs"] + (["generic"] if gpu else ["culled-1core", "scalar"]) + list(peers)
+    # on a GPU "culled" is tiled.py, "scalar" fixed.py; on the CPU "culled" is lanes.py
+    variants = ["culled", "allpairs"] + (["scalar", "generic"] if gpu else ["culled-1core", "scalar", "tiled"])
+    variants += list(peers)
     for v in variants:
         # the numpy and torch peers run on the CPU at a CPU-sized batch wherever the bench runs
         r = benchmark(16, min(b, 4096) if v in peers else b, base_steps if v in peers else steps,
@@ -144,10 +148,12 @@ def parity(device: str, batch: int = 512, steps: int = 240) -> dict:
 
 def kernel_modules(sizes=(8, 16)) -> dict:
     """The rope's Warp modules for the ahead-of-time CUDA build (fixed-size kernels for `sizes`)."""
-    from wrenorm.kernels.rope import fixed, generic, grad
+    from wrenorm.kernels.rope import fixed, generic, grad, tiled
     from wrenorm.tasks.rope.reference import newton
 
     mods = {"rope": generic, "rope_grad": grad, "rope_newton": newton}
     for n in sizes:
         mods[f"rope_fast[N={n}]"] = fixed.fast_kernel(n).module
+    for n in sizes:
+        mods[f"rope_tiled[N={n}]"] = tiled.tiled_kernel(n).module
     return mods
