@@ -48,5 +48,6 @@ def test_parity_path_runs_and_is_exact_cpu_against_cpu():
     p = cuda_check.parity("cpu")
     assert p["rope"]["status_agree"] == 1.0 and p["rope"]["hit_fraction_cpu"] > 0
     assert p["rope"]["hit_time_max_abs_s"] == 0.0
+    assert p["rope"]["observable_status_agree"] == 1.0 and p["rope"]["observable_total_max_rel"] == 0.0
     assert p["swimmer"]["speed_max_rel"] == 0.0 and np.isfinite(p["pd"]["error_max_rel"])
     assert p["pd"]["error_max_rel"] == 0.0

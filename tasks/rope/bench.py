@@ -143,15 +143,34 @@ def parity(device: str, batch: int = 512, steps: int = 240) -> dict:
     both = (a.status == 1) & (b.status == 1)
     return {"status_agree": float(np.mean(a.status == b.status)),
             "hit_time_max_abs_s": float(np.max(np.abs(a.hit_time[both] - b.hit_time[both]))) if both.any() else None,
-            "hit_fraction_cpu": float(np.mean(a.status == 1))}
+            "hit_fraction_cpu": float(np.mean(a.status == 1))} | _observable_parity(device)
+
+
+def _observable_parity(device: str, candidates: int = 64) -> dict:
+    """The fit's whole observable (rollouts, critical states, error terms on the device) on the built-in throws,
+    CPU against `device`: the largest relative difference of the totals where both chains hit."""
+    from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.reference.generate import builtin_references
+
+    refs = builtin_references("fit")
+    probs = [RopeProblem(refs, device=dev, names=[f"r{i}" for i in range(len(refs))]) for dev in ("cpu", device)]
+    rng = np.random.default_rng(5)
+    space = probs[0].space
+    u = np.clip(space.to_unit(space.measured)[None] + rng.normal(0, 0.2, (candidates, len(space.free))), 0, 1)
+    values = space.from_unit(u)
+    ta, tb = (p.error_terms(values, p.train) for p in probs)
+    hit = (ta["status"] == 1) & (tb["status"] == 1)
+    rel = np.abs(ta["total"][hit] - tb["total"][hit]) / np.abs(ta["total"][hit])
+    return {"observable_status_agree": float(np.mean(ta["status"] == tb["status"])),
+            "observable_total_max_rel": float(rel.max()) if hit.any() else None}
 
 
 def kernel_modules(sizes=(8, 16)) -> dict:
     """The rope's Warp modules for the ahead-of-time CUDA build (fixed-size kernels for `sizes`)."""
-    from wrenorm.kernels.rope import fixed, generic, grad, tiled
+    from wrenorm.kernels.rope import critical, fixed, generic, grad, tiled
     from wrenorm.tasks.rope.reference import newton
 
-    mods = {"rope": generic, "rope_grad": grad, "rope_newton": newton}
+    mods = {"rope": generic, "rope_grad": grad, "rope_newton": newton, "rope_critical": critical}
     for n in sizes:
         mods[f"rope_fast[N={n}]"] = fixed.fast_kernel(n).module
     for n in sizes:
