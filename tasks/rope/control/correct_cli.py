@@ -149,7 +149,15 @@ def run(args) -> int:
         write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
-    goal_ref = _goal_reference(args.goal, args.variant, progress)
+    if args.real == "fine" and args.engine != "newton":
+        # another engine's rope reaches its own goal state: the goal throw on that engine (kept with the trials)
+        from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION
+
+        progress(f"the goal: {args.variant} rope under {args.goal} on {args.engine}")
+        goal_ref = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
+                                                             args.device), out / "goal")(goal_path)
+    else:
+        goal_ref = _goal_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
     fitted, fit_info = None, None
     if "fitted" in args.params or args.real == "coarse":

@@ -19,9 +19,17 @@ made (none was tuned on the campaign's seeds 0-2; README, "Renormalising as it g
   older trials still pin what the latest leaves open). The best trial, around which the next plan is
   centred, weighs at least as much as the latest.
 - prior: each free parameter a Gaussian around its measured value (`Parameter(prior=...)`), scale
-  PRIOR_SCALE = 1/2 of its search box (in log units for log-scale parameters): a parameter may cross a
-  quarter of its box (a factor of ~10 in stiffness) for an error gain of 0.25, the size of the model's
-  error at 10 links; parameters the trials leave open stay near their measured values.
+  PRIOR_SCALE = 1/2 of its search box (in log units for log-scale parameters): crossing a quarter of the box
+  (a factor of ~10 in bending stiffness) costs 0.25, the size of the chain's own error at 10 links, so a
+  trial moves a parameter only as far as it lowers that error; parameters the trials leave open stay near
+  their measured values. Development (default rope, seeds 3-5, not a campaign rope or seed) compared 1/2
+  with 2: no difference beyond the run-to-run spread; 1/2 was kept as the value set before.
+- offset: the chain is refitted to the trials' critical states themselves, and the plan adds what the
+  refitted chain still misses, learned from the trials as the fixed-parameter loop learns it (the offset at
+  the best trial plus a Broyden update per other trial, oldest first). On the chain-as-real known-answer
+  system the refit alone suffices; on the fine rope the 10-link chain's refitted error stays ~0.4, and
+  dropping the offset was worse on the development seeds. An "anchored" refit (the chain plus its offset
+  at the best trial scored against the other trials) is available (`anchored=True`) and was worse there.
 - search: warm-started from the current values, with a second search from the measured values side by
   side (one batched rollout for both), so one misleading trial cannot trap the chain in its basin; small
   steps (sigma 0.1 of the box) because consecutive refits differ by one trial.
