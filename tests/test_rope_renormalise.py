@@ -114,14 +114,15 @@ def test_anchored_errors_vanish_at_the_anchor(problem):
     (0.4, 0.2, 0.60, 2.0, 1.0, "shrink", 0.5),  # worse than before
     (0.4, 0.4, 0.30, 1.0, 1.0, "shrink", 0.5),  # nothing predicted: rho undefined, counts as bad
     (0.4, 0.2, 0.20, 5.0, 5.0, "grow", 6.0),  # growth stops at the box
-    (0.4, 0.2, 0.60, 0.02, 1.0, "shrink", 0.05),  # and shrinking at the floor
+    (0.4, 0.2, 0.60, 0.02, 1.0, "shrink", 0.1),  # and shrinking at the floor
 ])
 def test_trust_region_rule(case):
     best, pred, meas, step, radius, verdict, after = case
-    tr = rn.TrustRegion(radius, max_radius=6.0)
+    tr = rn.TrustRegion(radius, max_radius=6.0, min_radius=0.1)
     out = tr.update(best, pred, meas, step)
     assert out["verdict"] == verdict and np.isclose(tr.radius, after) and np.isclose(out["radius_after"], after)
     assert out["radius_before"] == radius
+    assert rn.TrustRegion(1.0, 6.0).min_radius == rn.MIN_RADIUS
 
 
 FAST = {"popsize": 16, "generations": 15}

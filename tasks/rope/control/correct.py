@@ -242,7 +242,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             fd_step: float = FD_STEP, secant: bool | None = None, method: str = "plan", plan_first: bool = True,
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
-            decay: float | None = None, anchored: bool = False, refit_generations: int | None = None) -> dict:
+            decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
+            min_radius: float | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "plan" (default): model-offset ILC, every next command a global CMA-ES plan on the
@@ -275,7 +276,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
-                                      prior_scale, decay, anchored, refit_generations, progress, on_trial)
+                                      prior_scale, decay, anchored, refit_generations, min_radius, progress,
+                                      on_trial)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
     reg = (rope_plan.DEFAULT_REG if method == "plan" else DEFAULT_REG) if reg is None else reg
@@ -419,7 +421,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                            tolerance: float, radius: float | None, reg: float | None, seed: int,
                            popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
                            prior_scale: float | None, decay: float | None, anchored: bool,
-                           refit_generations: int | None, progress, on_trial) -> dict:
+                           refit_generations: int | None, min_radius: float | None, progress, on_trial) -> dict:
     """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
@@ -435,7 +437,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
     model = CoarseModel(model.problem, model.values, space, model.label)
-    trust = rn.TrustRegion(DEFAULT_PLAN_RADIUS if radius is None else radius, 2.0 * space.bound)
+    trust = rn.TrustRegion(DEFAULT_PLAN_RADIUS if radius is None else radius, 2.0 * space.bound,
+                           rn.MIN_RADIUS if min_radius is None else float(min_radius))
     zero = rope_plan.Offset.zero(space.dim, goal.dim, u0)
     # trial 0: the model alone picks the first real command, in the whole box around the start
     p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, zero, seed=seed, **plan_opts)
@@ -524,7 +527,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
         "final_parameters": pspace.as_dict(model.values),
         "renormalise": {"prior_centre": pspace.as_dict(prior_centre), "prior_scale": prior_scale, "decay": decay,
                         "refit_offset": bool(refit_offset), "anchored": bool(anchored), "trust_region": {
-                            "good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW, "shrink": trust.SHRINK}},
+                            "good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW, "shrink": trust.SHRINK,
+                            "min_radius": trust.min_radius}},
         "trials": trials,
     }
 

@@ -75,6 +75,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--decay", type=float, default=None,
                    help="(renormalised) weight of a trial per trial of age in the refit, in (0, 1]; default "
                         "renormalise.DECAY")
+    p.add_argument("--min-radius", type=float, default=None,
+                   help="(renormalised) smallest trust radius (units of u); default renormalise.MIN_RADIUS")
     p.add_argument("--refit-generations", type=int, default=None,
                    help="(renormalised) CMA-ES generations of each refit; default renormalise.REFIT_GENERATIONS")
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
@@ -133,6 +135,8 @@ def run(args) -> int:
         raise InputError("--prior-scale", "prior_scale", f"must be in (0, 100], got {args.prior_scale:g}")
     if args.decay is not None and not 0 < args.decay <= 1:
         raise InputError("--decay", "decay", f"must be in (0, 1], got {args.decay:g}")
+    if args.min_radius is not None and not 0 < args.min_radius <= 6:
+        raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
     if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
@@ -211,7 +215,7 @@ def run(args) -> int:
                       method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
-                      refit_generations=args.refit_generations)
+                      refit_generations=args.refit_generations, min_radius=args.min_radius)
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
 
@@ -234,6 +238,7 @@ def run(args) -> int:
                      "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
+                     "min_radius": args.min_radius,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
