@@ -59,7 +59,7 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
                     continue
                 n = run["trials_to_tolerance"]
                 cells[(v, s, p)] = str(n) if run["success"] else f"- ({run['best_error']:.3f})"
-                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1))
+                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"]))
     lines = ["| rope | seed | " + " | ".join(params) + " | wall (min) |", "|---|---|" + "---|" * (len(params) + 1)]
     for v in variants:
         for s in seeds:
@@ -68,19 +68,24 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
             wall = (meta.get("runs", {}).get(f"{v}-s{s}") or {}).get("wall_s")
             lines.append(f"| {v} | {s} | " + " | ".join(cells.get((v, s, p), "") for p in params)
                          + f" | {'' if wall is None else f'{wall / 60:.1f}'} |")
-    lines += ["", "| arm | runs | reached | median trials (never = max + 1) | per-rope medians |", "|---|---|---|---|---|"]
+    lines += ["", "| arm | runs | reached | median trials (never = max + 1) | per-rope median trials | median best "
+                  "error | per-rope median best error |", "|---|---|---|---|---|---|---|"]
     stats = {}
     for p in params:
         rows = summary[p]
         if not rows:
             continue
-        trials = [n for _, _, n in rows]
-        per_rope = {v: float(np.median([n for vv, _, n in rows if vv == v])) for v in variants
-                    if any(vv == v for vv, _, _ in rows)}
-        reached = sum(1 for _, _, n in rows if n <= max_trials_default)
-        stats[p] = {"runs": len(rows), "reached": reached, "median": float(np.median(trials)), "per_rope": per_rope}
+        trials = [n for _, _, n, _ in rows]
+        ropes = [v for v in variants if any(vv == v for vv, _, _, _ in rows)]
+        per_rope = {v: float(np.median([n for vv, _, n, _ in rows if vv == v])) for v in ropes}
+        per_rope_err = {v: float(np.median([e for vv, _, _, e in rows if vv == v])) for v in ropes}
+        reached = sum(1 for _, _, n, _ in rows if n <= max_trials_default)
+        best = float(np.median([e for _, _, _, e in rows]))
+        stats[p] = {"runs": len(rows), "reached": reached, "median": float(np.median(trials)), "per_rope": per_rope,
+                    "median_best_error": best, "per_rope_median_best_error": per_rope_err}
         lines.append(f"| {p} | {len(rows)} | {reached} | {np.median(trials):g} | "
-                     + ", ".join(f"{v} {m:g}" for v, m in per_rope.items()) + " |")
+                     + ", ".join(f"{v} {m:g}" for v, m in per_rope.items()) + f" | {best:.3f} | "
+                     + ", ".join(f"{v} {m:.3f}" for v, m in per_rope_err.items()) + " |")
     return "\n".join(lines) + "\n", stats
 
 

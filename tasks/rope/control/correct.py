@@ -243,7 +243,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
-            min_radius: float | None = None) -> dict:
+            min_radius: float | None = None, prior_centre: np.ndarray | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "plan" (default): model-offset ILC, every next command a global CMA-ES plan on the
@@ -256,8 +256,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       whose contact jumps between segment pairs (measured: soft rope, 20 links, fitted: stalls at
       0.085 with the model's place, reaches 0.037 in 6 trials with it frozen).
     method "renormalise": after every real trial the model's parameters are refitted to the trials
-      so far (renormalise.py; the model's values at the call are the prior's centre and the first
-      start), and the next command is planned on the refitted model in a trust region that follows
+      so far (renormalise.py; the model's values at the call are the first start, and the prior's
+      centre unless `prior_centre` is given), and the next command is planned on the refitted model in a trust region that follows
       how well it predicted the last trial; with refit_offset the plan adds the refitted model's
       remaining offset at the best trial (no Broyden term: the model changes every trial).
     A trial that does not improve the best error is rejected: the next command is planned again
@@ -277,7 +277,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
                                       prior_scale, decay, anchored, refit_generations, min_radius, progress,
-                                      on_trial)
+                                      on_trial, prior_centre)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
     reg = (rope_plan.DEFAULT_REG if method == "plan" else DEFAULT_REG) if reg is None else reg
@@ -421,13 +421,14 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                            tolerance: float, radius: float | None, reg: float | None, seed: int,
                            popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
                            prior_scale: float | None, decay: float | None, anchored: bool,
-                           refit_generations: int | None, min_radius: float | None, progress, on_trial) -> dict:
+                           refit_generations: int | None, min_radius: float | None, progress, on_trial,
+                           prior_centre: np.ndarray | None = None) -> dict:
     """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
 
     space, pspace = model.space, model.problem.space
-    prior_centre = model.values.copy()
+    prior_centre = model.values.copy() if prior_centre is None else np.asarray(prior_centre, dtype=np.float64)
     prior_scale = rn.PRIOR_SCALE if prior_scale is None else float(prior_scale)
     decay = rn.DECAY if decay is None else float(decay)
     if not prior_scale > 0 or not 0 < decay <= 1:

@@ -40,10 +40,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
                    help="add a seeded random command offset of this size (units of u) to the start")
-    p.add_argument("--params", nargs="+", default=["renormalised"], metavar="renormalised|measured|fitted|FILE",
+    p.add_argument("--params", nargs="+", default=["renormalised"],
+                   metavar="renormalised|renormalised-from-fitted|measured|fitted|FILE",
                    help="coarse models to steer with, each its own correction run: renormalised (parameters refitted "
                         "to the real trials after every trial, prior and start at the measured values, planned in a "
-                        "trust region), or fixed parameters with the model-offset/Broyden correction (--method): "
+                        "trust region), renormalised-from-fitted (the same, started from the values fitted to the "
+                        "rope's reference throws; prior still at the measured values), or fixed parameters with the model-offset/Broyden correction (--method): "
                         "measured, fitted (once, to the rope's reference throws, before the trials), or a "
                         "result.json")
     p.add_argument("--max-trials", type=int, default=10)
@@ -128,8 +130,8 @@ def run(args) -> int:
     if len(set(args.params)) != len(args.params):
         raise InputError("--params", "params", f"repeated entry in {args.params}")
     for label in args.params:
-        if label not in ("renormalised", "measured", "fitted") and not Path(label).is_file():
-            raise InputError(label, "--params", "is neither 'renormalised', 'measured', 'fitted' nor an existing "
+        if label not in RUN_LABELS and not Path(label).is_file():
+            raise InputError(label, "--params", f"is neither one of {', '.join(RUN_LABELS)} nor an existing "
                                                 "result.json")
     if args.prior_scale is not None and not 0 < args.prior_scale <= 100:
         raise InputError("--prior-scale", "prior_scale", f"must be in (0, 100], got {args.prior_scale:g}")
@@ -164,7 +166,7 @@ def run(args) -> int:
         goal_ref = _goal_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
     fitted, fit_info = None, None
-    if "fitted" in args.params or args.real == "coarse":
+    if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
         progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's fit throws")
         fitted, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
                                           args.device, progress)
@@ -193,8 +195,8 @@ def run(args) -> int:
 
     runs = {}
     for label in args.params:
-        method = "renormalise" if label == "renormalised" else args.method
-        name = label if label in ("renormalised", "measured", "fitted") else Path(label).stem
+        method = "renormalise" if label.startswith("renormalised") else args.method
+        name = label if label in RUN_LABELS else Path(label).stem
 
         def on_trial(trial, name=name):
             # what this trial did and why, as soon as its record is complete (atomic; a resumed run rewrites it)
@@ -203,7 +205,7 @@ def run(args) -> int:
 
         if label in ("measured", "renormalised"):
             values = problem.space.measured
-        elif label == "fitted":
+        elif label in ("fitted", "renormalised-from-fitted"):
             values = fitted
         else:
             values = parameters_from_file(label, problem)
@@ -215,7 +217,8 @@ def run(args) -> int:
                       method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
-                      refit_generations=args.refit_generations, min_radius=args.min_radius)
+                      refit_generations=args.refit_generations, min_radius=args.min_radius,
+                      prior_centre=problem.space.measured if method == "renormalise" else None)
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
 
@@ -295,6 +298,7 @@ def report_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+RUN_LABELS = ("renormalised", "renormalised-from-fitted", "measured", "fitted")
 SETTINGS_FILE = "settings.json"
 _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
 
