@@ -121,3 +121,47 @@ def test_searches_side_by_side_report_their_spread_and_each_optimum_is_validated
     lo, hi = spread["held_out_mean_error_range"]
     assert lo <= best["held_out_mean_error"] <= hi
     assert set(spread["pinned"]) | set(spread["not_pinned"]) == {p.name for p in prob.space.free}
+
+
+# ------------------------------------------------------------------------------ weighted conditions, starts
+class _Quadratic:
+    """A Problem whose every condition c pulls the one parameter toward its own target c.meta["at"]."""
+
+    task = "toy"
+
+    def __init__(self, targets, weights=None, prior=None):
+        from wrenorm.params import Parameter, ParameterSpace
+        from wrenorm.problem import Condition
+
+        self.space = ParameterSpace([Parameter("x", 0.5, 0.0, 1.0, prior=prior),
+                                     Parameter("y", 0.5, 0.0, 1.0)])
+        self.train = [Condition(f"c{i}", None, {"at": t} | ({} if weights is None else {"weight": weights[i]}))
+                      for i, t in enumerate(targets)]
+
+    def errors(self, values, conditions):
+        v = np.atleast_2d(values)
+        return np.stack([(v[:, 0] - c.meta["at"]) ** 2 + (v[:, 1] - 0.5) ** 2 for c in conditions], 1)
+
+
+def test_mean_loss_weights_conditions_and_adds_the_prior():
+    from wrenorm.search import mean_loss
+
+    plain = _Quadratic([0.2, 0.8])
+    weighted = _Quadratic([0.2, 0.8], weights=[3.0, 1.0])
+    x = np.array([[0.2, 0.5]])
+    assert np.isclose(mean_loss(plain, x, plain.train)[0][0], 0.5 * 0.36)
+    assert np.isclose(mean_loss(weighted, x, weighted.train)[0][0], 0.25 * 0.36)
+    with_prior = _Quadratic([0.2, 0.8], weights=[3.0, 1.0], prior=(0.5, 0.1))
+    assert np.isclose(mean_loss(with_prior, x, with_prior.train)[0][0], 0.25 * 0.36 + 9.0)
+    bad = _Quadratic([0.2], weights=[-1.0])
+    with pytest.raises(ValueError):
+        mean_loss(bad, x, bad.train)
+
+
+def test_weighted_fit_lands_at_the_weighted_optimum_from_several_starts():
+    from wrenorm.search import cmaes
+
+    p = _Quadratic([0.2, 0.8], weights=[3.0, 1.0])
+    res = cmaes(p, seed=0, popsize=8, generations=80, start=np.array([[0.9, 0.9], [0.1, 0.1]]), quiet=True)
+    assert np.allclose(res.best_values, [0.35, 0.5], atol=1e-3)  # 3/4 of the way to 0.2
+    assert len(res.history[-1]["optima"]) == 2  # one search per start, side by side

@@ -238,6 +238,12 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
 
     assert main(["correct", "rope", "--variant", "rubber", "--out", str(tmp_path / "o")]) == 2
     assert "variant" in capsys.readouterr().err
+    for bad, word in ((["--engine", "bullet"], "engine"), (["--prior-scale", "-1"], "prior_scale"),
+                      (["--decay", "1.5"], "decay"), (["--params", "measured", "measured"], "repeated"),
+                      (["--segments", "2"], "segments")):
+        assert main(["correct", "rope", "--out", str(tmp_path / "o")] + bad) == 2
+        err = capsys.readouterr().err
+        assert word in err and len(err.strip().splitlines()) == 1, err
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
 
 
@@ -246,19 +252,31 @@ CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--f
                  "--tolerance", "0.001", "--no-record", "--quiet"]
 
 
-def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path):
+@pytest.mark.parametrize("params", ["measured", "renormalised"])
+def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, params):
     """An interrupted correction (here: all but its first two real trials lost) resumes with its saved
     settings, reads the two trials back instead of re-running them, and ends exactly where an
-    uninterrupted run ends."""
+    uninterrupted run ends; each trial's record (command, predicted and measured critical state, error,
+    parameters, trust radius) is on disk."""
     import shutil
 
     from wrenorm.cli import main
     from wrenorm.tasks.rope.control.correct import StoredTrials
 
     full = tmp_path / "full"
-    assert main(CORRECT_QUICK + ["--out", str(full)]) == 0
+    quick = [a if a != "measured" else params for a in CORRECT_QUICK]
+    assert main(quick + ["--out", str(full)]) == 0
     done = json.loads((full / "correct.json").read_text())
-    trials = done["runs"]["measured"]["trials"]
+    trials = done["runs"][params]["trials"]
+    records = sorted((full / "real-trials").glob(f"{params}-trial-*.json"))
+    assert [json.loads(f.read_text())["trial"] for f in records] == [1, 2, 3, 4]
+    rec = json.loads(records[1].read_text())
+    for key in ("command_u", "predicted_state", "measured_state", "error", "model_parameters", "trust_radius"):
+        assert rec[key] is not None, key
+    assert len(rec["measured_state"]["positions"]) == len(rec["predicted_state"]["positions"])
+    if params == "renormalised":
+        assert rec["refit"]["values"] and rec["trust"]["verdict"] in ("grow", "keep", "shrink")
+    assert "| trial | error |" in (full / "report.md").read_text()
     assert len(trials) == 4 and done["real_trials_read_back"] == 0
 
     cut = tmp_path / "cut"
@@ -276,7 +294,9 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path):
     assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(cut)]) == 0
     again = json.loads((cut / "correct.json").read_text())
     assert again["real_trials_read_back"] == 2 and again["real_runs"] == done["real_runs"] - 2
-    assert [t["error"] for t in again["runs"]["measured"]["trials"]] == [t["error"] for t in trials]
+    assert [t["error"] for t in again["runs"][params]["trials"]] == [t["error"] for t in trials]
+    values = lambda rows: [t["refit"] and t["refit"]["values"] for t in rows]  # noqa: E731
+    assert values(again["runs"][params]["trials"]) == values(trials)
     assert again["max_trials"] == 4
 
 

@@ -6,8 +6,9 @@
 - `restarts`: further seeded searches side by side, for the spread of what the data leave open.
 - `polish` / `gradient`: L-BFGS / Adam (torch) on gradients from the system's differentiable kernel (Warp tape).
 
-The loss of a candidate is the mean of its training errors (inf if any condition blew up), plus the
-sum of squared prior deviations when parameters carry a prior.
+The loss of a candidate is the mean of its training errors (inf if any condition blew up), weighted where
+conditions carry `meta["weight"]` (e.g. real trials weighted toward the latest), plus the sum of squared
+prior deviations when parameters carry a prior.
 """
 from __future__ import annotations
 
@@ -44,11 +45,15 @@ class SearchResult:
 
 
 def mean_loss(problem: Problem, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
-    """(B,) loss = mean error over conditions (inf for any blown-up condition) + prior penalty; and (B, C) errors."""
+    """(B,) loss = mean error over conditions (inf for any blown-up condition; weighted by the conditions'
+    `meta["weight"]` where given, default 1) + prior penalty; and (B, C) errors."""
     values = np.atleast_2d(values)
     errs = finite_or_inf(problem.errors(values, conditions))
+    w = np.array([float(c.meta.get("weight", 1.0)) for c in conditions])
+    if not (np.all(np.isfinite(w)) and np.all(w >= 0) and w.sum() > 0):
+        raise ValueError(f"condition weights must be finite, >= 0 and not all 0, got {w}")
     with np.errstate(invalid="ignore"):
-        loss = errs.mean(axis=1)
+        loss = (errs * (w / w.sum())[None]).sum(axis=1) if np.any(w != w[0]) else errs.mean(axis=1)
     prior = problem.space.prior_residuals(values)
     if prior.shape[-1]:
         with np.errstate(invalid="ignore"):
@@ -95,14 +100,20 @@ def cmaes(
     on_generation: Callable[[dict], None] | None = None,
 ) -> SearchResult:
     """Fit the training loss; `searches` seeded searches side by side (seeds seed, seed + 1000, ...), the
-    best one returned with the others' optima in `history[-1]["optima"]`."""
+    best one returned with the others' optima in `history[-1]["optima"]`. `start` is one full parameter
+    vector (every search starts there; default the measured values) or one row per search (K, P), e.g. a
+    warm start beside the measured values."""
     space = problem.space
     if not space.free:
         loss = objective(problem, space.measured[None])
         return SearchResult("cmaes", space.measured.copy(), float(loss[0]), stop="no free parameters", seed=seed)
+    starts = None if start is None else np.atleast_2d(np.asarray(start, dtype=np.float64))
+    if starts is not None and len(starts) > 1:
+        searches = len(starts)
     seeds = [seed + 1000 * k for k in range(max(1, int(searches)))]
-    es = BatchedCMAES(np.repeat(_unit_start(problem, start)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds,
-                      popsize, generations)
+    x0s = (np.repeat(_unit_start(problem, None)[None], len(seeds), 0) if starts is None else
+           np.stack([_unit_start(problem, starts[k % len(starts)]) for k in range(len(seeds))]))
+    es = BatchedCMAES(x0s, sigma0, 0.0, 1.0, seeds, popsize, generations)
     saved = {"free": space.free_names, "settings": settings or {}}
     history = []
     if resume and checkpoint and Path(checkpoint).exists():

@@ -104,6 +104,23 @@ class NewtonRope:
         return self._cache[key]
 
 
+REAL_ROPES = {"newton": NewtonRope}  # fine simulators that can play the real rope: one class each, same signature
+
+
+def real_rope_class(engine: str):
+    """The fine 'real' rope of `engine`: a class built as cls(variant, segments, duration, device) whose
+    instances map a HandPath to a RopeReference and count `runs` and `wall_s` (NewtonRope; a MuJoCo rope
+    plugs in here as one more entry)."""
+    if engine == "mujoco" and "mujoco" not in REAL_ROPES:
+        try:
+            from wrenorm.tasks.rope.reference.mujoco import MujocoRope  # noqa: F401 (registers itself)
+        except ImportError:
+            pass
+    if engine not in REAL_ROPES:
+        raise InputError("--engine", "engine", f"unknown fine rope {engine!r}; available: {sorted(REAL_ROPES)}")
+    return REAL_ROPES[engine]
+
+
 class StoredTrials:
     """A real system whose every trial is written to `folder` (atomic npz) as it finishes and read
     back from there when the same command comes again: an interrupted correction resumes without
@@ -210,6 +227,10 @@ class Trial:
     step_scale: float | None = None
     model_total: float | None = None
     sensitivity: dict = field(default_factory=dict)
+    predicted_state: crit.CriticalStates | None = None  # what the plan expected the real rope to do
+    model_values: np.ndarray | None = None  # the coarse parameters that made the prediction
+    refit: dict | None = None  # renormalise: the refit after this trial (values, losses, trials used)
+    trust: dict | None = None  # renormalise: the trust-region verdict from this trial
 
     @property
     def total(self) -> float:
@@ -220,7 +241,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             tolerance: float = DEFAULT_TOLERANCE, radius: float | None = None, reg: float | None = None,
             fd_step: float = FD_STEP, secant: bool | None = None, method: str = "plan", plan_first: bool = True,
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
-            progress=None) -> dict:
+            progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
+            decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
+            min_radius: float | None = None, prior_centre: np.ndarray | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "plan" (default): model-offset ILC, every next command a global CMA-ES plan on the
@@ -232,18 +255,29 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     freeze_place ("plan"): predict the contact place from the trials, not from the coarse chain,
       whose contact jumps between segment pairs (measured: soft rope, 20 links, fitted: stalls at
       0.085 with the model's place, reaches 0.037 in 6 trials with it frozen).
+    method "renormalise": after every real trial the model's parameters are refitted to the trials
+      so far (renormalise.py; the model's values at the call are the first start, and the prior's
+      centre unless `prior_centre` is given), and the next command is planned on the refitted model
+      in a trust region that follows how well it predicted the last trial; with refit_offset the
+      plan adds the refitted model's remaining offset at the best trial and a Broyden term per other trial.
     A trial that does not improve the best error is rejected: the next command is planned again
-    around the best one with half the trust radius (a real trial is the expensive thing)."""
+    around the best one with half the trust radius (a real trial is the expensive thing).
+    on_trial(trial) is called as each trial's record is complete (before the next plan)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
     space = model.space
-    if method not in ("plan", "qp"):
-        raise InputError("--method", "method", f"{method!r} is not 'plan' or 'qp'")
+    if method not in ("plan", "qp", "renormalise"):
+        raise InputError("--method", "method", f"{method!r} is not 'plan', 'qp' or 'renormalise'")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     problems = space.violations(u0)
     if problems:
         raise InputError("command", "start", "; ".join(problems))
+    if method == "renormalise":
+        return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
+                                      radius, reg, seed, popsize, generations, freeze_place, refit_offset,
+                                      prior_scale, decay, anchored, refit_generations, min_radius, progress,
+                                      on_trial, prior_centre)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
     reg = (rope_plan.DEFAULT_REG if method == "plan" else DEFAULT_REG) if reg is None else reg
@@ -273,7 +307,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         terms = {key: np.asarray(v, dtype=np.float64) for key, v in goal.terms(st).items()}
         accepted = best is None or float(terms["total"][0]) < best.total
         trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, radius, st, time.perf_counter() - t,
-                      predicted, scale_used)
+                      predicted, scale_used, model_values=model.values.copy())
+        if method == "plan":
+            trial.predicted_state = rope_plan.predicted_states(
+                model, u[None], offset or rope_plan.Offset.zero(space.dim, goal.dim, u))[0]
         trials.append(trial)
         d_new = None
         if method == "plan":
@@ -312,6 +349,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
                      f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
                      f"{extra}  real {trial.wall_s:.1f} s")
+        if on_trial:
+            on_trial(trial)
         if best.total <= tolerance or k == max_trials - 1:
             break
         if method == "plan":
@@ -373,6 +412,153 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
+def _measure(real, space: CommandSpace, goal: crit.Target, u: np.ndarray):
+    st = crit.from_reference(real(space.decode(u)))
+    return st, {key: np.asarray(v, dtype=np.float64) for key, v in goal.terms(st).items()}
+
+
+def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int,
+                           tolerance: float, radius: float | None, reg: float | None, seed: int,
+                           popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
+                           prior_scale: float | None, decay: float | None, anchored: bool,
+                           refit_generations: int | None, min_radius: float | None, progress, on_trial,
+                           prior_centre: np.ndarray | None = None) -> dict:
+    """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+    from wrenorm.tasks.rope.control import renormalise as rn
+
+    space, pspace = model.space, model.problem.space
+    prior_centre = model.values.copy() if prior_centre is None else np.asarray(prior_centre, dtype=np.float64)
+    prior_scale = rn.PRIOR_SCALE if prior_scale is None else float(prior_scale)
+    decay = rn.DECAY if decay is None else float(decay)
+    if not prior_scale > 0 or not 0 < decay <= 1:
+        raise InputError("--prior-scale/--decay", "value", f"need prior scale > 0 and decay in (0, 1], got "
+                                                           f"{prior_scale:g}, {decay:g}")
+    plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
+                 "generations": generations or rope_plan.DEFAULT_GENERATIONS,
+                 "reg": rope_plan.DEFAULT_REG if reg is None else reg}
+    model = CoarseModel(model.problem, model.values, space, model.label)
+    trust = rn.TrustRegion(DEFAULT_PLAN_RADIUS if radius is None else radius, 2.0 * space.bound,
+                           rn.MIN_RADIUS if min_radius is None else float(min_radius))
+    zero = rope_plan.Offset.zero(space.dim, goal.dim, u0)
+    # trial 0: the model alone picks the first real command, in the whole box around the start
+    p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, zero, seed=seed, **plan_opts)
+    u, scale_used = _feasible(space, u0, p["u"])
+    offset, last_plan = zero, [u.copy()]
+    planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
+                "evaluations": p["evaluations"], "wall_s": p["wall_s"]}
+    if progress:
+        progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
+                 f"the start -> {p['model_total']:.3f}, {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
+    trials: list[Trial] = []
+    hits: list[tuple[int, np.ndarray, crit.CriticalStates]] = []
+    best: Trial | None = None
+    plan_radius = 2.0 * space.bound
+    for k in range(max_trials):
+        pred_state, alone = rope_plan.predicted_states(model, u[None], offset)
+        predicted = float(goal.terms(pred_state)["total"][0])
+        t = time.perf_counter()
+        st, terms = _measure(real, space, goal, u)
+        accepted = best is None or float(terms["total"][0]) < best.total
+        trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
+                      predicted, scale_used, float(goal.terms(alone)["total"][0]), predicted_state=pred_state,
+                      model_values=model.values.copy())
+        trials.append(trial)
+        if best is not None:
+            trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
+        if accepted:
+            best = trial
+        if trial.hit:
+            hits.append((k, u.copy(), st))
+        if progress:
+            extra = f"  predicted {predicted:.3f}, model alone {trial.model_total:.3f}"
+            if trial.trust:
+                rho = trial.trust["rho"]
+                extra += (f"; rho {'nan' if rho is None else f'{rho:.2f}'} -> {trial.trust['verdict']} "
+                          f"radius {trust.radius:.2f}")
+            progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
+                     f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
+                     f"{extra}  real {trial.wall_s:.1f} s")
+        if best.total <= tolerance or k == max_trials - 1:
+            if on_trial:
+                on_trial(trial)
+            break
+        # renormalise: refit the chain to the trials so far, then plan on it around the best trial
+        if hits:
+            r = rn.refit(model, hits, goal, model.values, prior_centre, best=best.index, seed=seed + 100 * k,
+                         prior_scale=prior_scale, decay=decay, anchored=anchored,
+                         generations=refit_generations or rn.REFIT_GENERATIONS)
+            model = CoarseModel(model.problem, r.values, space, model.label)
+            trial.refit = r.as_dict(pspace)
+            if progress:
+                moved = ", ".join(f"{n} x{v / prior_centre[i]:.2g}" for i, (n, v) in
+                                  enumerate(zip(pspace.names, r.values)) if pspace.parameters[i].frozen is False
+                                  and prior_centre[i] > 0)
+                progress(f"    refit to {len(hits)} trials: loss {r.loss_start:.3f} -> {r.loss:.3f} "
+                         f"({r.evaluations} chains x trials, {r.wall_s:.1f} s); vs measured: {moved}")
+        offset = rope_plan.Offset.zero(space.dim, goal.dim, best.u)
+        if refit_offset and best.hit:
+            offset = _offset_from_trials(model, trials, best, freeze_place)
+        plan_radius = trust.radius
+        for retry in range(3):
+            p = rope_plan.plan(model, goal, best.u, plan_radius, offset, seed=seed + 10 * k + retry + 1,
+                               starts=last_plan, **plan_opts)
+            u, scale_used = _feasible(space, best.u, p["u"])
+            if np.abs(u - best.u).max() > 1e-9:
+                break
+            plan_radius *= 0.5  # nothing better predicted in the box: look closer before giving up
+        trust.radius = plan_radius
+        last_plan = [u.copy()]
+        trial.sensitivity = {"plan_evaluations": p["evaluations"], "plan_wall_s": p["wall_s"],
+                             "plan_radius": plan_radius, "offset_at_trial": best.index + 1 if refit_offset else None,
+                             "offset_norm": float(np.linalg.norm(offset.d))}
+        if on_trial:
+            on_trial(trial)
+        if np.abs(u - best.u).max() < 1e-9:
+            if progress:
+                progress("  the plan predicts no better command than the best one; stopping")
+            break
+    success = best.total <= tolerance
+    return {
+        "success": bool(success), "method": "renormalise", "secant": False, "plan_first": True,
+        "trial0_plan": planning,
+        "trials_used": len(trials),
+        "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
+        "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u,
+        "final_parameters": pspace.as_dict(model.values),
+        "renormalise": {"prior_centre": pspace.as_dict(prior_centre), "prior_scale": prior_scale, "decay": decay,
+                        "refit_offset": bool(refit_offset), "anchored": bool(anchored), "trust_region": {
+                            "good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW, "shrink": trust.SHRINK,
+                            "min_radius": trust.min_radius}},
+        "trials": trials,
+    }
+
+
+def _offset_from_trials(model: CoarseModel, trials: list[Trial], best: Trial, freeze_place: bool):
+    """The refitted model's remaining offset, learned from the trials as the fixed-parameter loop learns it:
+    d = Z_real - Z_model at the best trial, then a Broyden update per other trial that hit, oldest first, so
+    the latest trials are reproduced most exactly. One rollout for all trials."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+
+    space = model.space
+    others = [t for t in trials if t.hit and t is not best]
+    st = model.states(np.stack([best.u] + [t.u for t in others]))
+    Zm = rope_plan.state_vector(st)
+    offset = rope_plan.Offset.zero(space.dim, Zm.shape[1], best.u)
+    d = rope_plan.state_vector(best.state)[0] - Zm[0]
+    if not np.all(np.isfinite(d)):
+        return offset  # the refitted chain misses at the best command: plan on the chain alone
+    offset.recentre(best.u, d)
+    if freeze_place:
+        offset.model_place = st.s[0].copy()
+    for j, t in enumerate(others, start=1):
+        dk = rope_plan.state_vector(t.state)[0] - Zm[j]
+        if freeze_place:
+            dk[-2:] = t.state.s[0] - offset.model_place
+        offset.broyden(t.u, dk)
+    return offset
+
+
 def _feasible(space: CommandSpace, start: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
     """target if it is inside the box and the hand limits, else the longest feasible step toward it."""
     return space.limit_step(start, np.asarray(target, dtype=np.float64) - start)
@@ -382,22 +568,41 @@ def _model_total(model: CoarseModel, goal: crit.Target, u: np.ndarray) -> float:
     return float(goal.terms(model.states(np.asarray(u, dtype=np.float64)[None]))["total"][0])
 
 
-def trial_rows(trials: list[Trial], space: CommandSpace) -> list[dict]:
-    rows = []
-    for t in trials:
-        rows.append({
-            "trial": t.index + 1, "error": t.total, "accepted": t.accepted, "self_collision": t.hit,
-            "terms": {k: float(v[0]) for k, v in t.terms.items()},
-            "critical_time": float(t.state.time[0]) if t.hit else None,
-            "contact_arclength": t.state.s[0].tolist() if t.hit else None,
-            "command_u": t.u.tolist(),
-            "hand_peak_speed": space.decode(t.u).max_speed(),
-            "hand_peak_acceleration": space.decode(t.u).max_acceleration(),
-            "trust_radius": t.radius, "step_scale": t.step_scale,
-            "predicted_error": t.predicted_total, "model_alone_error": t.model_total,
-            "next_step": t.sensitivity or None, "wall_s": t.wall_s,
-        })
-    return rows
+def state_record(st: crit.CriticalStates | None) -> dict | None:
+    """One critical state as plain numbers: positions and velocities at the observable's arc-length points,
+    time from the start of the motion, contact place; a rope that never hit has only its closest approach."""
+    if st is None:
+        return None
+    if not st.hit[0]:
+        return {"self_collision": False, "clearance_m": float(st.clearance[0])}
+    return {"self_collision": True, "time": float(st.time[0]), "contact_arclength": st.s[0].tolist(),
+            "positions": st.pos[0].tolist(), "velocities": st.vel[0].tolist()}
+
+
+def trial_row(t: Trial, space: CommandSpace, parameter_space=None) -> dict:
+    """What one trial did and why: command, predicted and measured critical state, error, the coarse
+    parameters that predicted it (and, when renormalising, the refit after it), the trust radius."""
+    named = (lambda v: None if v is None else parameter_space.as_dict(v)) if parameter_space is not None else \
+        (lambda v: None if v is None else np.asarray(v).tolist())
+    return {
+        "trial": t.index + 1, "error": t.total, "accepted": t.accepted, "self_collision": t.hit,
+        "terms": {k: float(v[0]) for k, v in t.terms.items()},
+        "critical_time": float(t.state.time[0]) if t.hit else None,
+        "contact_arclength": t.state.s[0].tolist() if t.hit else None,
+        "command_u": t.u.tolist(),
+        "hand_peak_speed": space.decode(t.u).max_speed(),
+        "hand_peak_acceleration": space.decode(t.u).max_acceleration(),
+        "trust_radius": t.radius, "step_scale": t.step_scale,
+        "predicted_error": t.predicted_total, "model_alone_error": t.model_total,
+        "predicted_state": state_record(t.predicted_state), "measured_state": state_record(t.state),
+        "model_parameters": named(t.model_values),
+        "refit": t.refit, "trust": t.trust,
+        "next_step": t.sensitivity or None, "wall_s": t.wall_s,
+    }
+
+
+def trial_rows(trials: list[Trial], space: CommandSpace, parameter_space=None) -> list[dict]:
+    return [trial_row(t, space, parameter_space) for t in trials]
 
 
 # ------------------------------------------------------------------------------ parameters

@@ -28,16 +28,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "already run are read back, not run again")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
-    p.add_argument("--variant", default="default", help="real rope material: default|stiff|soft|heavy")
-    p.add_argument("--real", choices=["newton", "coarse"], default="newton",
-                   help="the real system: the fine newton rope, or a coarse chain with the FITTED parameters "
-                        "(a quick stand-in whose answer is known)")
+    p.add_argument("--variant", default="default",
+                   help="real rope material (reference/materials.py): default, or one of the seven campaign ropes "
+                        "stiff|soft|heavy|light|long|damped|heavy_end")
+    p.add_argument("--real", choices=["fine", "newton", "coarse"], default="fine",
+                   help="the real system: the fine rope of --engine, or a coarse chain with the FITTED parameters "
+                        "(a quick stand-in whose answer is known); 'newton' is accepted for 'fine'")
+    p.add_argument("--engine", default="newton",
+                   help="simulator of the fine 'real' rope (correct.REAL_ROPES): newton (default)")
     p.add_argument("--goal", default="flick_high", help="built-in hand path whose real critical state is the goal")
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
                    help="add a seeded random command offset of this size (units of u) to the start")
-    p.add_argument("--params", nargs="+", default=["measured", "fitted"], metavar="measured|fitted|FILE",
-                   help="coarse-model parameters to steer with; each gets its own correction run")
+    p.add_argument("--params", nargs="+", default=["renormalised"],
+                   metavar="renormalised|renormalised-from-fitted|measured|fitted|FILE",
+                   help="coarse models to steer with, each its own correction run: renormalised (parameters refitted "
+                        "to the real trials after every trial, prior and start at the measured values, planned in a "
+                        "trust region), renormalised-from-fitted (the same, started from the values fitted to the "
+                        "rope's reference throws; prior still at the measured values), or fixed parameters with the "
+                        "model-offset/Broyden correction (--method): "
+                        "measured, fitted (once, to the rope's reference throws, before the trials), or a "
+                        "result.json")
     p.add_argument("--max-trials", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
     p.add_argument("--method", choices=["plan", "qp"], default="plan",
@@ -59,9 +70,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "default on for plan, off for qp")
     p.add_argument("--model-place", action="store_true",
                    help="(plan) predict the contact place with the coarse chain too (default: from the trials)")
-    p.add_argument("--segments", type=int, default=20,
-                   help="links of the coarse chain (20: its fitted critical state at the goal command is 2-3x "
-                        "closer to the fine rope's than at 10 links)")
+    p.add_argument("--segments", type=int, default=10,
+                   help="links of the coarse chain (10 = the flying knot's 11 point masses; any of 3-63)")
+    p.add_argument("--prior-scale", type=float, default=None,
+                   help="(renormalised) Gaussian prior of each refitted parameter around its measured value, as a "
+                        "fraction of its search box (log box for log-scale parameters); default "
+                        "renormalise.PRIOR_SCALE")
+    p.add_argument("--decay", type=float, default=None,
+                   help="(renormalised) weight of a trial per trial of age in the refit, in (0, 1]; default "
+                        "renormalise.DECAY")
+    p.add_argument("--min-radius", type=float, default=None,
+                   help="(renormalised) smallest trust radius (units of u); default renormalise.MIN_RADIUS")
+    p.add_argument("--refit-generations", type=int, default=None,
+                   help="(renormalised) CMA-ES generations of each refit; default renormalise.REFIT_GENERATIONS")
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
     p.add_argument("--fine-segments", type=int, default=64, help="segments of the fine newton rope")
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
@@ -78,18 +99,19 @@ def _goal_reference(name: str, variant: str, progress):
 
 
 def run(args) -> int:
-    from wrenorm.results import versions, write_json
+    from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import (
         CoarseModel,
         CoarseRope,
-        NewtonRope,
         StoredTrials,
         correct,
         fit_parameters,
         parameters_from_file,
+        real_rope_class,
+        trial_row,
         trial_rows,
     )
     from wrenorm.tasks.rope.problem import RopeProblem
@@ -116,9 +138,26 @@ def run(args) -> int:
         raise InputError("--popsize/--generations", "value", "need popsize in [4, 4096] and generations in [1, 1000]")
     if args.seed < 0:
         raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
+    if len(set(args.params)) != len(args.params):
+        raise InputError("--params", "params", f"repeated entry in {args.params}")
     for label in args.params:
-        if label not in ("measured", "fitted") and not Path(label).is_file():
-            raise InputError(label, "--params", "is neither 'measured', 'fitted' nor an existing result.json")
+        if label not in RUN_LABELS and not Path(label).is_file():
+            raise InputError(label, "--params", f"is neither one of {', '.join(RUN_LABELS)} nor an existing "
+                                                "result.json")
+    if args.prior_scale is not None and not 0 < args.prior_scale <= 100:
+        raise InputError("--prior-scale", "prior_scale", f"must be in (0, 100], got {args.prior_scale:g}")
+    if args.decay is not None and not 0 < args.decay <= 1:
+        raise InputError("--decay", "decay", f"must be in (0, 1], got {args.decay:g}")
+    if args.min_radius is not None and not 0 < args.min_radius <= 6:
+        raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
+    if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
+        raise InputError("--refit-generations", "refit_generations",
+                         f"must be in [1, 1000], got {args.refit_generations}")
+    if not 3 <= args.segments <= 63:
+        raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
+    if args.real == "newton":
+        args.real = "fine"
+    real_rope_class(args.engine)
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     space = CommandSpace(start_path)
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
@@ -127,17 +166,26 @@ def run(args) -> int:
         write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
-    goal_ref = _goal_reference(args.goal, args.variant, progress)
+    if args.real == "fine" and args.engine != "newton":
+        # another engine's rope reaches its own goal state: the goal throw on that engine (kept with the trials)
+        from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION
+
+        progress(f"the goal: {args.variant} rope under {args.goal} on {args.engine}")
+        goal_ref = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
+                                                             args.device), out / "goal")(goal_path)
+    else:
+        goal_ref = _goal_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
     fitted, fit_info = None, None
-    if "fitted" in args.params or args.real == "coarse":
+    if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
         progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's fit throws")
         fitted, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
                                           args.device, progress)
-    if args.real == "newton":
+    if args.real == "fine":
         horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
-        real = NewtonRope(args.variant, args.fine_segments, horizon, args.device)
-        real_doc = f"newton rope, variant {args.variant}, {args.fine_segments} segments, {horizon:.2f} s per trial"
+        real = real_rope_class(args.engine)(args.variant, args.fine_segments, horizon, args.device)
+        real_doc = (f"{args.engine} rope, variant {args.variant}, {args.fine_segments} segments, {horizon:.2f} s "
+                    "per trial")
     else:
         real = CoarseRope(problem, fitted)
         goal_ref = real(goal_path)
@@ -158,9 +206,17 @@ def run(args) -> int:
 
     runs = {}
     for label in args.params:
-        if label == "measured":
+        method = "renormalise" if label.startswith("renormalised") else args.method
+        name = label if label in RUN_LABELS else Path(label).stem
+
+        def on_trial(trial, name=name):
+            # what this trial did and why, as soon as its record is complete (atomic; a resumed run rewrites it)
+            write_json(real.folder / f"{name}-trial-{trial.index + 1:02d}.json",
+                       {"run": name, "variant": args.variant} | trial_row(trial, space, problem.space))
+
+        if label in ("measured", "renormalised"):
             values = problem.space.measured
-        elif label == "fitted":
+        elif label in ("fitted", "renormalised-from-fitted"):
             values = fitted
         else:
             values = parameters_from_file(label, problem)
@@ -169,9 +225,11 @@ def run(args) -> int:
                  f"{args.variant} rope)")
         res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
                       radius=args.radius, reg=args.reg, fd_step=args.fd_step, secant=args.secant,
-                      method=args.method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
-                      generations=args.generations,
-                      freeze_place=not args.model_place, progress=progress)
+                      method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
+                      generations=args.generations, freeze_place=not args.model_place, progress=progress,
+                      on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
+                      refit_generations=args.refit_generations, min_radius=args.min_radius,
+                      prior_centre=problem.space.measured if method == "renormalise" else None)
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
 
@@ -193,14 +251,20 @@ def run(args) -> int:
                      "fd_step": args.fd_step, "seed": args.seed,
                      "secant": args.secant if args.secant is not None else args.method == "plan",
                      "popsize": args.popsize, "generations": args.generations,
-                     "place_from": "coarse model" if args.model_place else "trials"},
-        "runs": {label: {k: v for k, v in r.items() if k != "trials"} | {"trials": trial_rows(r["trials"], space)}
-                 for label, r in runs.items()},
+                     "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
+                     "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
+                     "decay": args.decay, "refit_generations": args.refit_generations,
+                     "min_radius": args.min_radius,
+                     "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
+                             "run refits and plans in a trust region"},
+        "runs": {label: {k: v for k, v in r.items() if k != "trials"}
+                 | {"trials": trial_rows(r["trials"], space, problem.space)} for label, r in runs.items()},
         "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored,
         "real_wall_s": real.wall_s,
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
     }
     write_json(out / "correct.json", result)
+    write_atomic(out / "report.md", report_markdown(result))
     _plot(out / "correct.png", runs, args)
     if not args.no_record:
         _record(out / "recording.rrd", runs, goal, args)
@@ -213,6 +277,43 @@ def run(args) -> int:
     return 0
 
 
+def report_markdown(result: dict) -> str:
+    """Per run, per trial: what was tried, what the model predicted, what the rope did, and how the model and
+    the trust region reacted; a reader sees why the run converged or did not."""
+    lines = [f"# correct rope: {result['variant']} rope, goal {result['goal']['path']}",
+             "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
+                 f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
+    for label, r in result["runs"].items():
+        verdict = (f"reached the tolerance in {r['trials_to_tolerance']} trials" if r["success"] else
+                   f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f})")
+        lines += [f"## {label} ({r['method']}): {verdict}", "",
+                  "| trial | error | predicted | model alone | accepted | contact t / place | plan radius | "
+                  "rho -> radius | refit loss | parameters changed (x measured) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        measured = result["runs"][label].get("parameters") or {}
+        for t in r["trials"]:
+            f = lambda x: "" if x is None else f"{x:.3f}"  # noqa: E731
+            ms = t.get("measured_state") or {}
+            place = (f"{ms['time']:.3f} s / {ms['contact_arclength'][0]:.2f}-{ms['contact_arclength'][1]:.2f}"
+                     if ms.get("self_collision") else "no self-collision")
+            tr = t.get("trust") or {}
+            rho = "" if not tr else f"{'nan' if tr.get('rho') is None else format(tr['rho'], '.2f')} -> " \
+                                    f"{tr['radius_after']:.2f} ({tr['verdict']})"
+            rf = t.get("refit") or {}
+            moved = ""
+            if rf:
+                moved = ", ".join(f"{n} {v / measured[n]:.2g}" for n, v in rf["values"].items()
+                                  if measured.get(n) and abs(v / measured[n] - 1) > 0.05)
+            lines.append(f"| {t['trial']} | {t['error']:.4f} | {f(t['predicted_error'])} | {f(t['model_alone_error'])} "
+                         f"| {'yes' if t['accepted'] else 'no'} | {place} | {t['trust_radius']:.2f} | {rho} | "
+                         f"{'' if not rf else format(rf['loss_before'], '.3f') + ' -> ' + format(rf['loss'], '.3f')} "
+                         f"| {moved} |")
+        lines.append("")
+    lines.append("Per-trial records with the full predicted and measured critical states: real-trials/*-trial-NN.json")
+    return "\n".join(lines) + "\n"
+
+
+RUN_LABELS = ("renormalised", "renormalised-from-fitted", "measured", "fitted")
 SETTINGS_FILE = "settings.json"
 _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
 

@@ -74,16 +74,24 @@ class Offset:
         self.centre, self.d = np.asarray(u, dtype=np.float64).copy(), np.asarray(d, dtype=np.float64).copy()
 
 
-def predicted_cost(model, goal: crit.Target, U: np.ndarray, offset: Offset, centre: np.ndarray, reg: float):
-    """(cost (B,), predicted total (B,), model-alone total (B,)) for a batch of commands: ONE rollout."""
+def predicted_states(model, U: np.ndarray, offset: Offset) -> tuple[crit.CriticalStates, crit.CriticalStates]:
+    """(predicted real critical states, the model's own) for a batch of commands: ONE rollout."""
     st = model.states(U)
+    alone = crit.CriticalStates(st.pos, st.vel, st.time, st.s.copy(), st.hit, st.clearance)
     if offset.model_place is not None:
         # The coarse chain's contact place jumps between segment pairs where the real rope's moves
         # smoothly; predict the place from the trials alone (the real place at the centre, plus the
         # Broyden term), the rest of Z from the model.
         st.s = np.where(st.hit[:, None], offset.model_place[None], st.s)
     with np.errstate(invalid="ignore"):
-        total = goal.terms(with_offset(st, offset(U)))["total"]
+        return with_offset(st, offset(U)), alone
+
+
+def predicted_cost(model, goal: crit.Target, U: np.ndarray, offset: Offset, centre: np.ndarray, reg: float):
+    """(cost (B,), predicted total (B,), model-alone total (B,)) for a batch of commands: ONE rollout."""
+    pred, st = predicted_states(model, U, offset)
+    with np.errstate(invalid="ignore"):
+        total = goal.terms(pred)["total"]
         alone = goal.terms(st)["total"]
     excess = model.space.limit_excess(U)
     return total + reg * np.sum((U - centre[None]) ** 2, 1) + LIMIT_PENALTY * excess, total, alone

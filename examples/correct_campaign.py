@@ -1,0 +1,125 @@
+"""The correction campaign: every rope variant x seed, each with the renormalised-as-it-goes chain, the
+measured parameters and the parameters fitted once before the trials (`correct rope --params renormalised
+measured fitted`), one `correct rope` run per (variant, seed), one after the other (they share the CPU).
+
+    python examples/correct_campaign.py --out runs/campaign [--variants stiff soft ...] [--seeds 0 1 2]
+        [--segments 10] [--engine newton] [--params renormalised measured fitted] [--table-only]
+
+Each run goes to OUT/<variant>-s<seed>/ (a finished run is kept, an interrupted one continues with
+--resume), its command line and wall time to OUT/campaign.json, and the table to OUT/campaign.md:
+trials to reach the tolerance, or "- (best)" where a run never reached it within its trials. The summary
+counts runs that reached it and the median trials per arm, a run that never reached counting as
+max_trials + 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROPES = ["stiff", "soft", "heavy", "light", "long", "damped", "heavy_end"]
+
+
+def run_one(out: Path, variant: str, seed: int, args) -> dict:
+    folder = out / f"{variant}-s{seed}"
+    done = folder / "correct.json"
+    cmd = [sys.executable, "-m", "wrenorm", "correct", "rope", "--variant", variant, "--seed", str(seed),
+           "--segments", str(args.segments), "--engine", args.engine, "--params", *args.params, "--no-record",
+           "--quiet", "--out", str(folder)] + list(args.extra)
+    if done.exists():
+        return {"command": " ".join(cmd[1:]), "skipped": "finished before"}
+    if (folder / "settings.json").exists():
+        cmd = [sys.executable, "-m", "wrenorm", "correct", "rope", "--resume", "--no-record", "--quiet", "--out",
+               str(folder)]
+    t = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        print(proc.stderr[-2000:], file=sys.stderr)
+    return {"command": " ".join(["python"] + cmd[1:]), "returncode": proc.returncode, "wall_s": wall}
+
+
+def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> tuple[str, dict]:
+    cells, summary = {}, {p: [] for p in params}
+    meta = json.loads((out / "campaign.json").read_text()) if (out / "campaign.json").exists() else {}
+    for v in variants:
+        for s in seeds:
+            f = out / f"{v}-s{s}" / "correct.json"
+            if not f.exists():
+                continue
+            r = json.loads(f.read_text())
+            for p in params:
+                run = r["runs"].get(p)
+                if run is None:
+                    continue
+                n = run["trials_to_tolerance"]
+                cells[(v, s, p)] = str(n) if run["success"] else f"- ({run['best_error']:.3f})"
+                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"]))
+    lines = ["| rope | seed | " + " | ".join(params) + " | wall (min) |", "|---|---|" + "---|" * (len(params) + 1)]
+    for v in variants:
+        for s in seeds:
+            if not any((v, s, p) in cells for p in params):
+                continue
+            wall = (meta.get("runs", {}).get(f"{v}-s{s}") or {}).get("wall_s")
+            lines.append(f"| {v} | {s} | " + " | ".join(cells.get((v, s, p), "") for p in params)
+                         + f" | {'' if wall is None else f'{wall / 60:.1f}'} |")
+    lines += ["", "| arm | runs | reached | median trials (never = max + 1) | per-rope median trials | median best "
+                  "error | per-rope median best error |", "|---|---|---|---|---|---|---|"]
+    stats = {}
+    for p in params:
+        rows = summary[p]
+        if not rows:
+            continue
+        trials = [n for _, _, n, _ in rows]
+        ropes = [v for v in variants if any(vv == v for vv, _, _, _ in rows)]
+        per_rope = {v: float(np.median([n for vv, _, n, _ in rows if vv == v])) for v in ropes}
+        per_rope_err = {v: float(np.median([e for vv, _, _, e in rows if vv == v])) for v in ropes}
+        reached = sum(1 for _, _, n, _ in rows if n <= max_trials_default)
+        best = float(np.median([e for _, _, _, e in rows]))
+        stats[p] = {"runs": len(rows), "reached": reached, "median": float(np.median(trials)), "per_rope": per_rope,
+                    "median_best_error": best, "per_rope_median_best_error": per_rope_err}
+        lines.append(f"| {p} | {len(rows)} | {reached} | {np.median(trials):g} | "
+                     + ", ".join(f"{v} {m:g}" for v, m in per_rope.items()) + f" | {best:.3f} | "
+                     + ", ".join(f"{v} {m:.3f}" for v, m in per_rope_err.items()) + " |")
+    return "\n".join(lines) + "\n", stats
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=Path("runs/campaign"))
+    ap.add_argument("--variants", nargs="+", default=ROPES)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--segments", type=int, default=10)
+    ap.add_argument("--engine", default="newton")
+    ap.add_argument("--params", nargs="+", default=["renormalised", "measured", "fitted"])
+    ap.add_argument("--table-only", action="store_true", help="rebuild the table from finished runs")
+    ap.add_argument("extra", nargs="*", help="further `correct rope` options, after --")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    meta_file = args.out / "campaign.json"
+    meta = json.loads(meta_file.read_text()) if meta_file.exists() else {"runs": {}}
+    if not args.table_only:
+        # one seed over every rope first, then the next seed: a campaign cut short still covers all ropes
+        for s in args.seeds:
+            for v in args.variants:
+                print(f"{time.strftime('%H:%M:%S')} {v} seed {s} ...", flush=True)
+                rec = run_one(args.out, v, s, args)
+                if "skipped" not in rec:
+                    meta["runs"][f"{v}-s{s}"] = rec
+                    meta_file.write_text(json.dumps(meta, indent=1))
+                print(f"   {rec}", flush=True)
+    text, stats = table(args.out, args.variants, args.seeds, args.params)
+    (args.out / "campaign.md").write_text(text)
+    meta["summary"] = stats
+    meta_file.write_text(json.dumps(meta, indent=1))
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
