@@ -336,3 +336,18 @@ def test_a_blown_up_real_trial_costs_that_trial_not_the_run(problem, tmp_path):
     assert store.unstored == 1 and not list(store.folder.glob("trial-*.npz"))
     assert not st.hit[0]
     assert goal.terms(st)["total"][0] >= 1.0  # a miss costs, and is finite
+
+
+def test_mujoco_cable_plays_the_real_rope_and_agrees_with_its_reference_generator():
+    from wrenorm.tasks.rope.control.correct import MujocoRope, real_rope_class
+    from wrenorm.tasks.rope.reference.generate import generate_reference
+
+    assert real_rope_class("mujoco") is MujocoRope
+    real = real_rope_class("mujoco")("heavy", segments=32, duration=0.4)
+    path = PATHS["flick"]
+    first = real(path)
+    assert real(path) is first and real.runs == 1  # a repeated command is not simulated again
+    assert "mujoco" in first.source.lower()
+    direct = generate_reference(path, segments=32, variant="heavy", duration=0.4, engine="mujoco")
+    np.testing.assert_array_equal(first.markers, direct.markers)
+    assert first.mass == pytest.approx(direct.mass)

@@ -66,7 +66,7 @@ def objective(problem: Problem, values: np.ndarray) -> np.ndarray:
     """(B,) what the searches minimise on the training conditions: the mean error plus the prior penalty, or,
     for a least-squares problem, the sum of squared residuals and prior residuals (inf where not finite)."""
     values = np.atleast_2d(values)
-    if not problem.least_squares:
+    if not getattr(problem, "least_squares", False):
         return mean_loss(problem, values, problem.train)[0]
     r = np.concatenate([np.asarray(problem.residuals(values, problem.train), np.float64),
                         problem.space.prior_residuals(values)], axis=1)

@@ -80,8 +80,11 @@ class CoarseModel:
 
 
 # ------------------------------------------------------------------------------ real systems
-class NewtonRope:
-    """The fine newton rope (tasks/rope/reference/newton.py) as the real system; repeated commands are cached."""
+class FineRope:
+    """A fine rope simulator (newton's rod or MuJoCo's cable, tasks/rope/reference/) as the real system:
+    maps a HandPath to a RopeReference; repeated commands are cached, `runs` and `wall_s` count the work."""
+
+    engine = "newton"
 
     def __init__(self, variant: str = "default", segments: int = 64, duration: float = 1.5, device: str = "cpu"):
         from wrenorm.tasks.rope.reference.materials import get_variant
@@ -98,24 +101,27 @@ class NewtonRope:
         if key not in self._cache:
             t = time.perf_counter()
             self._cache[key] = generate_reference(path, segments=self.segments, variant=self.variant,
-                                                  duration=self.duration, device=self.device)
+                                                  duration=self.duration, device=self.device, engine=self.engine)
             self.wall_s += time.perf_counter() - t
             self.runs += 1
         return self._cache[key]
 
 
-REAL_ROPES = {"newton": NewtonRope}  # fine simulators that can play the real rope: one class each, same signature
+class NewtonRope(FineRope):
+    engine = "newton"
+
+
+class MujocoRope(FineRope):
+    """MuJoCo's elastic cable: a simulator the correction was not developed against."""
+
+    engine = "mujoco"
+
+
+REAL_ROPES = {"newton": NewtonRope, "mujoco": MujocoRope}  # fine simulators that can play the real rope
 
 
 def real_rope_class(engine: str):
-    """The fine 'real' rope of `engine`: a class built as cls(variant, segments, duration, device) whose
-    instances map a HandPath to a RopeReference and count `runs` and `wall_s` (NewtonRope; a MuJoCo rope
-    plugs in here as one more entry)."""
-    if engine == "mujoco" and "mujoco" not in REAL_ROPES:
-        try:
-            from wrenorm.tasks.rope.reference.mujoco import MujocoRope  # noqa: F401 (registers itself)
-        except ImportError:
-            pass
+    """The fine 'real' rope of `engine`: a class built as cls(variant, segments, duration, device)."""
     if engine not in REAL_ROPES:
         raise InputError("--engine", "engine", f"unknown fine rope {engine!r}; available: {sorted(REAL_ROPES)}")
     return REAL_ROPES[engine]

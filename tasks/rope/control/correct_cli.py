@@ -35,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the real system: the fine rope of --engine, or a coarse chain with the FITTED parameters "
                         "(a quick stand-in whose answer is known); 'newton' is accepted for 'fine'")
     p.add_argument("--engine", default="newton",
-                   help="simulator of the fine 'real' rope (correct.REAL_ROPES): newton (default)")
+                   help="simulator of the fine 'real' rope (correct.REAL_ROPES): newton (default) or mujoco (MuJoCo's "
+                        "cable; the goal is then that rope's own --goal throw)")
     p.add_argument("--goal", default="flick_high", help="built-in hand path whose real critical state is the goal")
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
@@ -99,6 +100,7 @@ def _goal_reference(name: str, variant: str, progress):
 
 
 def run(args) -> int:
+    from wrenorm.progress import Progress
     from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
@@ -209,10 +211,15 @@ def run(args) -> int:
         method = "renormalise" if label.startswith("renormalised") else args.method
         name = label if label in RUN_LABELS else Path(label).stem
 
-        def on_trial(trial, name=name):
+        bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
+        best = [np.inf]
+
+        def on_trial(trial, name=name, bar=bar, best=best):
             # what this trial did and why, as soon as its record is complete (atomic; a resumed run rewrites it)
             write_json(real.folder / f"{name}-trial-{trial.index + 1:02d}.json",
                        {"run": name, "variant": args.variant} | trial_row(trial, space, problem.space))
+            best[0] = min(best[0], trial.total)
+            bar.update(1, force=True, error=f"{trial.total:.3f}", best=f"{best[0]:.3f}")
 
         if label in ("measured", "renormalised"):
             values = problem.space.measured
@@ -230,6 +237,7 @@ def run(args) -> int:
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
                       refit_generations=args.refit_generations, min_radius=args.min_radius,
                       prior_centre=problem.space.measured if method == "renormalise" else None)
+        bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
 
