@@ -10,15 +10,17 @@ def test_bench_writes_results_and_table(tmp_path):
                "--out", str(out)])
     assert rc == 0
     res = json.loads((out / "results.json").read_text())
-    rope = [r for r in res["rope"] if not r.get("comparison")]
+    rope = [r for r in res["rope"] if not r.get("comparison") and not r.get("task_level")]
     assert {r["n_nodes"] for r in rope} == {8, 16, 32}
+    task = [r for r in res["rope"] if r.get("task_level")]
+    assert len(task) == 1 and task[0]["candidates"] == 240 and 0 < task[0]["fraction_of_kernel"] <= 1.0
     variants = {r["variant"] for r in res["rope"] if r.get("comparison")}
     assert {"culled", "allpairs", "scalar", "numpy", "torch"} <= variants
     for r in res["rope"]:
         assert r["chain_steps_per_s"] > 0 and r["kernel_chain_steps_per_s"] >= r["chain_steps_per_s"] * 0.99
     assert res["pd"][0]["joint_steps_per_s"] > 0
     table = (out / "results.md").read_text()
-    assert "x numpy" in table and "PD joint" in table
+    assert "x numpy" in table and "PD joint" in table and "Rope task-level" in table
     assert (out / "results.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
