@@ -277,6 +277,9 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, par
     if params == "renormalised":
         assert rec["refit"]["values"] and rec["trust"]["verdict"] in ("grow", "keep", "shrink")
     assert "| trial | error |" in (full / "report.md").read_text()
+    page = (full / "report.html").read_text()  # the same per-trial rows on the run's report page
+    assert "did not reach the tolerance in 4 trials" in page
+    assert all(f"<td>{t['error']:.4f}</td>" in page for t in trials), page
     assert len(trials) == 4 and done["real_trials_read_back"] == 0
 
     cut = tmp_path / "cut"

@@ -350,7 +350,7 @@ def other_body(result: dict, folder: Path | None, system) -> str:
     return "".join(parts) + "<h2>Run</h2>" + table(["", ""], info)
 
 
-RESULT_FILES = ("result.json", "flow.json", "sensitivity.json", "correction.json")
+RESULT_FILES = ("result.json", "flow.json", "sensitivity.json", "correct.json")
 
 
 def render(result: dict, folder: Path | None = None) -> str:

@@ -14,6 +14,8 @@ def _chain(c: dict) -> list:
 def sections(result: dict) -> list[tuple[str, str]]:
     if str(result.get("schema", "")).startswith("wrenorm.sensitivity"):
         return sensitivity_sections(result)
+    if str(result.get("schema", "")).startswith("wrenorm.correct"):
+        return correction_sections(result)
     points = result.get("critical_points") or {}
     if not points:
         return []
@@ -120,4 +122,30 @@ def sensitivity_sections(result: dict) -> list[tuple[str, str]]:
                     "</p>" + _directions(par["names"], par["stacked_singular_values"], par["stacked_noise"],
                                          par.get("stacked_above_noise", []))
                     + _criterion(result, "param_step")))
+    return out
+
+
+def correction_sections(result: dict) -> list[tuple[str, str]]:
+    """`correct rope`: the goal, each run's verdict, and per trial what was tried and predicted, what the rope did and
+    how the model and the trust region reacted (the rows of report.md)."""
+    from wrenorm.tasks.rope.control.correct_cli import TRIAL_COLUMNS, run_verdict, trial_cells
+
+    runs = result.get("runs") or {}
+    summary = []
+    for label, r in runs.items():
+        state = flag("reached", "ok") if r.get("success") else flag("not reached", "bad")
+        summary.append([label, r.get("method", ""), state, r.get("trials_to_tolerance") or "",
+                        num(r.get("best_error"), 4), r.get("trials_used", "")])
+    goal = result.get("goal") or {}
+    intro = (f"<p>Real system: {result.get('real_system', '')}; coarse chain {result['model']['segments']} links; "
+             f"goal: the critical state of the <code>{goal.get('path', '')}</code> throw (first contact at "
+             f"{num(goal.get('critical_time'))} s); tolerance {num(result.get('tolerance'), 3)}. Error: "
+             f"{result.get('error_meaning', '')}.</p>")
+    out = [("Correction", intro + table(["run", "method", "", "trials to tolerance", "best error", "trials used"],
+                                        summary))]
+    for label, r in runs.items():
+        out.append((f"{label}: {run_verdict(r)}", table(TRIAL_COLUMNS, trial_cells(result, label))
+                    + "<p class='muted'>predicted: what the plan expected of this trial; model alone: the chain's "
+                      "own prediction without the offset learned from earlier trials; rho: real over predicted "
+                      "gain, which sets the next trust radius. Full states: real-trials/*-trial-NN.json.</p>"))
     return out

@@ -100,6 +100,8 @@ def _goal_reference(name: str, variant: str, progress):
 
 
 def run(args) -> int:
+    from wrenorm.cli import command_line
+    from wrenorm.fit import write_report_or_warn
     from wrenorm.progress import Progress
     from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
@@ -269,11 +271,13 @@ def run(args) -> int:
                  | {"trials": trial_rows(r["trials"], space, problem.space)} for label, r in runs.items()},
         "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored,
         "real_wall_s": real.wall_s,
-        "wall_seconds": time.perf_counter() - t_all, "versions": versions(),
+        "wall_seconds": time.perf_counter() - t_all, "versions": versions(), "device": args.device,
+        "command_line": command_line(args),
     }
     write_json(out / "correct.json", result)
     write_atomic(out / "report.md", report_markdown(result))
     _plot(out / "correct.png", runs, args)
+    write_report_or_warn(out, result, args.quiet)
     if not args.no_record:
         _record(out / "recording.rrd", runs, goal, args)
     for label, r in runs.items():
@@ -285,6 +289,42 @@ def run(args) -> int:
     return 0
 
 
+TRIAL_COLUMNS = ["trial", "error", "predicted", "model alone", "accepted", "contact t / place", "plan radius",
+                 "rho -> radius", "refit loss", "parameters changed (x measured)"]
+
+
+def run_verdict(r: dict) -> str:
+    return (f"reached the tolerance in {r['trials_to_tolerance']} trials" if r["success"] else
+            f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f})")
+
+
+def trial_cells(result: dict, label: str) -> list[list[str]]:
+    """One row of TRIAL_COLUMNS per trial of run `label`: what was tried, what the model predicted, what the rope
+    did, and how the model and the trust region reacted (report.md and report.html show the same rows)."""
+    def f(x):
+        return "" if x is None else f"{x:.3f}"
+
+    r = result["runs"][label]
+    measured = r.get("parameters") or {}
+    rows = []
+    for t in r["trials"]:
+        ms = t.get("measured_state") or {}
+        place = (f"{ms['time']:.3f} s / {ms['contact_arclength'][0]:.2f}-{ms['contact_arclength'][1]:.2f}"
+                 if ms.get("self_collision") else "no self-collision")
+        tr = t.get("trust") or {}
+        rho = "" if not tr else (f"{'nan' if tr.get('rho') is None else format(tr['rho'], '.2f')} -> "
+                                 f"{tr['radius_after']:.2f} ({tr['verdict']})")
+        rf = t.get("refit") or {}
+        moved = ""
+        if rf:
+            moved = ", ".join(f"{n} {v / measured[n]:.2g}" for n, v in rf["values"].items()
+                              if measured.get(n) and abs(v / measured[n] - 1) > 0.05)
+        refit = "" if not rf else f"{rf['loss_before']:.3f} -> {rf['loss']:.3f}"
+        rows.append([str(t["trial"]), f"{t['error']:.4f}", f(t["predicted_error"]), f(t["model_alone_error"]),
+                     "yes" if t["accepted"] else "no", place, f"{t['trust_radius']:.2f}", rho, refit, moved])
+    return rows
+
+
 def report_markdown(result: dict) -> str:
     """Per run, per trial: what was tried, what the model predicted, what the rope did, and how the model and
     the trust region reacted; a reader sees why the run converged or did not."""
@@ -292,30 +332,9 @@ def report_markdown(result: dict) -> str:
              "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
                  f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
     for label, r in result["runs"].items():
-        verdict = (f"reached the tolerance in {r['trials_to_tolerance']} trials" if r["success"] else
-                   f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f})")
-        lines += [f"## {label} ({r['method']}): {verdict}", "",
-                  "| trial | error | predicted | model alone | accepted | contact t / place | plan radius | "
-                  "rho -> radius | refit loss | parameters changed (x measured) |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        measured = result["runs"][label].get("parameters") or {}
-        for t in r["trials"]:
-            f = lambda x: "" if x is None else f"{x:.3f}"  # noqa: E731
-            ms = t.get("measured_state") or {}
-            place = (f"{ms['time']:.3f} s / {ms['contact_arclength'][0]:.2f}-{ms['contact_arclength'][1]:.2f}"
-                     if ms.get("self_collision") else "no self-collision")
-            tr = t.get("trust") or {}
-            rho = "" if not tr else f"{'nan' if tr.get('rho') is None else format(tr['rho'], '.2f')} -> " \
-                                    f"{tr['radius_after']:.2f} ({tr['verdict']})"
-            rf = t.get("refit") or {}
-            moved = ""
-            if rf:
-                moved = ", ".join(f"{n} {v / measured[n]:.2g}" for n, v in rf["values"].items()
-                                  if measured.get(n) and abs(v / measured[n] - 1) > 0.05)
-            lines.append(f"| {t['trial']} | {t['error']:.4f} | {f(t['predicted_error'])} | {f(t['model_alone_error'])} "
-                         f"| {'yes' if t['accepted'] else 'no'} | {place} | {t['trust_radius']:.2f} | {rho} | "
-                         f"{'' if not rf else format(rf['loss_before'], '.3f') + ' -> ' + format(rf['loss'], '.3f')} "
-                         f"| {moved} |")
+        lines += [f"## {label} ({r['method']}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
+                  "|" + "---|" * len(TRIAL_COLUMNS)]
+        lines += ["| " + " | ".join(row) + " |" for row in trial_cells(result, label)]
         lines.append("")
     lines.append("Per-trial records with the full predicted and measured critical states: real-trials/*-trial-NN.json")
     return "\n".join(lines) + "\n"
