@@ -354,3 +354,18 @@ def test_mujoco_cable_plays_the_real_rope_and_agrees_with_its_reference_generato
     direct = generate_reference(path, segments=32, variant="heavy", duration=0.4, engine="mujoco")
     np.testing.assert_array_equal(first.markers, direct.markers)
     assert first.mass == pytest.approx(direct.mass)
+
+
+def test_correction_recording_shows_each_runs_best_throw_whole(tmp_path):
+    """The recording holds the whole throw (goal and each run's best trial, read back from the stored trials) on
+    the simulation timeline, beside the per-trial critical states and errors."""
+    from wrenorm.cli import main
+    from wrenorm.viz.readback import entity_paths
+
+    out = tmp_path / "rec"
+    argv = [a for a in CORRECT_QUICK if a != "--no-record"] + ["--max-trials", "2", "--out", str(out)]
+    assert main(argv) == 0
+    paths = entity_paths(out / "recording.rrd")
+    for who in ("goal", "measured"):
+        assert f"/throw/{who}/rope" in paths and f"/throw/{who}/hand" in paths and f"/throw/{who}/critical" in paths
+    assert "/shape/goal" in paths and "/error/measured" in paths

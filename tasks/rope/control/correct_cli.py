@@ -279,7 +279,7 @@ def run(args) -> int:
     _plot(out / "correct.png", runs, args)
     write_report_or_warn(out, result, args.quiet)
     if not args.no_record:
-        _record(out / "recording.rrd", runs, goal, args)
+        _record(out / "recording.rrd", runs, goal, args, goal_ref=goal_ref, real=real, space=space)
     for label, r in runs.items():
         verdict = f"reached in {r['trials_to_tolerance']} trials" if r["success"] else \
             f"not reached in {r['trials_used']} trials (best {r['best_error']:.4f})"
@@ -404,9 +404,32 @@ def _plot(path: Path, runs: dict, args) -> None:
     plt.close(fig)
 
 
-def _record(path: Path, runs: dict, goal, args) -> None:
+def _run_color(name: str, COLORS: dict):
+    return COLORS.get(name, (120, 200, 80))
+
+
+def _log_throw(rec, who: str, ref, color, what: str) -> None:
+    """A whole throw on "sim_time": the rope and the hand every 20 ms, and its first self-collision, labelled."""
+    from wrenorm.tasks.rope import observable as crit
+
+    stride = max(1, int(round(0.02 / ref.dt)))
+    for f in range(0, len(ref.time), stride):
+        t = float(ref.time[f])
+        rec.log_lines3d(f"throw/{who}/rope", t, [ref.markers[f]], colors=color, radii=0.004)
+        rec.log_points3d(f"throw/{who}/hand", t, ref.hand[f][None], colors=color, radii=0.012)
+    try:
+        st = crit.from_reference(ref)
+    except Exception:  # noqa: BLE001  (a trial without a self-collision has no critical state to mark)
+        return
+    t = float(st.time[0])
+    rec.log_points3d(f"throw/{who}/critical", t, st.pos[0], colors=color, radii=0.008,
+                     labels=[f"{what}: first contact {t:.3f} s"] + [""] * (len(st.pos[0]) - 1))
+
+
+def _record(path: Path, runs: dict, goal, args, goal_ref=None, real=None, space=None) -> None:
     """Per trial: the real rope's shape at its first self-collision under each model's command,
-    against the goal's (white); and every run's error per trial against the tolerance."""
+    against the goal's (white); every run's error per trial against the tolerance; and the whole throw of the
+    goal and of each run's best trial (read back from the stored real trials) on "sim_time"."""
     from wrenorm.viz.record import COLORS, Recorder, rerun_available
 
     if not rerun_available():
@@ -427,15 +450,32 @@ def _record(path: Path, runs: dict, goal, args) -> None:
                 rec.log_scalar("error/tolerance", t.index + 1, args.tolerance, timeline="trial")
                 if t.hit:
                     s.log(f"shape/{name}", rr.LineStrips3D([t.state.pos[0].astype(np.float32)], radii=0.004,
-                                                           colors=[COLORS.get(name, (120, 200, 80))]))
+                                                           colors=[_run_color(name, COLORS)]))
                 else:
                     s.log(f"shape/{name}", rr.Clear(recursive=False))
-        rec.add_view("real rope at its first self-collision: goal white, "
+        rec.add_view("(timeline trial) real rope at its first self-collision: goal white, "
                      + ", ".join(f"{n} model {'orange' if n == 'measured' else 'blue' if n == 'fitted' else 'green'}"
                                  for n in names), ["/shape/**"], "spatial3d",
                      around=np.concatenate([goal.state.pos[0]] + [t.state.pos[0] for r in runs.values()
                                                                   for t in r["trials"] if t.hit]))
-        rec.add_view(f"error per real trial (goal reached at <= {args.tolerance})", ["/error/**"])
+        rec.add_view(f"(timeline trial) error per real trial (goal reached at <= {args.tolerance})", ["/error/**"])
+        if goal_ref is not None and real is not None and space is not None:
+            _log_throw(rec, "goal", goal_ref, COLORS["reference"], "goal")
+            around = [goal_ref.markers.reshape(-1, 3)]
+            for label, r in runs.items():
+                name = label if label in COLORS else Path(label).stem
+                best = min(r["trials"], key=lambda t: t.total)
+                try:
+                    ref = real(space.decode(best.u))  # read back from OUT/real-trials, never simulated again
+                except Exception as e:  # noqa: BLE001  (the view is lost for this run, not the recording)
+                    rec.log_text(f"throw/{name}/missing", f"{name}: best trial not readable ({e})")
+                    continue
+                _log_throw(rec, name, ref, _run_color(name, COLORS), f"{name}, best trial {best.index + 1}")
+                around.append(ref.markers.reshape(-1, 3))
+            rec.add_view("(timeline sim_time) the whole throw: goal white, each run's best trial in its colour",
+                         ["/throw/**"],
+                         "spatial3d", around=np.concatenate(around))
+            rec.show_timeline("sim_time")
         rec.close()
     except BaseException:
         rec.abort()
