@@ -217,3 +217,25 @@ def test_a_sensitivity_run_writes_a_report_with_its_own_verdicts(tmp_path):
     above = result["command"]["count_above_noise"] + result["parameters"]["count_above_noise"]
     assert text.count("above the noise</span>") == above  # the analysis' own decisions, not re-derived
     assert "data:image/png;base64," in text and "python -m wrenorm sensitivity rope" in text
+
+
+def test_equal_scale_side_views_keep_a_shapes_proportions():
+    import re
+
+    import numpy as np
+
+    from wrenorm.viz.svg import line_chart
+
+    series = [{"x": [0.0, 1.0], "y": [0.0, 0.0]}, {"x": [0.0, 0.0], "y": [0.0, 1.0]}]  # a unit step along x, along z
+
+    def lengths(svg):
+        out = []
+        for pts in re.findall(r'<polyline points="([^"]+)"', svg):
+            (a, b), (c, d) = [tuple(map(float, p.split(","))) for p in pts.split()]
+            out.append(np.hypot(c - a, d - b))
+        return out
+
+    lx, lz = lengths(line_chart(series, width=360, height=300, equal_scale=True))
+    assert lx > 0 and abs(lx - lz) < 0.2  # pixels: the same metre is as long across as up
+    lx, lz = lengths(line_chart(series, width=520, height=300))
+    assert abs(lx - lz) > 50  # without it each axis fills its own span

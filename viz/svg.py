@@ -26,9 +26,11 @@ def _fmt(v: float) -> str:
 
 
 def line_chart(series: list[dict], title: str = "", x_label: str = "", y_label: str = "", log_y: bool = False,
-               width: int = 520, height: int = 300, hline: float | None = None, hline_label: str = "") -> str:
+               width: int = 520, height: int = 300, hline: float | None = None, hline_label: str = "",
+               equal_scale: bool = False) -> str:
     """series: [{"x": ..., "y": ..., "label": str, "color": optional, "dash": optional, "markers": bool}] ->
-    an <svg> element. Non-finite (and, on a log axis, non-positive) points are left out."""
+    an <svg> element. Non-finite (and, on a log axis, non-positive) points are left out. equal_scale: one unit
+    spans as many pixels along x as along y (a shape seen from the side keeps its proportions)."""
     left, right, top, bottom = 62, 14, 26, 44
     pw, ph = width - left - right, height - top - bottom
     clean = []
@@ -57,6 +59,11 @@ def line_chart(series: list[dict], title: str = "", x_label: str = "", y_label: 
         y0, y1 = y0 - 0.5, y1 + 0.5
     pad = 0.05 * (y1 - y0)
     y0, y1 = y0 - pad, y1 + pad
+    if equal_scale and not log_y:  # widen the shorter span about its centre until both give the same units/pixel
+        per_px = max((x1 - x0) / pw, (y1 - y0) / ph)
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        x0, x1 = cx - per_px * pw / 2, cx + per_px * pw / 2
+        y0, y1 = cy - per_px * ph / 2, cy + per_px * ph / 2
     px = lambda v: left + (v - x0) / (x1 - x0) * pw  # noqa: E731
     py = lambda v: top + ph - (fy(v) - y0) / (y1 - y0) * ph  # noqa: E731
     parts.append(f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="none" stroke="#999"/>')

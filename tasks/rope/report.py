@@ -76,7 +76,7 @@ def condition_charts(problem, fitted, measured) -> list[str]:
             else:
                 series.append({"x": [], "y": [], "color": ROLE_COLORS[who], "label": f"{who} parameters: never hits"})
         out.append(line_chart(series, f"{split}: {c.name}, critical state from the side", "x [m]", "z [m]",
-                              width=360, height=300))
+                              width=360, height=300, equal_scale=True))
     return out
 
 
