@@ -80,6 +80,20 @@ class CoarseModel:
 
 
 # ------------------------------------------------------------------------------ real systems
+def _plan_or_look_closer(model, goal, centre, radius, offset, seed, starts, plan_opts):
+    """A plan from `centre` that moves; where nothing better is predicted in the box, the box halves (3 tries).
+    Returns (plan, feasible command, its step scale, the radius used)."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+
+    for retry in range(3):
+        p = rope_plan.plan(model, goal, centre, radius, offset, seed=seed + retry + 1, starts=starts, **plan_opts)
+        u, scale_used = _feasible(model.space, centre, p["u"])
+        if np.abs(u - centre).max() > 1e-9:
+            break
+        radius *= 0.5
+    return p, u, scale_used, radius
+
+
 class FineRope:
     """A fine rope simulator (newton's rod or MuJoCo's cable, tasks/rope/reference/) as the real system:
     maps a HandPath to a RopeReference; repeated commands are cached, `runs` and `wall_s` count the work."""
@@ -361,13 +375,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             break
         if method == "plan":
             off = offset or rope_plan.Offset.zero(space.dim, goal.dim, best.u)
-            for retry in range(3):
-                p = rope_plan.plan(model, goal, best.u, radius, off, seed=seed + 10 * k + retry + 1,
-                                   starts=last_plan, **plan_opts)
-                u, scale_used = _feasible(space, best.u, p["u"])
-                if np.abs(u - best.u).max() > 1e-9:
-                    break
-                radius *= 0.5  # nothing better predicted in the box: look closer before giving up
+            p, u, scale_used, radius = _plan_or_look_closer(model, goal, best.u, radius, off, seed + 10 * k,
+                                                            last_plan, plan_opts)
             predicted = p["predicted_total"]
             last_plan = [u.copy()]
             trials[-1].sensitivity = {"plan_evaluations": p["evaluations"], "plan_wall_s": p["wall_s"],
@@ -505,15 +514,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
         offset = rope_plan.Offset.zero(space.dim, goal.dim, best.u)
         if refit_offset and best.hit:
             offset = _offset_from_trials(model, trials, best, freeze_place)
-        plan_radius = trust.radius
-        for retry in range(3):
-            p = rope_plan.plan(model, goal, best.u, plan_radius, offset, seed=seed + 10 * k + retry + 1,
-                               starts=last_plan, **plan_opts)
-            u, scale_used = _feasible(space, best.u, p["u"])
-            if np.abs(u - best.u).max() > 1e-9:
-                break
-            plan_radius *= 0.5  # nothing better predicted in the box: look closer before giving up
-        trust.radius = plan_radius
+        p, u, scale_used, trust.radius = _plan_or_look_closer(model, goal, best.u, trust.radius, offset,
+                                                              seed + 10 * k, last_plan, plan_opts)
         last_plan = [u.copy()]
         trial.sensitivity = {"plan_evaluations": p["evaluations"], "plan_wall_s": p["wall_s"],
                              "plan_radius": plan_radius, "offset_at_trial": best.index + 1 if refit_offset else None,
