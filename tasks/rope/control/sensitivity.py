@@ -49,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", default="default", help="rope material of the references: default|stiff|soft|heavy")
     p.add_argument("--path", default="flick", help="built-in hand path around which the command is varied")
     p.add_argument("--params", default="measured", metavar="measured|fitted|FILE", help="coarse-model parameters")
-    p.add_argument("--segments", type=int, default=20, help="links of the coarse chain (20, as correct rope)")
+    p.add_argument("--segments", type=int, default=20,
+                   help="links of the coarse chain (correct rope steers with 10 by default)")
     p.add_argument("--dt", type=float, default=0.005)
     p.add_argument("--fd-step", type=float, default=0.1, help="command FD step (units of u)")
     p.add_argument("--param-fd-step", type=float, default=0.01, help="parameter FD step (normalised coordinates)")
