@@ -16,7 +16,7 @@ import numpy as np
 
 from wrenorm.tasks.rope import observable as crit
 from wrenorm.tasks.rope.control.command import CommandSpace
-from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope
+from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, StoredTrials
 from wrenorm.tasks.rope.control.plan import Offset, predicted_states, state_vector
 from wrenorm.tasks.rope.problem import RopeProblem, resample
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
@@ -87,6 +87,19 @@ def main(run: str, arm: str) -> None:
     tot = goal.terms(predicted_fixed(u[None] + steps[:300]))["total"]
     print(f"chain at a fixed time + offset, 300 random steps of 1.5: best {np.nanmin(tot):.3f}, "
           f"median {np.nanmedian(tot):.3f}")
+
+    # the trials alone: an affine (secant) model through the run's own trials, read back from OUT/real-trials
+    stored = StoredTrials(real, f"{run}/real-trials")
+    hits = [t for t in r["runs"][arm]["trials"] if t["self_collision"] and t["trial"] != best["trial"]]
+    dU = np.array([t["command_u"] for t in hits]) - u
+    r_best = goal.residual(crit.from_reference(stored(space.decode(u))))[0]
+    dR = np.array([goal.residual(crit.from_reference(stored(space.decode(u + d))))[0] for d in dU]) - r_best
+    J = np.linalg.lstsq(dU, dR, rcond=None)[0].T
+    step = -np.linalg.solve(J.T @ J + 1e-3 * np.eye(u.size), J.T @ r_best)
+    towards = (u_goal - u) / np.linalg.norm(u_goal - u)
+    print(f"secant model through {len(hits) + 1} trials: Gauss-Newton step {np.linalg.norm(step):.2f} long, predicts "
+          f"sum of squares {r_best @ r_best:.4f} -> {np.sum((r_best + J @ step) ** 2):.4f}, cosine with the line to "
+          f"the goal command {step @ towards / np.linalg.norm(step):.2f}")
 
 
 if __name__ == "__main__":
