@@ -85,24 +85,8 @@ def _tape_step(k: int, s: int, params: wp.array2d(dtype=wp.float64), cond: wp.ar
 
 
 @wp.kernel
-def step_kernel(
-    k: int,
-    params: wp.array2d(dtype=wp.float64),
-    cond: wp.array(dtype=int),
-    q_des: wp.array2d(dtype=wp.float64),
-    qd_des: wp.array2d(dtype=wp.float64),
-    qdd_des: wp.array2d(dtype=wp.float64),
-    integrator: int,
-    dt: wp.float64,
-    q: wp.array2d(dtype=wp.float64),
-    v: wp.array2d(dtype=wp.float64),
-):
-    """One step per launch: the form rollout_steps_kernel is tested against."""
-    _tape_step(k, wp.tid(), params, cond, q_des, qd_des, qdd_des, integrator, dt, q, v)
-
-
-@wp.kernel
 def rollout_steps_kernel(
+    first: int,
     n_steps: int,
     params: wp.array2d(dtype=wp.float64),
     cond: wp.array(dtype=int),
@@ -114,10 +98,11 @@ def rollout_steps_kernel(
     q: wp.array2d(dtype=wp.float64),
     v: wp.array2d(dtype=wp.float64),
 ):
-    """Every step in one launch (no host work per step). Its adjoint replays the loop backwards, step by step, each
-    step from the rows it read, which are never overwritten: the same gradients as one launch per step."""
+    """Steps first .. first + n_steps - 1 in one launch (a whole rollout: no host work per step). Its adjoint replays
+    the loop backwards, step by step, each step from the rows it read, which are never overwritten: the same gradients
+    as one launch per step (n_steps = 1), the form it is tested against."""
     s = wp.tid()
-    for k in range(n_steps):
+    for k in range(first, first + n_steps):
         _tape_step(k, s, params, cond, q_des, qd_des, qdd_des, integrator, dt, q, v)
 
 
@@ -208,9 +193,9 @@ def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt
         rest = [params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, int(integrator), wp.float64(dt), q, v]
         if per_step:
             for k in range(T):
-                wp.launch(step_kernel, dim=S, device=dev, inputs=[k, *rest])
+                wp.launch(rollout_steps_kernel, dim=S, device=dev, inputs=[k, 1, *rest])
         else:
-            wp.launch(rollout_steps_kernel, dim=S, device=dev, inputs=[T, *rest])
+            wp.launch(rollout_steps_kernel, dim=S, device=dev, inputs=[0, T, *rest])
         wp.launch(sq_error_kernel, dim=(T, S), device=dev, inputs=[q, cond_w, cmds.q_ref, acc])
         wp.launch(rms_kernel, dim=S, device=dev, inputs=[acc, cond_w, cmds.ref_scale, T, err])
     tape.backward(grads={err: wp.ones(S, dtype=wp.float64, device=dev)})

@@ -21,11 +21,12 @@ bound for nearby segments (the small gaps) at their relative motion, not the swi
 # no `from __future__ import annotations`: the per-size types in collide()'s annotations must be objects
 import warp as wp
 
-from wrenorm.kernels.rope.model import first_contact, seg_closest
+from wrenorm.kernels.rope.model import ChainState, first_contact, frames_from, seg_closest, spheres_apart
 
 TEMPORAL_MAX_NODES = 20  # temporal culling up to here; spatial block culling for longer chains (N = 32: 9 % faster)
 BLOCK = 4  # segments per culling block (N = 32: 10 % faster than no blocks; N = 16: even)
 _CACHE: dict = {}
+_FINISH: dict = {}
 
 
 def types(n: int) -> dict:
@@ -158,11 +159,7 @@ def collide_func(n: int):
                     continue
                 for j in range(wp.max(j_first, blk * BS), wp.min(blk * BS + BS, nm1)):
                     sb = S[j]
-                    dx = sa[0] - sb[0]
-                    dy = sa[1] - sb[1]
-                    dz = sa[2] - sb[2]
-                    reach = (sa[3] + sb[3] + two_r + margin) * 1.00001 + 1.0e-6
-                    far = dx * dx + dy * dy + dz * dz > reach * reach
+                    far = spheres_apart(sa, sb, two_r, margin)
                     if cull == 0 or not far:
                         res = seg_closest(P[a], P[a + 1], P[j], P[j + 1])
                         gap = res[0] - two_r
@@ -174,7 +171,8 @@ def collide_func(n: int):
                             best, best_a, best_b = first_contact(gap, Q[a], Q[a + 1], Q[j], Q[j + 1], two_r, a, j, best,
                                                                  best_a, best_b)
                     elif wp.static(TEMPORAL):  # each segment lies in its sphere
-                        reach_min = wp.sqrt(dx * dx + dy * dy + dz * dz) - sa[3] - sb[3] - two_r
+                        d = wp.vec3(sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2])
+                        reach_min = wp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) - sa[3] - sb[3] - two_r
                         MB[blk_a, blk] = wp.min(MB[blk_a, blk], reach_min)
         if wp.static(TEMPORAL):
             for ba in range(NB):
@@ -186,4 +184,28 @@ def collide_func(n: int):
     collide.__name__ = f"collide_{n}"
     func = wp.func(collide, module="unique")
     _CACHE[n] = func
+    return func
+
+
+def finish_func(n: int):
+    """finish(state, b, P, V, step, every, end) for chains of n nodes: a chain that stops in `step` (blown up, or at
+    its hit) leaves its final positions P and velocities V in the state and its final positions in every trajectory
+    frame still to come (frames_from)."""
+    if n in _FINISH:
+        return _FINISH[n]
+    N = n
+    Mat = wp.types.matrix(shape=(n, 3), dtype=wp.float32)
+
+    def finish(state: ChainState, b: int, P: Mat, V: Mat, step: int, every: int, end: int):
+        for i in range(N):
+            state.pos[b, i] = P[i]
+            state.vel[b, i] = V[i]
+        fr = frames_from(step, every, end)
+        for k in range(fr[0], fr[1] + 1):
+            for i in range(N):
+                state.frames[k, b, i] = P[i]
+
+    finish.__name__ = f"finish_{n}"
+    func = wp.func(finish, module="unique")
+    _FINISH[n] = func
     return func

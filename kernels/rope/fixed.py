@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope.collide import collide_func, types
+from wrenorm.kernels.rope.collide import collide_func, finish_func, types
 from wrenorm.kernels.rope.model import (
     bend_project,
     chain_constants,
     frame_after,
-    frames_from,
     inverse_masses,
     link_project,
     predict,
@@ -59,6 +58,7 @@ def _build(n: int):
     Vec = wp.types.vector(length=n, dtype=wp.float32)
     NB = t["NB"]
     collide = collide_func(n)
+    finish = finish_func(n)
 
     @rollout_variant(module="unique", module_options=OPTIONS)
     def rollout_fixed(state, hand, path_index, params, cfg, step0, nsteps, stop_at_hit, events, offset, end):
@@ -147,13 +147,7 @@ def _build(n: int):
                 st = 2
                 events.status[b] = 2
                 events.clearance[b] = cl
-                for i in range(N):
-                    state.pos[b, i] = P[i]
-                    state.vel[b, i] = V[i]
-                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-                for k in range(fr[0], fr[1] + 1):
-                    for i in range(N):
-                        state.frames[k, b, i] = P[i]
+                finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)
                 return
             best, best_a, best_b, cl, KB, CP, G = collide(P, Q, KB, CP, G, cl, st, two_r, cfg.margin, cfg.min_sep,
                                                           cfg.cull, link, nm1)
@@ -162,13 +156,7 @@ def _build(n: int):
                 record_hit(events, b, step, best, best_a, best_b, P, Q, V, NM1)
                 if stop_at_hit != 0:
                     events.clearance[b] = cl
-                    for i in range(N):
-                        state.pos[b, i] = P[i]
-                        state.vel[b, i] = V[i]
-                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-                    for k in range(fr[0], fr[1] + 1):
-                        for i in range(N):
-                            state.frames[k, b, i] = P[i]
+                    finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)
                     return
             frame = frame_after(step, cfg.frame_every, cfg.frame_end)
             if frame >= 0:

@@ -44,6 +44,7 @@ import warp as wp
 
 from wrenorm.kernels.rope.model import (
     FORWARD_OPTIONS,
+    ChainState,
     bend_project,
     chain_constants,
     first_contact,
@@ -52,12 +53,23 @@ from wrenorm.kernels.rope.model import (
     link_project,
     node_w,
     predict,
+    record_hit,
     rollout_variant,
     running,
     seg_closest,
+    spheres_apart,
 )
 
 wp.set_module_options(FORWARD_OPTIONS)
+
+
+@wp.func
+def fill_remaining_frames(state: ChainState, b: int, n: int, step: int, every: int, end: int):
+    """A chain that stops in `step` (blown up, or at its hit) keeps its final positions in every frame still to come."""
+    fr = frames_from(step, every, end)
+    for k in range(fr[0], fr[1] + 1):
+        for i in range(n):
+            state.frames[k, b, i] = state.pos[b, i]
 
 
 @rollout_variant()
@@ -129,10 +141,7 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
         if not (vv < vmax2):
             events.status[b] = 2
             events.clearance[b] = cl
-            fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-            for k in range(fr[0], fr[1] + 1):
-                for i in range(n):
-                    state.frames[k, b, i] = pos[b, i]
+            fill_remaining_frames(state, b, n, step, cfg.frame_every, cfg.frame_end)
             return
         # 5: self-collision
         for a in range(nseg):
@@ -147,11 +156,7 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
             sa = state.seg[b, a]
             for j in range(a + cfg.min_sep, nseg):
                 sb = state.seg[b, j]
-                dx = sa[0] - sb[0]
-                dy = sa[1] - sb[1]
-                dz = sa[2] - sb[2]
-                reach = (sa[3] + sb[3] + two_r + margin) * 1.00001 + 1.0e-6
-                far = dx * dx + dy * dy + dz * dz > reach * reach
+                far = spheres_apart(sa, sb, two_r, margin)
                 if cfg.cull == 0 or not far:
                     res = seg_closest(pos[b, a], pos[b, a + 1], pos[b, j], pos[b, j + 1])
                     gap = res[0] - two_r
@@ -164,21 +169,10 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
                     cl = margin
         if best_a >= 0:
             st = 1
-            events.status[b] = 1
-            events.hit_frame[b] = step + 1
-            events.hit_alpha[b] = best
-            for i in range(n):
-                p0 = prev[b, i]
-                events.crit_pos[b, i] = p0 + best * (pos[b, i] - p0)
-                events.crit_vel[b, i] = state.vel[b, i]
-            res = seg_closest(pos[b, best_a], pos[b, best_a + 1], pos[b, best_b], pos[b, best_b + 1])
-            events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nseg), (float(best_b) + res[2]) / float(nseg))
+            record_hit(events, b, step, best, best_a, best_b, pos[b], prev[b], state.vel[b], nseg)
             if stop_at_hit != 0:
                 events.clearance[b] = cl
-                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-                for k in range(fr[0], fr[1] + 1):
-                    for i in range(n):
-                        state.frames[k, b, i] = pos[b, i]
+                fill_remaining_frames(state, b, n, step, cfg.frame_every, cfg.frame_end)
                 return
         frame = frame_after(step, cfg.frame_every, cfg.frame_end)
         if frame >= 0:

@@ -30,10 +30,10 @@ GRAD_FIELDS = ("node_mass", "lead_mass", "bend_k", "bend_b", "drag_lin", "drag_q
 
 
 def _kernels(n: int, iters: int):
-    """(step_kernel, rollout_kernel) for chains of n nodes and `iters` constraint passes: one step per launch, and
-    every step in one launch. Both step through the same function; the rollout kernel's adjoint replays its step
-    loop backwards, each step from the states it read (never overwritten), so its gradients are the per-step
-    launches' (tested bit for bit)."""
+    """The rollout kernel for chains of n nodes and `iters` constraint passes: steps first .. first + steps - 1 in
+    one launch (a whole rollout, or one step per launch). Its adjoint replays the step loop backwards, each step
+    from the states it read (never overwritten), so a whole-rollout launch's gradients are the per-step launches'
+    (tested bit for bit)."""
     key = (int(n), int(iters))
     if key in _CACHE:
         return _CACHE[key]
@@ -90,18 +90,6 @@ def _kernels(n: int, iters: int):
     options = {"enable_backward": True, "max_unroll": 256}
 
     @wp.kernel(module="unique", module_options=options)
-    def step_kernel(
-        xs: wp.array3d(dtype=wp.vec3),  # (steps + 1, B, N)
-        vs: wp.array3d(dtype=wp.vec3),
-        hand: wp.array2d(dtype=wp.vec3),
-        path_index: wp.array(dtype=wp.int32),
-        params: ChainParameters,
-        cfg: ChainSettings,
-        s: int,
-    ):
-        step_func(xs, vs, hand, path_index, params, cfg, s, wp.tid())
-
-    @wp.kernel(module="unique", module_options=options)
     def rollout_kernel(
         xs: wp.array3d(dtype=wp.vec3),
         vs: wp.array3d(dtype=wp.vec3),
@@ -109,13 +97,14 @@ def _kernels(n: int, iters: int):
         path_index: wp.array(dtype=wp.int32),
         params: ChainParameters,
         cfg: ChainSettings,
+        first: int,
         steps: int,
     ):
         b = wp.tid()
-        for s in range(steps):
+        for s in range(first, first + steps):
             step_func(xs, vs, hand, path_index, params, cfg, s, b)
 
-    _CACHE[key] = (step_kernel, rollout_kernel)
+    _CACHE[key] = rollout_kernel
     return _CACHE[key]
 
 
@@ -127,14 +116,13 @@ class GradRope:
         wp.init()
         self.n, self.link, self.dt, self.iterations = int(n_nodes), float(link_length), float(dt), int(iterations)
         self.device, self.gravity = device, wp.vec3(*[float(g) for g in gravity])
-        self.step_kernel, self.kernel = _kernels(self.n, self.iterations)
+        self.kernel = _kernels(self.n, self.iterations)
         # P[i] = ... on the local state must be copy-on-write for correct adjoints; Warp takes
         # that from a global flag at build time, so set it only while these modules build
         old = wp.config.enable_vector_component_overwrites
         wp.config.enable_vector_component_overwrites = True
         try:
             wp.load_module(self.kernel.module, device=device)
-            wp.load_module(self.step_kernel.module, device=device)
         finally:
             wp.config.enable_vector_component_overwrites = old
 
@@ -168,9 +156,9 @@ class GradRope:
         with tape:
             if per_step:
                 for s in range(steps):
-                    wp.launch(self.step_kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, s])
+                    wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, s, 1])
             else:
-                wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, steps])
+                wp.launch(self.kernel, dim=B, device=dev, inputs=[xs, vs, hand_w, pidx, prm, cfg, 0, steps])
             wp.launch(_weighted_sum, dim=(B, n), device=dev, inputs=[xs, wts, steps], outputs=[J])
         tape.backward(grads={J: wp.ones(B, dtype=float, device=dev)})
         grads = {f: pa[f].grad.numpy().copy() for f in GRAD_FIELDS}

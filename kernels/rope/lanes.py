@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope.collide import TEMPORAL_MAX_NODES, collide_func, types
+from wrenorm.kernels.rope.collide import TEMPORAL_MAX_NODES, collide_func, finish_func, types
 from wrenorm.kernels.rope.fixed import MAX_NODES, OPTIONS
 from wrenorm.kernels.rope.model import (
     bend_lanes,
     chain_constants,
     frame_after,
-    frames_from,
     node_w,
     record_hit,
     rollout_variant,
@@ -57,6 +56,7 @@ def _build(n: int, lanes: int):
     LM = wp.types.matrix(shape=(N, L), dtype=wp.float32)  # per node (row), per lane (column)
     LF = wp.types.matrix(shape=(L, NB * NB if n <= TEMPORAL_MAX_NODES else 1), dtype=wp.float32)  # per lane, block pair
     collide = collide_func(n)
+    finish = finish_func(n)
     TEMPORAL = n <= TEMPORAL_MAX_NODES
     NBT = NB * NB if TEMPORAL else 1  # per-lane temporal-culling state (none for spatial culling)
 
@@ -285,12 +285,8 @@ def _build(n: int, lanes: int):
                     events.status[b] = 2
                     events.clearance[b] = CL[l]
                     for i in range(N):
-                        state.pos[b, i] = P[i]
-                        state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
-                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-                    for k in range(fr[0], fr[1] + 1):
-                        for i in range(N):
-                            state.frames[k, b, i] = P[i]
+                        V[i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
+                    finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)
                     ACT[l] = 0
                     n_act -= 1
                     continue
@@ -315,13 +311,7 @@ def _build(n: int, lanes: int):
                     record_hit(events, b, step, best, best_a, best_b, P, Q, V, NM1)
                     if stop_at_hit != 0:
                         events.clearance[b] = cl
-                        for i in range(N):
-                            state.pos[b, i] = P[i]
-                            state.vel[b, i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
-                        fr = frames_from(step, cfg.frame_every, cfg.frame_end)
-                        for k in range(fr[0], fr[1] + 1):
-                            for i in range(N):
-                                state.frames[k, b, i] = P[i]
+                        finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)
                         ACT[l] = 0
                         n_act -= 1
                         continue

@@ -19,6 +19,17 @@ FORWARD_OPTIONS = {"enable_backward": False, "optimization_level": 3, "cpu_compi
 
 
 @wp.func
+def spheres_apart(sa: wp.vec4, sb: wp.vec4, two_r: float, margin: float) -> bool:
+    """Two segments' bounding spheres (centre, half length) are farther apart than contact plus the margin, with a
+    relative and an absolute allowance for rounding: the pair cannot touch, and is culled."""
+    dx = sa[0] - sb[0]
+    dy = sa[1] - sb[1]
+    dz = sa[2] - sb[2]
+    reach = (sa[3] + sb[3] + two_r + margin) * 1.00001 + 1.0e-6
+    return dx * dx + dy * dy + dz * dz > reach * reach
+
+
+@wp.func
 def seg_closest(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec3:
     """(distance, s, t) between segments p1q1 and p2q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
     eps = 1.0e-12

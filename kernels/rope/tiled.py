@@ -25,19 +25,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from wrenorm.kernels.rope.model import (
-    bend_project,
-    chain_constants,
-    first_contact,
-    frame_after,
-    frames_from,
-    link_project,
-    node_w,
-    predict,
-    rollout_variant,
-    running,
-    seg_closest,
-)
+from wrenorm.kernels.rope import model as chain
 
 BLOCK = 32  # chains (threads) per block: one warp, so a block barrier costs no waiting on other warps
 OPTIONS = {"enable_backward": False, "optimization_level": 3, "cpu_compiler_flags": "-march=native",
@@ -70,16 +58,16 @@ def _build(n: int):
     W, IB, FA, FB = range(4)  # rows of the per-node constants tile
 
     # grid_stride=False: one chain per thread; the loop Warp otherwise wraps around the body costs registers
-    @rollout_variant(module="unique", module_options=OPTIONS, grid_stride=False)
+    @chain.rollout_variant(module="unique", module_options=OPTIONS, grid_stride=False)
     def rollout_tiled(state, hand, path_index, params, cfg, step0, nsteps, stop_at_hit, events, offset, end):
         tid = wp.tid()
         lane = tid % BLOCK
         b = wp.min(tid + offset, end - 1)  # threads past the end mirror the last chain and never write
         st = events.status[b]
-        act = running(st, stop_at_hit)
+        act = chain.running(st, stop_at_hit)
         if tid + offset >= end:
             act = 0
-        m, ml, slope, alpha_t, gamma, at_s, dl, dq = chain_constants(params, cfg, b)
+        m, ml, slope, alpha_t, gamma, at_s, dl, dq = chain.chain_constants(params, cfg, b)
         dt = cfg.dt
         link = cfg.link
         margin = cfg.margin
@@ -94,7 +82,7 @@ def _build(n: int):
         # the links' mass-weighted shares by first node (fixed.py's W, IB, FA, FB)
         K = wp.tile_empty(shape=(4, N, BLOCK), dtype=float, storage="shared")
         for i in range(N):
-            K[W, i, lane] = node_w(i, N, m, ml, slope)
+            K[W, i, lane] = chain.node_w(i, N, m, ml, slope)
         for i in range(1, NM1):
             K[IB, i, lane] = 1.0 / ((1.0 + gamma) * (K[W, i - 1, lane] + 4.0 * K[W, i, lane] + K[W, i + 1, lane])
                                     + alpha_t)
@@ -124,7 +112,7 @@ def _build(n: int):
                 li = link
                 if i == LAST:
                     li = 0.5 * link
-                xn, vn = predict(xi, vi, K[W, i, lane], li, dl, dq, dt, cfg.gravity)
+                xn, vn = chain.predict(xi, vi, K[W, i, lane], li, dl, dq, dt, cfg.gravity)
                 P[i] = xn
                 L[i] = wp.vec3(0.0)
                 LL[i - 1] = 0.0
@@ -140,8 +128,8 @@ def _build(n: int):
                     i2 = wp.static(BEND_ORDER[kk] + 1)
                     # the curvature at the start of the step damps the bending
                     c_start = X[prv, i0, lane] - 2.0 * X[prv, i1, lane] + X[prv, i2, lane]
-                    x0, x1, x2, lm = bend_project(P[i0], P[i1], P[i2], c_start, L[i1], K[W, i0, lane], K[W, i1, lane],
-                                                  K[W, i2, lane], K[IB, i1, lane], alpha_t, gamma)
+                    x0, x1, x2, lm = chain.bend_project(P[i0], P[i1], P[i2], c_start, L[i1], K[W, i0, lane],
+                                                        K[W, i1, lane], K[W, i2, lane], K[IB, i1, lane], alpha_t, gamma)
                     P[i0] = x0
                     P[i1] = x1
                     P[i2] = x2
@@ -152,8 +140,8 @@ def _build(n: int):
                     ia = wp.static(LINK_ORDER[kk])
                     ib = wp.static(LINK_ORDER[kk] + 1)
                     wa = K[W, ia, lane]
-                    xa, xb, ll = link_project(P[ia], P[ib], LL[ia], link, at_s, K[FA, ia, lane], K[FB, ia, lane],
-                                              wa + K[W, ib, lane] + at_s)
+                    xa, xb, ll = chain.link_project(P[ia], P[ib], LL[ia], link, at_s, K[FA, ia, lane], K[FB, ia, lane],
+                                                    wa + K[W, ib, lane] + at_s)
                     P[ia] = xa
                     P[ib] = xb
                     LL[ia] = ll
@@ -168,7 +156,7 @@ def _build(n: int):
                 for i in range(N):
                     state.pos[b, i] = P[i]
                     state.vel[b, i] = (P[i] - X[prv, i, lane]) * inv_dt
-                fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                fr = chain.frames_from(step, cfg.frame_every, cfg.frame_end)
                 for k in range(fr[0], fr[1] + 1):
                     for i in range(N):
                         state.frames[k, b, i] = P[i]
@@ -188,21 +176,17 @@ def _build(n: int):
                     sa = S[a, lane]
                     for j in range(a + min_sep, nseg):
                         sb = S[j, lane]
-                        dx = sa[0] - sb[0]
-                        dy = sa[1] - sb[1]
-                        dz = sa[2] - sb[2]
-                        reach = (sa[3] + sb[3] + two_r + margin) * 1.00001 + 1.0e-6
-                        far = dx * dx + dy * dy + dz * dz > reach * reach
+                        far = chain.spheres_apart(sa, sb, two_r, margin)
                         if cull == 0 or not far:
-                            res = seg_closest(X[cur, a, lane], X[cur, a + 1, lane], X[cur, j, lane],
+                            res = chain.seg_closest(X[cur, a, lane], X[cur, a + 1, lane], X[cur, j, lane],
                                               X[cur, j + 1, lane])
                             gap = res[0] - two_r
                             if not far:
                                 cl = wp.min(cl, wp.min(gap, margin))
                             if gap <= 0.0 and st == 0:
-                                best, best_a, best_b = first_contact(gap, X[prv, a, lane], X[prv, a + 1, lane],
-                                                                     X[prv, j, lane], X[prv, j + 1, lane], two_r, a, j,
-                                                                     best, best_a, best_b)
+                                best, best_a, best_b = chain.first_contact(gap, X[prv, a, lane], X[prv, a + 1, lane],
+                                                                           X[prv, j, lane], X[prv, j + 1, lane], two_r,
+                                                                           a, j, best, best_a, best_b)
                         elif margin < cl:
                             cl = margin
             if best_a >= 0:
@@ -215,7 +199,7 @@ def _build(n: int):
                     p1 = X[cur, i, lane]
                     events.crit_pos[b, i] = p0 + best * (p1 - p0)
                     events.crit_vel[b, i] = (p1 - p0) * inv_dt
-                res = seg_closest(X[cur, best_a, lane], X[cur, best_a + 1, lane], X[cur, best_b, lane],
+                res = chain.seg_closest(X[cur, best_a, lane], X[cur, best_a + 1, lane], X[cur, best_b, lane],
                                   X[cur, best_b + 1, lane])
                 events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(NM1), (float(best_b) + res[2]) / float(NM1))
                 if stop_at_hit != 0:
@@ -225,11 +209,11 @@ def _build(n: int):
                         p1 = X[cur, i, lane]
                         state.pos[b, i] = p1
                         state.vel[b, i] = (p1 - X[prv, i, lane]) * inv_dt
-                    fr = frames_from(step, cfg.frame_every, cfg.frame_end)
+                    fr = chain.frames_from(step, cfg.frame_every, cfg.frame_end)
                     for k in range(fr[0], fr[1] + 1):
                         for i in range(N):
                             state.frames[k, b, i] = X[cur, i, lane]
-            frame = frame_after(step, cfg.frame_every, cfg.frame_end)
+            frame = chain.frame_after(step, cfg.frame_every, cfg.frame_end)
             if act != 0 and frame >= 0:
                 for i in range(N):
                     state.frames[frame, b, i] = X[cur, i, lane]

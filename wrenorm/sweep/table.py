@@ -25,15 +25,21 @@ def _text(value) -> str:
     return str(value)
 
 
+def _fitted_columns(point: dict, std_key: str) -> dict:
+    """resolution, each parameter's fitted value and spread, and the training loss of one fit or flow point."""
+    row = {"resolution": _text(point.get("resolution", ""))}
+    for name, p in point.get("parameters", {}).items():
+        row[name] = p.get("fitted")
+        row[f"{name}_std"] = p.get(std_key)
+    loss = point.get("loss", {})
+    row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+    return row
+
+
 def _fit_rows(r: dict) -> list[dict]:
     rows = []
     for run in r.get("runs", [r]):
-        row = {"resolution": _text(run.get("resolution", ""))}
-        for name, p in run.get("parameters", {}).items():
-            row[name] = p.get("fitted")
-            row[f"{name}_std"] = p.get("std")
-        loss = run.get("loss", {})
-        row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+        row = _fitted_columns(run, "std")
         v = run.get("validation", {})
         for cond, c in v.get("conditions", {}).items():
             row[f"heldout_{cond}_measured"] = c.get("measured_error")
@@ -48,12 +54,7 @@ def _fit_rows(r: dict) -> list[dict]:
 def _flow_rows(r: dict) -> list[dict]:
     rows = []
     for pt in r.get("points", []):
-        row = {"resolution": _text(pt.get("resolution", ""))}
-        for name, p in pt.get("parameters", {}).items():
-            row[name] = p.get("fitted")
-            row[f"{name}_std"] = p.get("std_restarts")
-        loss = pt.get("loss", {})
-        row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+        row = _fitted_columns(pt, "std_restarts")
         row["wall_seconds"] = r.get("wall_seconds")
         rows.append(row)
     return rows
