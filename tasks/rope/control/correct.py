@@ -95,7 +95,7 @@ def _plan_or_look_closer(model, goal, centre, radius, offset, seed, starts, plan
 
 
 class FineRope:
-    """A fine rope simulator (newton's rod or MuJoCo's cable, tasks/rope/reference/) as the real system:
+    """A fine rope simulator (newton's rod or MuJoCo's elastic rod, tasks/rope/reference/) as the real system:
     maps a HandPath to a RopeReference; repeated commands are cached, `runs` and `wall_s` count the work."""
 
     engine = "newton"
@@ -126,7 +126,7 @@ class NewtonRope(FineRope):
 
 
 class MujocoRope(FineRope):
-    """MuJoCo's elastic cable: a simulator the correction was not developed against."""
+    """MuJoCo's elastic rod (a 1D flexcomp): a simulator the correction was not developed against."""
 
     engine = "mujoco"
 

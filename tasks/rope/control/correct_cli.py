@@ -36,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(a quick stand-in whose answer is known); 'newton' is accepted for 'fine'")
     p.add_argument("--engine", default="newton",
                    help="simulator of the fine 'real' rope (correct.REAL_ROPES): newton (default) or mujoco (MuJoCo's "
-                        "cable; the goal is then that rope's own --goal throw)")
+                        "elastic rod; the goal is then that rope's own --goal throw)")
     p.add_argument("--goal", default="flick_high", help="built-in hand path whose real critical state is the goal")
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
