@@ -3,7 +3,7 @@ measured parameters and the parameters fitted once before the trials (`correct r
 measured fitted`), one `correct rope` run per (variant, seed), one after the other (they share the CPU).
 
     python examples/correct_campaign.py --out runs/campaign [--variants stiff soft ...] [--seeds 0 1 2]
-        [--segments 10] [--engine newton] [--params renormalised measured fitted] [--table-only]
+        [--segments 10] [--engine newton] [--params renormalised measured fitted] [--workers 2] [--table-only]
 
 Each run goes to OUT/<variant>-s<seed>/ (a finished run is kept, an interrupted one continues with
 --resume), its command line and wall time to OUT/campaign.json, and the table to OUT/campaign.md:
@@ -17,7 +17,9 @@ import argparse
 import json
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +99,8 @@ def main(argv=None) -> int:
     ap.add_argument("--segments", type=int, default=10)
     ap.add_argument("--engine", default="newton")
     ap.add_argument("--params", nargs="+", default=["renormalised", "measured", "fitted"])
+    ap.add_argument("--workers", type=int, default=1,
+                    help="correct rope processes at once (each uses one core; wall times then share the machine)")
     ap.add_argument("--table-only", action="store_true", help="rebuild the table from finished runs")
     ap.add_argument("extra", nargs="*", help="further `correct rope` options, after --")
     args = ap.parse_args(argv)
@@ -105,14 +109,23 @@ def main(argv=None) -> int:
     meta = json.loads(meta_file.read_text()) if meta_file.exists() else {"runs": {}}
     if not args.table_only:
         # one seed over every rope first, then the next seed: a campaign cut short still covers all ropes
-        for s in args.seeds:
-            for v in args.variants:
-                print(f"{time.strftime('%H:%M:%S')} {v} seed {s} ...", flush=True)
-                rec = run_one(args.out, v, s, args)
+        cells = [(v, s) for s in args.seeds for v in args.variants]
+        lock = threading.Lock()
+
+        def one(cell):
+            v, s = cell
+            print(f"{time.strftime('%H:%M:%S')} {v} seed {s} ...", flush=True)
+            rec = run_one(args.out, v, s, args)
+            with lock:
                 if "skipped" not in rec:
                     meta["runs"][f"{v}-s{s}"] = rec
-                    meta_file.write_text(json.dumps(meta, indent=1))
-                print(f"   {rec}", flush=True)
+                    tmp = meta_file.with_suffix(".tmp")
+                    tmp.write_text(json.dumps(meta, indent=1))
+                    tmp.replace(meta_file)
+                print(f"   {v} seed {s}: {rec}", flush=True)
+
+        with ThreadPoolExecutor(max_workers=args.workers) as pool:  # each cell is its own process
+            list(pool.map(one, cells))
     text, stats = table(args.out, args.variants, args.seeds, args.params)
     (args.out / "campaign.md").write_text(text)
     meta["summary"] = stats
