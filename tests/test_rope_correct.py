@@ -276,6 +276,9 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, par
     assert len(rec["measured_state"]["positions"]) == len(rec["predicted_state"]["positions"])
     if params == "renormalised":
         assert rec["refit"]["values"] and rec["trust"]["verdict"] in ("grow", "keep", "shrink")
+        for a, b in zip(trials, trials[1:]):  # each trial records the radius it was planned in: the rule's, or less
+            if a["trust"]:
+                assert b["trust_radius"] <= a["trust"]["radius_after"] + 1e-12, (a["trust"], b["trust_radius"])
     assert "| trial | error |" in (full / "report.md").read_text()
     page = (full / "report.html").read_text()  # the same per-trial rows on the run's report page
     assert "did not reach the tolerance in 4 trials" in page

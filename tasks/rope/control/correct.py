@@ -516,6 +516,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
             offset = _offset_from_trials(model, trials, best, freeze_place)
         p, u, scale_used, trust.radius = _plan_or_look_closer(model, goal, best.u, trust.radius, offset,
                                                               seed + 10 * k, last_plan, plan_opts)
+        plan_radius = trust.radius  # the radius the next trial was planned in, for its record
         last_plan = [u.copy()]
         trial.sensitivity = {"plan_evaluations": p["evaluations"], "plan_wall_s": p["wall_s"],
                              "plan_radius": plan_radius, "offset_at_trial": best.index + 1 if refit_offset else None,
