@@ -311,20 +311,11 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     D = np.zeros((goal.dim, space.dim))  # learned correction of the model's sensitivity (qp, secant=True)
     offset, last_plan = None, []
     if method == "plan" and plan_first:
-        # the whole box around the start: the model alone picks the first real command
-        p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, rope_plan.Offset.zero(space.dim, goal.dim, u0),
-                           seed=seed, **plan_opts)
-        u, scale_used = _feasible(space, u0, p["u"])
+        p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
         predicted, last_plan = p["predicted_total"], [u.copy()]
-        planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan":
-                    p["model_total"], "evaluations": p["evaluations"], "wall_s": p["wall_s"]}
-        if progress:
-            progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
-                     f"the start -> {p['model_total']:.3f}, {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
     for k in range(max_trials):
         t = time.perf_counter()
-        st = crit.from_reference(real(space.decode(u)))
-        terms = {key: np.asarray(v, dtype=np.float64) for key, v in goal.terms(st).items()}
+        st, terms = _measure(real, space, goal, u)
         accepted = best is None or float(terms["total"][0]) < best.total
         trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, radius, st, time.perf_counter() - t,
                       predicted, scale_used, model_values=model.values.copy())
@@ -427,7 +418,25 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
+def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int, plan_opts: dict, progress):
+    """Trial 0: the model alone picks the first real command, in the whole box around the start.
+    Returns (plan, feasible command, its step scale, what the planning did)."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+
+    space = model.space
+    p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, rope_plan.Offset.zero(space.dim, goal.dim, u0),
+                       seed=seed, **plan_opts)
+    u, scale_used = _feasible(space, u0, p["u"])
+    planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
+                "evaluations": p["evaluations"], "wall_s": p["wall_s"]}
+    if progress:
+        progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
+                 f"the start -> {p['model_total']:.3f}, {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
+    return p, u, scale_used, planning
+
+
 def _measure(real, space: CommandSpace, goal: crit.Target, u: np.ndarray):
+    """The real rope's critical state under command u, and its error terms against the goal."""
     st = crit.from_reference(real(space.decode(u)))
     return st, {key: np.asarray(v, dtype=np.float64) for key, v in goal.terms(st).items()}
 
@@ -452,19 +461,10 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
-    model = CoarseModel(model.problem, model.values, space, model.label)
     trust = rn.TrustRegion(DEFAULT_PLAN_RADIUS if radius is None else radius, 2.0 * space.bound,
                            rn.MIN_RADIUS if min_radius is None else float(min_radius))
-    zero = rope_plan.Offset.zero(space.dim, goal.dim, u0)
-    # trial 0: the model alone picks the first real command, in the whole box around the start
-    p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, zero, seed=seed, **plan_opts)
-    u, scale_used = _feasible(space, u0, p["u"])
-    offset, last_plan = zero, [u.copy()]
-    planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
-                "evaluations": p["evaluations"], "wall_s": p["wall_s"]}
-    if progress:
-        progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
-                 f"the start -> {p['model_total']:.3f}, {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
+    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+    offset, last_plan = rope_plan.Offset.zero(space.dim, goal.dim, u0), [u.copy()]
     trials: list[Trial] = []
     hits: list[tuple[int, np.ndarray, crit.CriticalStates]] = []
     best: Trial | None = None
