@@ -104,6 +104,8 @@ def main(argv=None) -> int:
     ap.add_argument("--table-only", action="store_true", help="rebuild the table from finished runs")
     ap.add_argument("extra", nargs="*", help="further `correct rope` options, after --")
     args = ap.parse_args(argv)
+    if args.workers < 1:
+        ap.error(f"--workers: must be >= 1, got {args.workers}")
     args.out.mkdir(parents=True, exist_ok=True)
     meta_file = args.out / "campaign.json"
     meta = json.loads(meta_file.read_text()) if meta_file.exists() else {"runs": {}}

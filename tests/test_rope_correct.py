@@ -372,3 +372,18 @@ def test_correction_recording_shows_each_runs_best_throw_whole(tmp_path):
     for who in ("goal", "measured"):
         assert f"/throw/{who}/rope" in paths and f"/throw/{who}/hand" in paths and f"/throw/{who}/critical" in paths
     assert "/shape/goal" in paths and "/error/measured" in paths
+
+
+def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    bad = [[str(examples / "correct_campaign.py"), "--workers", "0", "--out", str(tmp_path / "c")],
+           [str(examples / "diagnostics" / "correct_stall.py"), str(tmp_path / "no-run")]]
+    for argv in bad:
+        r = subprocess.run([sys.executable, *argv], capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        last = r.stderr.strip().splitlines()[-1]  # argparse prints its usage first; the error names the field
+        assert "workers: must be >= 1" in last or "correct.json: not a finished" in last, r.stderr

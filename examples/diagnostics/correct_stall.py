@@ -25,8 +25,18 @@ from wrenorm.tasks.rope.reference.paths import get_hand_path
 FRACTIONS = np.array([0.0, 0.25, 0.5, 0.75, 0.9])
 
 
+def _fail(message: str) -> None:
+    print(f"correct_stall: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
 def main(run: str, arm: str) -> None:
-    r = json.load(open(f"{run}/correct.json"))
+    try:
+        r = json.load(open(f"{run}/correct.json"))
+    except (OSError, ValueError) as e:
+        _fail(f"{run}/correct.json: not a finished `correct rope` run ({e})")
+    if arm not in r.get("runs", {}):
+        _fail(f"{run}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {}))}")
     gref = load_reference(builtin_reference_path(r["goal"]["path"], r["variant"]))
     goal = crit.Target.from_reference(gref)
     space = CommandSpace(get_hand_path(r["start"]["path"]))
