@@ -110,7 +110,7 @@ class RopeProblem(Problem):
         self.segments, self.n, self.dt = int(segments), int(segments) + 1, float(dt)
         self.device = device
         self.weights = dict(WEIGHTS if weights is None else weights)
-        self._targets: dict = {}  # the observable kernel's targets per (device, conditions)
+        self._targets: dict = {}  # the observable kernel's targets per list of conditions (see _stacked_targets)
         names = list(names or [f"ref{i}" for i in range(len(train_refs))])
         held_names = list(held_names or [f"held{i}" for i in range(len(held_refs))])
         self.train = [Condition(nm, prepare_case(nm, r, self.n, self.dt, self.weights))
@@ -224,11 +224,20 @@ class RopeProblem(Problem):
         cond = np.tile(np.arange(C, dtype=np.int32), B)
         states = critical.chain_states(res.events, cond, [c.data.steps for c in conditions], res.dt, res.t0,
                                        SAMPLES)
-        key = (self.device, tuple(id(c) for c in conditions))
-        if key not in self._targets:
-            self._targets[key] = stack_targets([c.data.target for c in conditions], self.device)
-        terms, r = critical.critical_terms(states, cond, self._targets[key], MISS, residual)
+        terms, r = critical.critical_terms(states, cond, self._stacked_targets(conditions), MISS, residual)
         return terms, r, states
+
+    def _stacked_targets(self, conditions: Sequence[Condition]):
+        """The conditions' targets stacked for the observable kernel, cached. An entry holds the targets it was
+        built from, so their ids (the key) cannot be reused by other objects while it lives; the cache keeps the
+        latest few lists only (a correction's refits make new conditions every trial)."""
+        targets = [c.data.target for c in conditions]
+        key = tuple(id(t) for t in targets)
+        if key not in self._targets:
+            if len(self._targets) >= 8:
+                self._targets.pop(next(iter(self._targets)))
+            self._targets[key] = (targets, stack_targets(targets, self.device))
+        return self._targets[key][1]
 
     def residuals(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
         """(B, C R) signed, weighted residuals of the critical state per condition (observable.Target), for the
@@ -322,7 +331,7 @@ class RopeProblem(Problem):
         compares like with like; per condition whether each chain hit, and when."""
         values = np.atleast_2d(values)
         terms = self.error_terms(values, conditions)
-        errs = self.no_hit_bound(values, conditions)
+        errs = self.no_hit_bound(values, conditions, terms)
         names = ["measured", "fitted"] if len(values) == 2 else [f"candidate{i}" for i in range(len(values))]
         details = []
         for j, c in enumerate(conditions):
@@ -337,12 +346,14 @@ class RopeProblem(Problem):
             details.append(row)
         return errs, details
 
-    def no_hit_bound(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
+    def no_hit_bound(self, values: np.ndarray, conditions: Sequence[Condition],
+                     terms: dict | None = None) -> np.ndarray:
         """(B, C) error with the no-hit penalty replaced by a penalty-free score: shape and velocity
         of the chain at the reference's critical time, the time error of a hit at the end of the
-        horizon (the least a later hit could have), place error 0. Equals the error of chains that hit."""
+        horizon (the least a later hit could have), place error 0. Equals the error of chains that hit.
+        terms: error_terms(values, conditions) where the caller has them already."""
         values = np.atleast_2d(values)
-        terms = self.error_terms(values, conditions)
+        terms = self.error_terms(values, conditions) if terms is None else terms
         out = terms["total"].copy()
         miss = terms["status"] == 0
         if not miss.any():
