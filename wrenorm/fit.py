@@ -122,8 +122,12 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     both = np.stack([measured, fitted])
     # the training error (the observable's units) and, apart, what the search minimised (errors or squared
     # residuals, plus the prior's squared deviations)
-    losses = finite_or_inf(problem.errors(both, problem.train)).mean(axis=1)
-    objectives = searches.objective(problem, both)
+    if problem.least_squares:
+        losses = finite_or_inf(problem.errors(both, problem.train)).mean(axis=1)
+        objectives = searches.objective(problem, both)
+    else:  # the objective is the (weighted) mean error plus the prior: one evaluation gives both
+        objectives, errs = searches.mean_loss(problem, both, problem.train)
+        losses = errs.mean(axis=1)
     unc = uncertainty(problem, fitted, jac=jac)
     params = {}
     for i, p in enumerate(space.parameters):

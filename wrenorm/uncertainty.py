@@ -38,11 +38,9 @@ DETERMINED = 0.3  # a parameter is determined by the data when its data-only std
 
 def _relative(space, fitted: np.ndarray, std: np.ndarray) -> np.ndarray:
     """std as a share of the value: e-folds for log-scale parameters, std / |value| for linear ones."""
-    free = space.free
-    v = np.asarray(fitted, np.float64)[space.free_mask]
-    log = np.array([p.scale == "log" for p in free])
+    v = np.asarray(fitted, np.float64)[space.free_mask]  # a log-scale parameter's std is d(log v) = dv / v too
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(log, std / np.maximum(np.abs(v), 1e-300), std / np.maximum(np.abs(v), 1e-300))
+        return std / np.maximum(np.abs(v), 1e-300)
 
 
 def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=None) -> dict:

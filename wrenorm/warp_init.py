@@ -44,11 +44,17 @@ def _native_stderr_without(drop: tuple[str, ...]):
                 sys.stderr.flush()
 
 
+_STATE = {"initialised": False}
+
+
 def init_warp(device: str = "cpu", verbose: bool = False):
     """wp.init() with Warp's banner and module-load lines only when verbose, and the missing-driver line only when
     CUDA was asked for or verbose. Warp initialises once per process; later calls change nothing."""
     import warp as wp
 
+    if _STATE["initialised"]:  # a later call (a command asking for its device) keeps the first call's verbosity
+        return wp
+    _STATE["initialised"] = True
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
     wp.config.verbose = bool(verbose)
     if verbose or str(device).startswith("cuda"):
