@@ -790,7 +790,7 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
                      missing=getattr(ref, "missing", None), hand=ref.hand)
         if path is not None:
             try:
-                from wrenorm.results import write_atomic
+                from wrenorm.results import _jsonable, write_atomic
 
                 write_atomic(path, json.dumps(_jsonable(_to_json(det))))
             except OSError:  # a read-only cache only costs time
@@ -800,20 +800,6 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
     except AttributeError:
         pass
     return det
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {k: _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return float(o) if np.isfinite(o) else None
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    return o
 
 
 def closest_pair_at(ref, t: float):
