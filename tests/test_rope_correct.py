@@ -6,9 +6,10 @@ import pytest
 
 from wrenorm.errors import InputError
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control import secant
 from wrenorm.tasks.rope.control.command import CommandSpace
 from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
-from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector
+from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector, with_offset
 from wrenorm.tasks.rope.control.sensitivity import resolvable
 from wrenorm.tasks.rope.problem import RopeProblem
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
@@ -134,8 +135,8 @@ def test_plan_on_the_model_alone_reaches_a_reachable_goal(problem):
     assert space.feasible(p["u"])
 
 
-@pytest.mark.parametrize("plan_first", [True, False])
-def test_correction_converges_on_a_system_with_known_answer(problem, plan_first):
+@pytest.mark.parametrize("method,plan_first", [("plan", True), ("plan", False), ("gn", True)])
+def test_correction_converges_on_a_system_with_known_answer(problem, method, plan_first):
     """The coarse chain with shifted parameters is the 'real' rope; the goal is its own critical
     state under another throw, so the goal is reachable and the loop must get there."""
     space = CommandSpace(PATHS["flick"])
@@ -145,10 +146,10 @@ def test_correction_converges_on_a_system_with_known_answer(problem, plan_first)
     start = goal.terms(crit.from_reference(real(PATHS["flick"])))["total"][0]
     assert start > 0.3  # the start is far from the goal
     exact = correct(real, CoarseModel(problem, truth, space), goal, np.zeros(space.dim), max_trials=8,
-                    plan_first=plan_first, **FAST_PLAN)
+                    plan_first=plan_first, method=method, **FAST_PLAN)
     assert exact["success"] and exact["trials_to_tolerance"] <= 3
     wrong = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
-                    max_trials=10, plan_first=plan_first, **FAST_PLAN)
+                    max_trials=10, plan_first=plan_first, method=method, **FAST_PLAN)
     assert wrong["success"]
     # the model with the system's own parameters needs no more trials than the mismatched one
     assert exact["trials_to_tolerance"] <= wrong["trials_to_tolerance"]
@@ -158,6 +159,57 @@ def test_correction_converges_on_a_system_with_known_answer(problem, plan_first)
         assert space.feasible(t.u)
     if not plan_first:
         assert np.all(wrong["trials"][0].u == 0.0)
+
+
+def test_residual_weights_make_the_observables_residual_linear_in_the_state(problem):
+    """secant.residual_weights: goal.residual(Z_goal + dz) = w * dz for any dz, block by block (the GN step
+    and the predicted state rely on it)."""
+    goal = crit.Target.from_reference(problem.train[0].data.ref)
+    w = secant.residual_weights(goal)
+    dz = np.random.default_rng(4).normal(scale=0.05, size=(3, goal.dim))
+    st = goal.state.take(np.zeros(3, dtype=int))
+    assert np.allclose(goal.residual(with_offset(st, dz)), w[None] * dz, rtol=1e-4, atol=1e-7)
+    b = goal.blocks
+    # shape = RMS distance over the K points / length: each coordinate weighs 1 / (length sqrt(K))
+    assert np.allclose(w[b["position"]], 1.0 / (goal.length * np.sqrt(crit.SAMPLES)), rtol=1e-5)
+    assert np.all(w > 0)
+
+
+def test_secant_corrections_reproduce_the_trials():
+    """Broyden: S reproduces the latest pair exactly and leaves directions orthogonal to it alone; ridge: a
+    vanishing prior weight reproduces every pair (within their span), a heavy one keeps the prior."""
+    rng = np.random.default_rng(5)
+    prior = rng.normal(size=(9, 4))
+    sens = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * 4)
+    du, dz = rng.normal(size=4), rng.normal(size=9)
+    sens.broyden(du, dz)
+    assert np.allclose(sens.S @ du, dz) and sens.pairs == 1
+    ortho = np.linalg.svd(du[None])[2][1]
+    assert np.allclose(sens.S @ ortho, prior @ ortho)
+    dus, dzs = [rng.normal(size=4) for _ in range(3)], [rng.normal(size=9) for _ in range(3)]
+    tight = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * 4)
+    tight.ridge(dus, dzs, weight=1e-9)
+    assert all(np.allclose(tight.S @ a, b, atol=1e-6) for a, b in zip(dus, dzs))
+    loose = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * 4)
+    loose.ridge(dus, dzs, weight=1e9)
+    assert np.allclose(loose.S, prior, atol=1e-6)
+
+
+def test_gn_correction_records_what_each_step_learned(problem):
+    """The GN loop's records: each trial's prediction is the linear model's (the best trial's state moved by
+    S du), the sensitivity is measured once (one chain rollout) and corrected by every later trial that hit."""
+    space = CommandSpace(PATHS["flick"])
+    real = CoarseRope(problem, shifted(problem))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
+    res = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                  max_trials=4, tolerance=1e-6, method="gn", **FAST_PLAN)
+    tr = res["trials"]
+    assert res["method"] == "gn" and len(tr) == 4
+    assert all(t.trust is not None for t in tr[1:])
+    pairs = [t.sensitivity["secant_pairs"] for t in tr[:-1]]
+    assert pairs == sorted(pairs) and pairs[-1] == sum(t.hit for t in tr[1:-1])
+    assert len({t.sensitivity["chain_rollouts"] for t in tr[:-1]}) == 1  # measured once
+    assert res["best_error"] < tr[0].total
 
 
 def test_qp_correction_still_improves(problem):

@@ -128,7 +128,8 @@ def test_trust_region_rule(case):
 FAST = {"popsize": 16, "generations": 15}
 
 
-def test_renormalising_correction_converges_on_a_system_with_known_answer(problem):
+@pytest.mark.parametrize("steps", ["gn", "plan"])
+def test_renormalising_correction_converges_on_a_system_with_known_answer(problem, steps):
     """The chain with hidden parameters is the real rope and the goal its own critical state under another
     throw: the renormalising loop reaches it, records its refits and trust radii, and never walks on from a
     worse command."""
@@ -137,7 +138,7 @@ def test_renormalising_correction_converges_on_a_system_with_known_answer(proble
     goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
     seen = []
     res = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
-                  max_trials=10, method="renormalise", prior_scale=2.0, on_trial=seen.append, **FAST)
+                  max_trials=10, method="renormalise", prior_scale=2.0, on_trial=seen.append, steps=steps, **FAST)
     assert res["success"], [t.total for t in res["trials"]]
     assert [t.index for t in seen] == [t.index for t in res["trials"]]
     tr = res["trials"]

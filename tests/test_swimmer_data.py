@@ -166,6 +166,16 @@ def test_loader_errors_name_file_field_problem(tmp_path, rates):
     with pytest.raises(InputError, match="not a multiple of 9"):
         sd.load_dir(rot)
 
+    # one frame whose head markers coincide has no heading: named by its row, not a NaN frame downstream
+    same = tmp_path / "same"
+    same.mkdir()
+    g = good.copy()
+    g[20, 2:4] = g[20, 0:2]
+    np.savetxt(same / "markers_f1_00.csv", g, delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(same)
+    assert "markers_f1_00.csv" in str(e.value) and e.value.field == "row 21 markers 0 and 1"
+
 
 def test_builtin_file_regenerates_from_csvs(tmp_path, rates):
     for r in rates:

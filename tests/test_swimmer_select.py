@@ -59,3 +59,9 @@ def test_bad_selection_input_exits_2_before_writing(tmp_path, capsys):
     assert "--train" in capsys.readouterr().err and not out.exists()
     assert main(["select", "swimmer", "--generations", "0", "--out", str(out)]) == 2
     assert not out.exists()
+    # what the selection chooses itself (or does not use) is refused, not accepted and ignored
+    for flag, value in (("--features", "all"), ("--prior-scale", "1"), ("--speed-weight", "2"),
+                        ("--integrator", "euler")):
+        assert main(["select", "swimmer", flag, value, "--out", str(out)]) == 2
+        assert flag in capsys.readouterr().err
+    assert not out.exists()

@@ -2,8 +2,9 @@
 
 At each resolution the system is fitted by several seeded CMA-ES searches side by side (one
 batched evaluation per generation for all of them), starting from the neighbouring
-resolution's result; or, on a wide device (`together`), every resolution's searches in one generation
-loop, all starting from the measured values. The spread across searches is the reported uncertainty ("restarts");
+resolution's result; or, on CUDA (`together`), every resolution's searches in one generation loop (each
+generation one batched evaluation per resolution, in turn), all starting from the measured values. The
+spread across searches is the reported uncertainty ("restarts");
 where the system exposes residuals, the Gauss-Newton std at the best optimum is given too.
 """
 from __future__ import annotations

@@ -81,3 +81,10 @@ def levenberg_marquardt(problem: Problem, start: np.ndarray, iterations: int = 5
     bar.close()
     result = SearchResult("least-squares", space.from_unit(u[None])[0], cost, history, evaluations, 0, stop)
     return result, r, J
+
+
+def polish_if_better(problem: Problem, values: np.ndarray, loss: float, quiet: bool = True) -> tuple[np.ndarray, float]:
+    """A search's optimum polished by Levenberg-Marquardt: (values, loss) of whichever of the two fits better
+    (the polish wins ties)."""
+    lsq, _, _ = levenberg_marquardt(problem, values, quiet=quiet)
+    return (lsq.best_values, lsq.best_loss) if lsq.best_loss <= loss else (values, loss)

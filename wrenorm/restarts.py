@@ -25,13 +25,11 @@ def identifiability_restarts(problem: Problem, fitted: np.ndarray, seeds: list[i
     res = restarts(problem, seeds, popsize=popsize, generations=generations, sigma0=sigma0, quiet=quiet)
     polished = method.endswith("least-squares") and problem.has_residuals
     if polished:
-        from .least_squares import levenberg_marquardt
+        from .least_squares import polish_if_better
 
         for r in res:
             if np.isfinite(r.best_loss):
-                lsq, _, _ = levenberg_marquardt(problem, r.best_values, quiet=True)
-                if lsq.best_loss <= r.best_loss:
-                    r.best_values, r.best_loss = lsq.best_values, lsq.best_loss
+                r.best_values, r.best_loss = polish_if_better(problem, r.best_values, r.best_loss)
     out = spread_of_optima(problem, fitted, [r.seed for r in res], np.array([r.best_values for r in res]),
                            np.array([r.best_loss for r in res]))
     return {"seeds": [int(s) for s in seeds], "popsize": popsize, "generations": generations,

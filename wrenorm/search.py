@@ -207,8 +207,11 @@ def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations:
 
 def restarts_together(problems: list[Problem], seeds: list[int], popsize: int = 16, generations: int = 60,
                       sigma0: float = 0.2, starts: list | None = None, quiet: bool = False) -> list[list[SearchResult]]:
-    """`restarts` for several problems (a flow's resolutions) in one generation loop: every generation asks
-    all searches of all problems before any waits for the next, so a wide device holds them all at once."""
+    """`restarts` for several problems (a flow's resolutions) in one generation loop, all from their own starts
+    (no warm start from a neighbour). Each generation evaluates the problems one after another, every one a
+    batched evaluation of all its searches: the device holds one resolution's chains at a time, not all of them
+    (different resolutions are different kernels and batch shapes); what runs together is the loop, so no
+    resolution waits for another's whole search."""
     starts = starts or [None] * len(problems)
     ess = [BatchedCMAES(np.repeat(_unit_start(p, s)[None], len(seeds), 0), sigma0, 0.0, 1.0, seeds, popsize,
                         generations) for p, s in zip(problems, starts)]

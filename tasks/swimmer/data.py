@@ -82,10 +82,18 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     if len(data) < MIN_FRAMES:
         raise InputError(str(path), "rows", f"{len(data)} frames, need at least {MIN_FRAMES}")
     markers = data.reshape(-1, N_MARKERS, 2)
+    _check_head(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
-    if not head_px > 0:
-        raise InputError(str(path), "markers 0 and 1", "head markers coincide, no pixel scale")
     return markers * (HEAD_MARKER_DISTANCE / head_px)
+
+
+def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
+    """The head frame (heading, pixel scale) needs head markers 0 and 1 apart in every frame."""
+    apart = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1) > 0
+    if not apart.all():
+        frame = int(np.argmin(apart))
+        raise InputError(str(path), f"row {frame * rows_per_frame + 1} markers 0 and 1",
+                         f"head markers coincide in frame {frame + 1}: no heading")
 
 
 def read_rotated_markers(path: Path) -> np.ndarray:
@@ -96,6 +104,7 @@ def read_rotated_markers(path: Path) -> np.ndarray:
     markers = data.reshape(-1, N_MARKERS, 2)
     if len(markers) < MIN_FRAMES:
         raise InputError(str(path), "rows", f"{len(markers)} frames, need at least {MIN_FRAMES}")
+    _check_head(path, markers, rows_per_frame=N_MARKERS)
     return markers
 
 

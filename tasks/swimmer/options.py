@@ -34,7 +34,8 @@ def _label(text: str) -> float:
     return number(0.0, 100.0, lo_open=True)(text)
 
 
-def add_common_arguments(p: argparse.ArgumentParser) -> None:
+def add_data_arguments(p: argparse.ArgumentParser) -> None:
+    """The clips and the body model: what `select swimmer` studies as well as what a fit fits."""
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
     add_list(p, "--train", default=list(DEFAULT_TRAIN), item=_label, metavar="HZ",
@@ -44,6 +45,11 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gait", choices=["chain", "wave"], default="chain",
                    help="rigid links whose angles follow the markers (chain) or parts placed on the measured wave "
                         "(wave)")
+
+
+def add_fit_arguments(p: argparse.ArgumentParser) -> None:
+    """What a fit matches and how it simulates: `select swimmer` chooses features and prior itself, so it takes
+    none of these (accepting them there would ignore them in silence)."""
     p.add_argument("--features", default=DEFAULT_FEATURES, metavar="SET|LIST",
                    help=f"trajectory features fitted per training rate, each normalised by its beat-to-beat noise: a "
                         f"set {list(FEATURE_SETS)} or a comma-separated list of {list(FEATURE_SETS['all'])}; the "
@@ -62,6 +68,11 @@ def add_resolution_arguments(p: argparse.ArgumentParser) -> None:
                help="simulation step (fitted to a whole tail beat)")
     add_number(p, "--bodies", default=TAIL_BODIES, lo=2, hi=TAIL_BODIES, integer=True,
                help="tail bodies (consecutive plates merged; the fin kept)")
+
+
+def add_common_arguments(p: argparse.ArgumentParser) -> None:
+    add_data_arguments(p)
+    add_fit_arguments(p)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -51,7 +51,7 @@ GROUPS = {"speed": (), "yaw": ("yaw_amp", "yaw_phase"), "sway": ("sway_amp", "sw
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from wrenorm.options import add_number
-    from wrenorm.tasks.swimmer.options import add_common_arguments
+    from wrenorm.tasks.swimmer.options import add_data_arguments
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/select-swimmer-<time>)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out folder that wrenorm wrote")
@@ -59,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="one seed, two prior scales, fewer generations (a smoke run)")
     add_number(p, "--generations", default=GENERATIONS, lo=1, hi=10000, integer=True,
                help="CMA-ES generations per fit (each then polished by Levenberg-Marquardt)")
-    add_common_arguments(p)
+    add_data_arguments(p)
 
 
 class Study:
@@ -85,11 +85,10 @@ class Study:
 
     def fit(self, p, seed=0) -> tuple[np.ndarray, float]:
         from wrenorm import search
-        from wrenorm.least_squares import levenberg_marquardt
+        from wrenorm.least_squares import polish_if_better
 
         r = search.cmaes(p, seed=seed, popsize=POPSIZE, generations=self.generations, quiet=True)
-        lsq, _, _ = levenberg_marquardt(p, r.best_values, quiet=True)
-        return (lsq.best_values, lsq.best_loss) if lsq.best_loss <= r.best_loss else (r.best_values, r.best_loss)
+        return polish_if_better(p, r.best_values, r.best_loss)
 
     def z(self, p, values) -> dict:
         """Every feature's normalised residual per training clip at `values`."""

@@ -259,14 +259,17 @@ class Trial:
 
 def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int = 10,
             tolerance: float = DEFAULT_TOLERANCE, radius: float | None = None, reg: float | None = None,
-            fd_step: float = FD_STEP, secant: bool | None = None, method: str = "plan", plan_first: bool = True,
+            fd_step: float = FD_STEP, secant: bool | None = None, method: str = "gn", plan_first: bool = True,
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
-            min_radius: float | None = None, prior_centre: np.ndarray | None = None) -> dict:
+            min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn") -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
-    method "plan" (default): model-offset ILC, every next command a global CMA-ES plan on the
+    method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
+      Gauss-Newton step from the best trial through the chain's sensitivity, measured once and corrected
+      by every trial (secant.py).
+    method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
     method "qp": a linear trust-region step through the coarse model's FD sensitivity.
@@ -277,22 +280,32 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       0.085 with the model's place, reaches 0.037 in 6 trials with it frozen).
     method "renormalise": after every real trial the model's parameters are refitted to the trials
       so far (renormalise.py; the model's values at the call are the first start, and the prior's
-      centre unless `prior_centre` is given), and the next command is planned on the refitted model
-      in a trust region that follows how well it predicted the last trial; with refit_offset the
-      plan adds the refitted model's remaining offset at the best trial and a Broyden term per other trial.
+      centre unless `prior_centre` is given), and the next command comes from the refitted model in a
+      trust region that follows how well it predicted the last trial: with steps "gn" a Gauss-Newton step
+      through the refitted chain's sensitivity, corrected by all trials (secant.py); with steps "plan" a plan
+      on the refitted model (with refit_offset plus its remaining offset at the best trial and a Broyden
+      term per other trial).
     A trial that does not improve the best error is rejected: the next command is planned again
     around the best one with half the trust radius (a real trial is the expensive thing).
     on_trial(trial) is called as each trial's record is complete (before the next plan)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
     space = model.space
-    if method not in ("plan", "qp", "renormalise"):
-        raise InputError("--method", "method", f"{method!r} is not 'plan', 'qp' or 'renormalise'")
+    if method not in ("gn", "plan", "qp", "renormalise"):
+        raise InputError("--method", "method", f"{method!r} is not 'gn', 'plan', 'qp' or 'renormalise'")
+    if steps not in ("gn", "plan"):
+        raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     problems = space.violations(u0)
     if problems:
         raise InputError("command", "start", "; ".join(problems))
+    if method == "gn" or (method == "renormalise" and steps == "gn"):
+        renorm = None
+        if method == "renormalise":
+            renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
+        return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
+                               reg, seed, popsize, generations, min_radius, progress, on_trial, renorm)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -541,6 +554,128 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                             "min_radius": trust.min_radius}},
         "trials": trials,
     }
+
+
+def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) -> dict:
+    from wrenorm.tasks.rope.control import renormalise as rn
+
+    prior_scale = rn.PRIOR_SCALE if prior_scale is None else float(prior_scale)
+    decay = rn.DECAY if decay is None else float(decay)
+    if not prior_scale > 0 or not 0 < decay <= 1:
+        raise InputError("--prior-scale/--decay", "value", f"need prior scale > 0 and decay in (0, 1], got "
+                                                           f"{prior_scale:g}, {decay:g}")
+    return {"prior_centre": model.values.copy() if prior_centre is None else np.asarray(prior_centre, np.float64),
+            "prior_scale": prior_scale, "decay": decay, "generations": refit_generations or rn.REFIT_GENERATIONS}
+
+
+def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int,
+                    tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
+                    generations: int | None, min_radius: float | None, progress, on_trial,
+                    renorm: dict | None) -> dict:
+    """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
+    (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit)."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+    from wrenorm.tasks.rope.control import renormalise as rn
+    from wrenorm.tasks.rope.control import secant
+
+    space, pspace = model.space, model.problem.space
+    plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
+                 "generations": generations or rope_plan.DEFAULT_GENERATIONS, "reg": rope_plan.DEFAULT_REG}
+    reg = secant.GN_REG if reg is None else float(reg)
+    trust = rn.TrustRegion(secant.GN_RADIUS if radius is None else radius, 2.0 * space.bound,
+                           rn.MIN_RADIUS if min_radius is None else float(min_radius))
+    w = secant.residual_weights(goal)
+    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+    pred_state = model.states(u[None])
+    predicted = float(goal.terms(pred_state)["total"][0])
+    trials: list[Trial] = []
+    best: Trial | None = None
+    sens: secant.Sensitivity | None = None
+    plan_radius, stopped = 2.0 * space.bound, None
+    for k in range(max_trials):
+        t = time.perf_counter()
+        st, terms = _measure(real, space, goal, u)
+        accepted = best is None or float(terms["total"][0]) < best.total
+        trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
+                      predicted, scale_used, _model_total(model, goal, u), predicted_state=pred_state,
+                      model_values=model.values.copy())
+        trials.append(trial)
+        if best is not None:
+            trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
+            if sens is not None and renorm is None and trial.hit and best.hit:
+                sens.broyden(u - best.u, (rope_plan.state_vector(st) - rope_plan.state_vector(best.state))[0])
+        if accepted:
+            best = trial
+        if progress:
+            extra = f"  predicted {predicted:.3f}, model alone {trial.model_total:.3f}"
+            if trial.trust:
+                rho = trial.trust["rho"]
+                extra += (f"; rho {'nan' if rho is None else f'{rho:.2f}'} -> {trial.trust['verdict']} "
+                          f"radius {trust.radius:.2f}")
+            progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
+                     f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
+                     f"{extra}  real {trial.wall_s:.1f} s")
+        if best.total <= tolerance or k == max_trials - 1:
+            if on_trial:
+                on_trial(trial)
+            break
+        hits = [(tr.index, tr.u, tr.state) for tr in trials if tr.hit]
+        if renorm is not None and hits:
+            r = rn.refit(model, hits, goal, model.values, renorm["prior_centre"], best=best.index,
+                         seed=seed + 100 * k, prior_scale=renorm["prior_scale"], decay=renorm["decay"],
+                         generations=renorm["generations"])
+            model = CoarseModel(model.problem, r.values, space, model.label)
+            trial.refit = r.as_dict(pspace)
+            if progress:
+                progress(f"    refit to {len(hits)} trials: loss {r.loss_start:.3f} -> {r.loss:.3f} "
+                         f"({r.evaluations} chains x trials, {r.wall_s:.1f} s)")
+        if not best.hit:
+            # no critical state to step from: the chain plans alone around the best command
+            p, u, scale_used, trust.radius = _plan_or_look_closer(
+                model, goal, best.u, trust.radius, rope_plan.Offset.zero(space.dim, goal.dim, best.u),
+                seed + 10 * k, [], plan_opts)
+            pred_state = model.states(u[None])
+            trial.sensitivity = {"plan_evaluations": p["evaluations"], "why": "no critical state to step from"}
+        else:
+            if renorm is not None or sens is None:
+                # one linearisation point for the whole run (the first trial that hit): the chain's sensitivity
+                # is rough from point to point, and moving the point swaps that roughness for another's
+                sens = secant.Sensitivity.of_chain(model, next(tr.u for tr in trials if tr.hit))
+            if renorm is not None:
+                Zb = rope_plan.state_vector(best.state)[0]
+                others = [tr for tr in trials if tr.hit and tr is not best]
+                sens.ridge([tr.u - best.u for tr in others],
+                           [rope_plan.state_vector(tr.state)[0] - Zb for tr in others])
+            u, scale_used = secant.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space, trust.radius, reg)
+            pred_state = secant.predicted_state(best.state, sens.S, u - best.u)
+            trial.sensitivity = sens.record()
+        predicted = float(goal.terms(pred_state)["total"][0])
+        plan_radius = trust.radius
+        trial.sensitivity["plan_radius"] = plan_radius
+        if on_trial:
+            on_trial(trial)
+        if np.abs(u - best.u).max() < 1e-9:
+            stopped = "the step predicts no better command than the best one"
+            if progress:
+                progress(f"  {stopped}; stopping")
+            break
+    success = best.total <= tolerance
+    out = {
+        "success": bool(success), "method": "renormalise" if renorm is not None else "gn", "steps": "gn",
+        "secant": True, "plan_first": True, "trial0_plan": planning, "trials_used": len(trials),
+        "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
+        "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
+        "gauss_newton": {"fd_step": secant.GN_FD_STEP, "reg": reg, "ridge": secant.RIDGE if renorm else None,
+                         "correction": "ridge over all trials" if renorm else "Broyden per trial",
+                         "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
+                                          "shrink": trust.SHRINK, "min_radius": trust.min_radius}},
+        "trials": trials,
+    }
+    if renorm is not None:
+        out["final_parameters"] = pspace.as_dict(model.values)
+        out["renormalise"] = {"prior_centre": pspace.as_dict(renorm["prior_centre"]),
+                              "prior_scale": renorm["prior_scale"], "decay": renorm["decay"]}
+    return out
 
 
 def _offset_from_trials(model: CoarseModel, trials: list[Trial], best: Trial, freeze_place: bool):

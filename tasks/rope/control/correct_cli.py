@@ -41,9 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
                    help="add a seeded random command offset of this size (units of u) to the start")
-    p.add_argument("--params", nargs="+", default=["renormalised"],
-                   metavar="renormalised|renormalised-from-fitted|measured|fitted|FILE",
-                   help="coarse models to steer with, each its own correction run: renormalised (parameters refitted "
+    p.add_argument("--params", nargs="+", default=["fitted"],
+                   metavar="fitted|renormalised|renormalised-from-fitted|measured|FILE",
+                   help="coarse models to steer with, each its own correction run (default fitted, the best arm of the "
+                        "10-link campaign): renormalised (parameters refitted "
                         "to the real trials after every trial, prior and start at the measured values, planned in a "
                         "trust region), renormalised-from-fitted (the same, started from the values fitted to the "
                         "rope's reference throws; prior still at the measured values), or fixed parameters with the "
@@ -52,19 +53,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "result.json")
     p.add_argument("--max-trials", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
-    p.add_argument("--method", choices=["plan", "qp"], default="plan",
-                   help="plan: model-offset ILC, each command a batched CMA-ES plan on the coarse model plus the "
-                        "offset learned from the real trials; qp: linear trust-region step through the model's FD "
-                        "sensitivity")
+    p.add_argument("--method", choices=["gn", "plan", "qp"], default="gn",
+                   help="gn: after the model's own first plan, trust-region Gauss-Newton steps through the chain's "
+                        "sensitivity corrected by the real trials (renormalised: the refitted chain's, corrected by "
+                        "all trials); plan: model-offset ILC, each command a batched CMA-ES plan on the coarse model "
+                        "plus the offset learned from the real trials (renormalised: a plan on the refitted chain); "
+                        "qp: linear trust-region step through the model's FD sensitivity re-measured at each best "
+                        "command")
     p.add_argument("--no-plan-first", action="store_true",
                    help="(plan) run the start command as trial 1 instead of the model's own plan from it")
     p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE, help="(plan) CMA-ES population per search")
     p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS, help="(plan) CMA-ES generations per plan")
     p.add_argument("--radius", type=float, default=None,
-                   help="initial trust radius (units of u; default 1.5 for plan, 1.0 for qp)")
+                   help="initial trust radius (units of u; default 1.0 for gn and qp, 1.5 for plan)")
     p.add_argument("--reg", type=float, default=None,
-                   help="plan: weight of |u - u_best|^2 (default 1e-4); qp: Tikhonov weight relative to mean "
-                        "diag(F^T F) (default 1e-2)")
+                   help="gn and qp: Levenberg/Tikhonov weight relative to mean diag(F^T F) (default 1e-2); plan: "
+                        "weight of |u - u_best|^2 (default 1e-4)")
     p.add_argument("--fd-step", type=float, default=FD_STEP, help="(qp) finite-difference step (units of u)")
     p.add_argument("--secant", action=argparse.BooleanOptionalAction, default=None,
                    help="learn how the model's error changes with u from pairs of real trials (Broyden); "
@@ -211,6 +215,7 @@ def run(args) -> int:
     runs = {}
     for label in args.params:
         method = "renormalise" if label.startswith("renormalised") else args.method
+        steps = "plan" if args.method == "plan" else "gn"
         name = label if label in RUN_LABELS else Path(label).stem
 
         bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
@@ -238,7 +243,7 @@ def run(args) -> int:
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
                       refit_generations=args.refit_generations, min_radius=args.min_radius,
-                      prior_centre=problem.space.measured if method == "renormalise" else None)
+                      prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps)
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -259,7 +264,7 @@ def run(args) -> int:
                      "radius": args.radius if args.radius is not None else _default("radius", args.method),
                      "reg": args.reg if args.reg is not None else _default("reg", args.method),
                      "fd_step": args.fd_step, "seed": args.seed,
-                     "secant": args.secant if args.secant is not None else args.method == "plan",
+                     "secant": args.secant if args.secant is not None else args.method in ("plan", "gn"),
                      "popsize": args.popsize, "generations": args.generations,
                      "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
@@ -379,10 +384,12 @@ def _restore_settings(args) -> None:
 def _default(name: str, method: str) -> float:
     from wrenorm.tasks.rope.control import correct as rope_correct
     from wrenorm.tasks.rope.control import plan as rope_plan
+    from wrenorm.tasks.rope.control import secant
 
     if name == "radius":
-        return rope_correct.DEFAULT_PLAN_RADIUS if method == "plan" else rope_correct.DEFAULT_RADIUS
-    return rope_plan.DEFAULT_REG if method == "plan" else rope_correct.DEFAULT_REG
+        radii = {"plan": rope_correct.DEFAULT_PLAN_RADIUS, "gn": secant.GN_RADIUS}
+        return radii.get(method, rope_correct.DEFAULT_RADIUS)
+    return {"plan": rope_plan.DEFAULT_REG, "gn": secant.GN_REG}.get(method, rope_correct.DEFAULT_REG)
 
 
 def _plot(path: Path, runs: dict, args) -> None:

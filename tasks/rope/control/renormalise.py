@@ -1,6 +1,8 @@
 """Renormalising as the trials come in: after every real trial the coarse chain's effective parameters are
 refitted to the critical states of the trials made so far, and the next command is planned on the
-refitted chain inside a trust region that follows how well the chain predicted the last trial.
+refitted chain inside a trust region that follows how well the chain predicted the last trial. How the next
+command comes from the refitted chain is the correction's `steps`: a Gauss-Newton step through its sensitivity
+corrected by the trials (secant.py, the default) or a plan on its map plus an offset (plan.py, below).
 
 Why: renormalization only asks the coarse model's parameters to reproduce the observable that matters
 where it matters. For the correction that is the critical state near the commands being tried, and every

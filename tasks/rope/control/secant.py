@@ -1,0 +1,114 @@
+"""Correction by Gauss-Newton steps through the coarse chain's sensitivity, corrected by the real trials.
+
+The chain is used LINEARLY: its sensitivity S = dZ/du (the critical state per unit of command, a central
+difference over GN_FD_STEP units, all 2 dim(u) + 1 chains in one rollout) is the prior of the real rope's
+sensitivity, and every real trial corrects it along the direction it moved (a secant pair: the change of the
+real critical state between the trial and the best one). The next command is the trust-region Gauss-Newton
+step from the best trial on the real residual,
+
+    du = argmin |W (S du) + e_best|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
+
+and the trust region follows how well the linear model predicted the last trial (renormalise.TrustRegion,
+rho on the correction's own error).
+
+Why linear, and why the chain's sensitivity is measured once: at 10 links the chain's critical state as a
+function of the command is rough (the first contact jumps between segment pairs), so a plan on the chain's own
+map plus an offset (plan.py) finds commands where the chain's jumps, not the rope, predict progress. The chain's
+local sensitivity is much better than its map, and re-measuring it at every new best command swaps one roughness
+for another and discards what the trials taught; measured once and corrected by every trial it stays consistent
+(README, "Why Gauss-Newton steps through the chain's sensitivity", has the development runs).
+
+Renormalised ("renormalise", steps "gn"): after every trial the chain's parameters are refitted to the trials
+(renormalise.refit) and its sensitivity is re-measured on the refitted chain at the same first command; because
+that prior moves with the refit, the trials correct it together rather than one by one (ridge regression of all
+secant pairs toward the prior, each pair one directional derivative, the prior weighing RIDGE of one).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from wrenorm.jacobian import jacobian
+from wrenorm.tasks.rope import observable as crit
+
+GN_FD_STEP = 0.3  # units of u: the chain's sensitivity over 1.5 cm, 15 cm/s, 3 % of a segment's time
+GN_RADIUS = 1.0  # initial trust radius (units of u)
+GN_REG = 1e-2  # Levenberg term relative to mean diag(F^T F)
+RIDGE = 0.05  # weight of the prior sensitivity against one secant pair's directional derivative (renormalised)
+
+
+def residual_weights(goal: crit.Target) -> np.ndarray:
+    """(m,) w with goal.residual(Z) = w * (Z - Z_goal) in state_vector's layout: the observable's residual is
+    linear block by block (shape / length, velocity / speed, time / t_goal, place), measured here once from
+    unit changes of the goal's own state rather than restated."""
+    from wrenorm.tasks.rope.control.plan import with_offset
+
+    m = goal.dim
+    st = goal.state.take(np.zeros(m, dtype=int))
+    return np.diag(goal.residual(with_offset(st, np.eye(m)))).astype(np.float64)
+
+
+@dataclass
+class Sensitivity:
+    """S = dZ/du of the real rope near the best command: the chain's, corrected by the trials."""
+
+    prior: np.ndarray  # (m, n) the chain's central difference
+    S: np.ndarray  # (m, n) the current estimate
+    columns: list  # per command component: central / forward / backward / none (the chain missed both sides)
+    pairs: int = 0  # secant pairs learned so far
+    chain_rollouts: int = 0
+    wall_s: float = 0.0
+
+    @classmethod
+    def of_chain(cls, model, u: np.ndarray, step: float = GN_FD_STEP) -> Sensitivity:
+        from wrenorm.tasks.rope.control.plan import state_vector
+
+        t = time.perf_counter()
+        space = model.space
+        jac = jacobian(lambda U: state_vector(model.states(U)), u, step, space.lower, space.upper)
+        S = np.where(np.isfinite(jac.J), jac.J, 0.0)
+        return cls(S.copy(), S, jac.kinds, 0, jac.evaluations, time.perf_counter() - t)
+
+    def broyden(self, du: np.ndarray, dz: np.ndarray) -> None:
+        """Reproduce the change dz the real rope made over du with the smallest change of S."""
+        if du @ du > 0 and np.all(np.isfinite(dz)):
+            self.S = self.S + np.outer(dz - self.S @ du, du) / (du @ du)
+            self.pairs += 1
+
+    def ridge(self, dus: list, dzs: list, weight: float = RIDGE) -> None:
+        """S = argmin sum |(dz_k - S du_k) / |du_k||^2 + weight |S - prior|_F^2 over all pairs at once: each pair is
+        one directional derivative, whatever its length (a short step near the best teaches as much as a long
+        one, as in Broyden's update)."""
+        n = self.prior.shape[1]
+        A, B = weight * np.eye(n), weight * self.prior
+        for du, dz in zip(dus, dzs):
+            norm2 = float(du @ du)
+            if norm2 > 0 and np.all(np.isfinite(dz)):
+                A += np.outer(du, du) / norm2
+                B = B + np.outer(dz, du) / norm2
+                self.pairs += 1
+        self.S = np.linalg.solve(A.T, B.T).T
+
+    def record(self) -> dict:
+        return {"chain_rollouts": self.chain_rollouts, "chain_wall_s": self.wall_s, "secant_pairs": self.pairs,
+                "columns_not_central": [i for i, c in enumerate(self.columns) if c != "central"],
+                "relative_correction": float(np.linalg.norm(self.S - self.prior)
+                                             / max(np.linalg.norm(self.prior), 1e-12))}
+
+
+def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
+            reg: float = GN_REG) -> tuple[np.ndarray, float]:
+    """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale."""
+    from wrenorm.tasks.rope.control.correct import qp_step
+
+    du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg)
+    return space.limit_step(u_best, du)
+
+
+def predicted_state(best_state: crit.CriticalStates, S: np.ndarray, du: np.ndarray) -> crit.CriticalStates:
+    """The linear model's critical state after the step du from the best trial."""
+    from wrenorm.tasks.rope.control.plan import with_offset
+
+    return with_offset(best_state, S @ du)
