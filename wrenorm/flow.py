@@ -17,6 +17,7 @@ import numpy as np
 
 from .errors import InputError
 from .results import SCHEMA, versions, write_json
+from .runfolder import check_same_settings
 from .search import mean_loss, restarts_together
 from .search import restarts as seeded_searches
 from .uncertainty import uncertainty
@@ -36,11 +37,7 @@ def _resumed(out: Path, settings: dict) -> tuple[list, object]:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:
         raise InputError(str(f), POINTS_FILE, f"cannot be read: {e}") from None
-    old, new = saved.get("settings") or {}, json.loads(json.dumps(settings))
-    for key in sorted(set(old) | set(new)):
-        if old.get(key) != new.get(key):
-            raise InputError(str(f), key, f"the interrupted flow ran with {old.get(key)!r}, this run with "
-                                          f"{new.get(key)!r}; resume with the same options")
+    check_same_settings(str(f), saved.get("settings") or {}, json.loads(json.dumps(settings)), "flow")
     return saved["points"], (np.array(saved["start"]) if saved["start"] is not None else None)
 
 

@@ -77,3 +77,12 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
     except OSError as e:
         raise InputError(str(out), "--out", f"cannot be written: {e.strerror or e}") from None
     return out
+
+
+def check_same_settings(source: str, old: dict, new: dict, what: str = "fit") -> None:
+    """A resumed run must repeat the interrupted one's settings: the first that differs (sorted by name) is an
+    InputError naming the state file, the setting and both values."""
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) != new.get(key):
+            raise InputError(source, key, f"the interrupted {what} ran with {old.get(key)!r}, this run with "
+                                          f"{new.get(key)!r}; resume with the same settings")

@@ -172,11 +172,9 @@ def _saved_state(checkpoint, saved: dict) -> dict:
     if state.get("free") != saved["free"]:
         raise InputError(src, "free parameters", f"the interrupted search fits {state.get('free')}, this run "
                                                  f"{saved['free']}; resume with the same --free/--freeze")
-    old, new = state.get("settings") or {}, saved["settings"]
-    for key in sorted(set(old) | set(new)):
-        if old.get(key) != new.get(key):
-            raise InputError(src, key, f"the interrupted fit ran with {old.get(key)!r}, this run with "
-                                       f"{new.get(key)!r}; resume with the same settings")
+    from .runfolder import check_same_settings
+
+    check_same_settings(src, state.get("settings") or {}, saved["settings"], "fit")
     return state
 
 

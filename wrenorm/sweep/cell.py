@@ -27,6 +27,7 @@ def result_file(verb: str) -> str:
 
 
 def _now() -> str:
+    """Local wall time to the millisecond (a cell's and a sweep's start and finish)."""
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime()) + f".{int(time.time() * 1000) % 1000:03d}"
 
 

@@ -30,7 +30,7 @@ from wrenorm.options import add_number
 from wrenorm.results import write_atomic, write_json
 
 from . import table
-from .cell import TOKEN_FILE, result_file
+from .cell import TOKEN_FILE, _now, result_file
 
 STATE_FILE = "sweep-state.json"
 SCHEMA = "wrenorm.sweep/1"
@@ -57,10 +57,6 @@ def add_arguments(p) -> None:
     p.add_argument("--force", action="store_true", help="clear a non-empty --out folder that wrenorm wrote")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-record", action="store_true", help="skip the sweep's Rerun recording")
-
-
-def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S")
 
 
 # --- state ------------------------------------------------------------------------------------------------------
