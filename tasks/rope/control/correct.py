@@ -465,12 +465,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     from wrenorm.tasks.rope.control import renormalise as rn
 
     space, pspace = model.space, model.problem.space
-    prior_centre = model.values.copy() if prior_centre is None else np.asarray(prior_centre, dtype=np.float64)
-    prior_scale = rn.PRIOR_SCALE if prior_scale is None else float(prior_scale)
-    decay = rn.DECAY if decay is None else float(decay)
-    if not prior_scale > 0 or not 0 < decay <= 1:
-        raise InputError("--prior-scale/--decay", "value", f"need prior scale > 0 and decay in (0, 1], got "
-                                                           f"{prior_scale:g}, {decay:g}")
+    settings = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
+    prior_centre, prior_scale, decay = settings["prior_centre"], settings["prior_scale"], settings["decay"]
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
@@ -498,18 +494,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
             best = trial
         if trial.hit:
             hits.append((k, u.copy(), st))
-        if progress:
-            extra = f"  predicted {predicted:.3f}, model alone {trial.model_total:.3f}"
-            if trial.trust:
-                rho = trial.trust["rho"]
-                extra += (f"; rho {'nan' if rho is None else f'{rho:.2f}'} -> {trial.trust['verdict']} "
-                          f"radius {trust.radius:.2f}")
-            progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
-                     f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
-                     f"{extra}  real {trial.wall_s:.1f} s")
-        if best.total <= tolerance or k == max_trials - 1:
-            if on_trial:
-                on_trial(trial)
+        if _reported_and_done(trial, best, max_trials, tolerance, trust.radius, progress, on_trial):
             break
         # renormalise: refit the chain to the trials so far, then plan on it around the best trial
         if hits:
@@ -554,6 +539,29 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                             "min_radius": trust.min_radius}},
         "trials": trials,
     }
+
+
+def _trial_line(trial: Trial, max_trials: int, radius: float) -> str:
+    """One trial's progress line in the trust-region loops: error, prediction, the trust verdict."""
+    extra = f"  predicted {trial.predicted_total:.3f}, model alone {trial.model_total:.3f}"
+    if trial.trust:
+        rho = trial.trust["rho"]
+        extra += f"; rho {'nan' if rho is None else f'{rho:.2f}'} -> {trial.trust['verdict']} radius {radius:.2f}"
+    return (f"  trial {trial.index + 1}/{max_trials}: error {trial.total:.4f}"
+            f"{'' if trial.hit else ' (no self-collision)'}{'' if trial.accepted else ' (rejected)'}"
+            f"{extra}  real {trial.wall_s:.1f} s")
+
+
+def _reported_and_done(trial: Trial, best: Trial, max_trials: int, tolerance: float, radius: float, progress,
+                       on_trial) -> bool:
+    """Say how the trial went; True when the loop ends with it (its record is then handed on here, as no step
+    follows to complete it)."""
+    if progress:
+        progress(_trial_line(trial, max_trials, radius))
+    done = best.total <= tolerance or trial.index == max_trials - 1
+    if done and on_trial:
+        on_trial(trial)
+    return done
 
 
 def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) -> dict:
@@ -606,18 +614,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 sens.broyden(u - best.u, (rope_plan.state_vector(st) - rope_plan.state_vector(best.state))[0])
         if accepted:
             best = trial
-        if progress:
-            extra = f"  predicted {predicted:.3f}, model alone {trial.model_total:.3f}"
-            if trial.trust:
-                rho = trial.trust["rho"]
-                extra += (f"; rho {'nan' if rho is None else f'{rho:.2f}'} -> {trial.trust['verdict']} "
-                          f"radius {trust.radius:.2f}")
-            progress(f"  trial {k + 1}/{max_trials}: error {trial.total:.4f}"
-                     f"{'' if trial.hit else ' (no self-collision)'}{'' if accepted else ' (rejected)'}"
-                     f"{extra}  real {trial.wall_s:.1f} s")
-        if best.total <= tolerance or k == max_trials - 1:
-            if on_trial:
-                on_trial(trial)
+        if _reported_and_done(trial, best, max_trials, tolerance, trust.radius, progress, on_trial):
             break
         hits = [(tr.index, tr.u, tr.state) for tr in trials if tr.hit]
         if renorm is not None and hits:
