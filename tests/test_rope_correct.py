@@ -210,6 +210,12 @@ def test_gn_correction_records_what_each_step_learned(problem):
     assert pairs == sorted(pairs) and pairs[-1] == sum(t.hit for t in tr[1:-1])
     assert len({t.sensitivity["chain_rollouts"] for t in tr[:-1]}) == 1  # measured once
     assert res["best_error"] < tr[0].total
+    # the options the plan loop takes mean the same here: the start command as trial 1, no secant corrections
+    plain = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                    max_trials=3, tolerance=1e-6, method="gn", plan_first=False, secant=False, **FAST_PLAN)
+    assert np.all(plain["trials"][0].u == 0.0) and plain["trial0_plan"] is None and not plain["secant"]
+    assert all(t.sensitivity["secant_pairs"] == 0 and t.sensitivity["relative_correction"] == 0.0
+               for t in plain["trials"][:-1] if t.hit)
 
 
 def test_qp_correction_still_improves(problem):

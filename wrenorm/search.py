@@ -27,6 +27,7 @@ from .errors import AllCandidatesFailed, InputError
 from .problem import Problem, finite_or_inf
 from .progress import Progress
 from .results import write_json
+from .runfolder import check_same_settings
 
 # fault-injection hook for the kill -9 / --resume tests: seconds to sleep after each generation
 _SLOW = float(os.environ.get("WRENORM_TEST_SLOW_GENERATION", "0") or 0)
@@ -172,8 +173,6 @@ def _saved_state(checkpoint, saved: dict) -> dict:
     if state.get("free") != saved["free"]:
         raise InputError(src, "free parameters", f"the interrupted search fits {state.get('free')}, this run "
                                                  f"{saved['free']}; resume with the same --free/--freeze")
-    from .runfolder import check_same_settings
-
     check_same_settings(src, state.get("settings") or {}, saved["settings"], "fit")
     return state
 

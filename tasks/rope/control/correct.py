@@ -33,7 +33,9 @@ from wrenorm.errors import InputError
 from wrenorm.jacobian import jacobian
 from wrenorm.problem import Condition
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control import secant as gauss_newton  # the module; `secant` is an argument here
 from wrenorm.tasks.rope.control.command import CommandSpace
+from wrenorm.tasks.rope.control.secant import qp_step
 
 FD_STEP = 0.1  # units of u: 5 mm, 5 cm/s, 1 % of a segment's time
 DEFAULT_TOLERANCE = 0.05  # total error (rope.py units): ~2 % of the length in shape, 2 % in time
@@ -216,23 +218,6 @@ class CoarseRope:
                              marker_arclength=np.linspace(0.0, 1.0, pb.n), source="coarse chain")
 
 
-# ------------------------------------------------------------------------------ the update
-def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space: CommandSpace, radius: float,
-            reg: float = DEFAULT_REG) -> np.ndarray:
-    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius."""
-    from scipy.optimize import lsq_linear
-
-    n = u.shape[0]
-    scale = float(np.mean(np.sum(F * F, axis=0)))
-    lam = reg * (scale if scale > 0 else 1.0)
-    A = np.concatenate([F, np.sqrt(lam) * np.eye(n)])
-    b = np.concatenate([-e, np.zeros(n)])
-    lo = np.maximum(space.lower - u, -radius)
-    hi = np.minimum(space.upper - u, radius)
-    hi = np.maximum(hi, lo + 1e-12)  # lsq_linear needs lo < hi
-    return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
-
-
 @dataclass
 class Trial:
     index: int
@@ -305,7 +290,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
         return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
-                               reg, seed, popsize, generations, min_radius, progress, on_trial, renorm)
+                               reg, seed, popsize, generations, min_radius, progress, on_trial, renorm,
+                               plan_first=plan_first, secant=True if secant is None else bool(secant))
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -579,26 +565,28 @@ def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) 
 def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int,
                     tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
                     generations: int | None, min_radius: float | None, progress, on_trial,
-                    renorm: dict | None) -> dict:
+                    renorm: dict | None, plan_first: bool = True, secant: bool = True) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
-    (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit)."""
+    (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
+    plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
-    from wrenorm.tasks.rope.control import secant
 
     space, pspace = model.space, model.problem.space
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS, "reg": rope_plan.DEFAULT_REG}
-    reg = secant.GN_REG if reg is None else float(reg)
-    trust = rn.TrustRegion(secant.GN_RADIUS if radius is None else radius, 2.0 * space.bound,
+    reg = gauss_newton.GN_REG if reg is None else float(reg)
+    trust = rn.TrustRegion(gauss_newton.GN_RADIUS if radius is None else radius, 2.0 * space.bound,
                            rn.MIN_RADIUS if min_radius is None else float(min_radius))
-    w = secant.residual_weights(goal)
-    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+    w = gauss_newton.residual_weights(goal)
+    u, scale_used, planning = u0.copy(), None, None
+    if plan_first:
+        _, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
     pred_state = model.states(u[None])
     predicted = float(goal.terms(pred_state)["total"][0])
     trials: list[Trial] = []
     best: Trial | None = None
-    sens: secant.Sensitivity | None = None
+    sens: gauss_newton.Sensitivity | None = None
     plan_radius, stopped = 2.0 * space.bound, None
     for k in range(max_trials):
         t = time.perf_counter()
@@ -610,7 +598,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         trials.append(trial)
         if best is not None:
             trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
-            if sens is not None and renorm is None and trial.hit and best.hit:
+            if secant and sens is not None and renorm is None and trial.hit and best.hit:
                 sens.broyden(u - best.u, (rope_plan.state_vector(st) - rope_plan.state_vector(best.state))[0])
         if accepted:
             best = trial
@@ -637,14 +625,15 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             if renorm is not None or sens is None:
                 # one linearisation point for the whole run (the first trial that hit): the chain's sensitivity
                 # is rough from point to point, and moving the point swaps that roughness for another's
-                sens = secant.Sensitivity.of_chain(model, next(tr.u for tr in trials if tr.hit))
-            if renorm is not None:
+                sens = gauss_newton.Sensitivity.of_chain(model, next(tr.u for tr in trials if tr.hit))
+            if secant and renorm is not None:
                 Zb = rope_plan.state_vector(best.state)[0]
                 others = [tr for tr in trials if tr.hit and tr is not best]
                 sens.ridge([tr.u - best.u for tr in others],
                            [rope_plan.state_vector(tr.state)[0] - Zb for tr in others])
-            u, scale_used = secant.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space, trust.radius, reg)
-            pred_state = secant.predicted_state(best.state, sens.S, u - best.u)
+            u, scale_used = gauss_newton.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space, trust.radius,
+                                                 reg)
+            pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             trial.sensitivity = sens.record()
         predicted = float(goal.terms(pred_state)["total"][0])
         plan_radius = trust.radius
@@ -659,11 +648,13 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     success = best.total <= tolerance
     out = {
         "success": bool(success), "method": "renormalise" if renorm is not None else "gn", "steps": "gn",
-        "secant": True, "plan_first": True, "trial0_plan": planning, "trials_used": len(trials),
+        "secant": bool(secant), "plan_first": bool(plan_first), "trial0_plan": planning, "trials_used": len(trials),
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
-        "gauss_newton": {"fd_step": secant.GN_FD_STEP, "reg": reg, "ridge": secant.RIDGE if renorm else None,
-                         "correction": "ridge over all trials" if renorm else "Broyden per trial",
+        "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
+                         "ridge": gauss_newton.RIDGE if renorm else None,
+                         "correction": ("none" if not secant else "ridge over all trials" if renorm
+                                        else "Broyden per trial"),
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
                                           "shrink": trust.SHRINK, "min_radius": trust.min_radius}},
         "trials": trials,

@@ -45,12 +45,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    metavar="fitted|renormalised|renormalised-from-fitted|measured|FILE",
                    help="coarse models to steer with, each its own correction run (default fitted, the best arm of the "
                         "10-link campaign): renormalised (parameters refitted "
-                        "to the real trials after every trial, prior and start at the measured values, planned in a "
+                        "to the real trials after every trial, prior and start at the measured values; steps in a "
                         "trust region), renormalised-from-fitted (the same, started from the values fitted to the "
-                        "rope's reference throws; prior still at the measured values), or fixed parameters with the "
-                        "model-offset/Broyden correction (--method): "
-                        "measured, fitted (once, to the rope's reference throws, before the trials), or a "
-                        "result.json")
+                        "rope's reference throws; prior still at the measured values), or fixed parameters stepped "
+                        "by --method: measured, fitted (once, to the rope's reference throws, before the trials), or "
+                        "a result.json")
     p.add_argument("--max-trials", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
     p.add_argument("--method", choices=["gn", "plan", "qp"], default="gn",
@@ -59,11 +58,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "all trials); plan: model-offset ILC, each command a batched CMA-ES plan on the coarse model "
                         "plus the offset learned from the real trials (renormalised: a plan on the refitted chain); "
                         "qp: linear trust-region step through the model's FD sensitivity re-measured at each best "
-                        "command")
+                        "command (fixed parameters only; renormalised arms then take gn steps)")
     p.add_argument("--no-plan-first", action="store_true",
-                   help="(plan) run the start command as trial 1 instead of the model's own plan from it")
-    p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE, help="(plan) CMA-ES population per search")
-    p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS, help="(plan) CMA-ES generations per plan")
+                   help="(gn, plan) run the start command as trial 1 instead of the model's own plan from it")
+    p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE,
+                   help="(plan; gn's first plan) CMA-ES population per search")
+    p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS,
+                   help="(plan; gn's first plan) CMA-ES generations per plan")
     p.add_argument("--radius", type=float, default=None,
                    help="initial trust radius (units of u; default 1.0 for gn and qp, 1.5 for plan)")
     p.add_argument("--reg", type=float, default=None,
@@ -72,7 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fd-step", type=float, default=FD_STEP, help="(qp) finite-difference step (units of u)")
     p.add_argument("--secant", action=argparse.BooleanOptionalAction, default=None,
                    help="learn how the model's error changes with u from pairs of real trials (Broyden); "
-                        "default on for plan, off for qp")
+                        "default on for gn and plan, off for qp; gn without it steps through the chain's sensitivity "
+                        "alone")
     p.add_argument("--model-place", action="store_true",
                    help="(plan) predict the contact place with the coarse chain too (default: from the trials)")
     p.add_argument("--segments", type=int, default=10,

@@ -32,6 +32,7 @@ import numpy as np
 
 from wrenorm.jacobian import jacobian
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control.plan import state_vector, with_offset
 
 GN_FD_STEP = 0.3  # units of u: the chain's sensitivity over 1.5 cm, 15 cm/s, 3 % of a segment's time
 GN_RADIUS = 1.0  # initial trust radius (units of u)
@@ -43,8 +44,6 @@ def residual_weights(goal: crit.Target) -> np.ndarray:
     """(m,) w with goal.residual(Z) = w * (Z - Z_goal) in state_vector's layout: the observable's residual is
     linear block by block (shape / length, velocity / speed, time / t_goal, place), measured here once from
     unit changes of the goal's own state rather than restated."""
-    from wrenorm.tasks.rope.control.plan import with_offset
-
     m = goal.dim
     st = goal.state.take(np.zeros(m, dtype=int))
     return np.diag(goal.residual(with_offset(st, np.eye(m)))).astype(np.float64)
@@ -63,8 +62,6 @@ class Sensitivity:
 
     @classmethod
     def of_chain(cls, model, u: np.ndarray, step: float = GN_FD_STEP) -> Sensitivity:
-        from wrenorm.tasks.rope.control.plan import state_vector
-
         t = time.perf_counter()
         space = model.space
         jac = jacobian(lambda U: state_vector(model.states(U)), u, step, space.lower, space.upper)
@@ -98,17 +95,28 @@ class Sensitivity:
                                              / max(np.linalg.norm(self.prior), 1e-12))}
 
 
+def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG) -> np.ndarray:
+    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius, lam = reg mean diag(F^T F)."""
+    from scipy.optimize import lsq_linear
+
+    n = u.shape[0]
+    scale = float(np.mean(np.sum(F * F, axis=0)))
+    lam = reg * (scale if scale > 0 else 1.0)
+    A = np.concatenate([F, np.sqrt(lam) * np.eye(n)])
+    b = np.concatenate([-e, np.zeros(n)])
+    lo = np.maximum(space.lower - u, -radius)
+    hi = np.minimum(space.upper - u, radius)
+    hi = np.maximum(hi, lo + 1e-12)  # lsq_linear needs lo < hi
+    return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
+
+
 def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
             reg: float = GN_REG) -> tuple[np.ndarray, float]:
     """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale."""
-    from wrenorm.tasks.rope.control.correct import qp_step
-
     du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg)
     return space.limit_step(u_best, du)
 
 
 def predicted_state(best_state: crit.CriticalStates, S: np.ndarray, du: np.ndarray) -> crit.CriticalStates:
     """The linear model's critical state after the step du from the best trial."""
-    from wrenorm.tasks.rope.control.plan import with_offset
-
     return with_offset(best_state, S @ du)
