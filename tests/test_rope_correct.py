@@ -298,11 +298,13 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert "variant" in capsys.readouterr().err
     for bad, word in ((["--engine", "bullet"], "engine"), (["--prior-scale", "-1"], "prior_scale"),
                       (["--decay", "1.5"], "decay"), (["--params", "measured", "measured"], "repeated"),
-                      (["--segments", "2"], "segments")):
+                      (["--segments", "2"], "segments"), (["--method", "newton"], "--method")):
         assert main(["correct", "rope", "--out", str(tmp_path / "o")] + bad) == 2
         err = capsys.readouterr().err
         assert word in err and len(err.strip().splitlines()) == 1, err
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
+    with pytest.raises(InputError, match="steps"):  # the loop itself names a step kind it does not have
+        correct(None, None, None, np.zeros(13), method="renormalise", steps="newton")
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",

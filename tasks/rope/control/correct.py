@@ -275,13 +275,13 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     on_trial(trial) is called as each trial's record is complete (before the next plan)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
-    space = model.space
     if method not in ("gn", "plan", "qp", "renormalise"):
         raise InputError("--method", "method", f"{method!r} is not 'gn', 'plan', 'qp' or 'renormalise'")
     if steps not in ("gn", "plan"):
         raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
+    space = model.space
     problems = space.violations(u0)
     if problems:
         raise InputError("command", "start", "; ".join(problems))
