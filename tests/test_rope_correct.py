@@ -195,6 +195,28 @@ def test_secant_corrections_reproduce_the_trials():
     assert np.allclose(loose.S, prior, atol=1e-6)
 
 
+def test_matched_command_is_where_the_chain_reproduces_a_state(problem):
+    """Space mapping's extraction: given a state the chain makes under some command, started elsewhere, the match
+    finds a command that reproduces it far better than the start does; given the chain's own state at the start,
+    nothing beats the start and it is returned unchanged."""
+    space = CommandSpace(PATHS["flick"])
+    model = CoarseModel(problem, problem.space.measured, space)
+    goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
+    w = secant.residual_weights(goal)
+    u_star = space.encode(PATHS["flick_fast"])
+    z_star = state_vector(model.states(u_star[None]))[0]
+    u_trial = u_star + np.where(np.arange(space.dim) < 6, 0.5, 0.0)
+    assert space.feasible(u_star) and space.feasible(u_trial) and np.all(np.isfinite(z_star))
+    m = secant.matched_command(model, z_star, w, u_trial, seed=1, reg=1e-6)
+    assert m.misfit_at_trial > 0.05 and m.misfit < 0.3 * m.misfit_at_trial
+    assert np.isclose(np.linalg.norm(w * (state_vector(model.states(m.u[None]))[0] - z_star)), m.misfit)
+    assert np.all(m.u >= space.lower) and np.all(m.u <= space.upper)
+    own = secant.matched_command(model, state_vector(model.states(u_trial[None]))[0], w, u_trial, seed=1)
+    assert own.misfit_at_trial == 0.0 and np.array_equal(own.u, u_trial)
+    rec = m.record()
+    assert rec["misfit_at_match"] == m.misfit and rec["distance_from_trial"] > 0
+
+
 def test_gn_correction_records_what_each_step_learned(problem):
     """The GN loop's records: each trial's prediction is the linear model's (the best trial's state moved by
     S du), the sensitivity is measured once (one chain rollout) and corrected by every later trial that hit."""
@@ -210,6 +232,13 @@ def test_gn_correction_records_what_each_step_learned(problem):
     assert pairs == sorted(pairs) and pairs[-1] == sum(t.hit for t in tr[1:-1])
     assert len({t.sensitivity["chain_rollouts"] for t in tr[:-1]}) == 1  # measured once
     assert res["best_error"] < tr[0].total
+    # measured where the chain matches the first hit's real state, which it does at least as well as at the trial
+    where = {tuple(t.sensitivity["linearised_at"]) for t in tr[:-1]}
+    assert len(where) == 1 and all(t.sensitivity["misfit_at_match"] <= t.sensitivity["misfit_at_trial"]
+                                   for t in tr[:-1])
+    at_trial = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                       max_trials=2, tolerance=1e-6, method="gn", linearise_at="trial", **FAST_PLAN)
+    assert "linearised_at" not in at_trial["trials"][0].sensitivity
     # the options the plan loop takes mean the same here: the start command as trial 1, no secant corrections
     plain = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
                     max_trials=3, tolerance=1e-6, method="gn", plan_first=False, secant=False, **FAST_PLAN)
@@ -305,6 +334,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
     with pytest.raises(InputError, match="steps"):  # the loop itself names a step kind it does not have
         correct(None, None, None, np.zeros(13), method="renormalise", steps="newton")
+    with pytest.raises(InputError, match="linearise_at"):
+        correct(None, None, None, np.zeros(13), linearise_at="goal")
+    assert main(["correct", "rope", "--out", str(tmp_path / "o"), "--linearise-at", "goal"]) == 2
+    assert "--linearise-at" in capsys.readouterr().err
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",

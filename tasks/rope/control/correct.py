@@ -248,12 +248,13 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             seed: int = 0, popsize: int | None = None, generations: int | None = None, freeze_place: bool = True,
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
-            min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn") -> dict:
+            min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
+            linearise_at: str = "matched") -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
-      Gauss-Newton step from the best trial through the chain's sensitivity, measured once and corrected
-      by every trial (secant.py).
+      Gauss-Newton step from the best trial through the chain's sensitivity, measured once (with linearise_at
+      "matched" where the chain reproduces the first hit's real state) and corrected by every trial (secant.py).
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -279,6 +280,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--method", "method", f"{method!r} is not 'gn', 'plan', 'qp' or 'renormalise'")
     if steps not in ("gn", "plan"):
         raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
+    if linearise_at not in ("matched", "trial"):
+        raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     space = model.space
@@ -291,7 +294,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
         return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
                                reg, seed, popsize, generations, min_radius, progress, on_trial, renorm,
-                               plan_first=plan_first, secant=True if secant is None else bool(secant))
+                               plan_first=plan_first, secant=True if secant is None else bool(secant),
+                               linearise_at=linearise_at)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -565,10 +569,13 @@ def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) 
 def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int,
                     tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
                     generations: int | None, min_radius: float | None, progress, on_trial,
-                    renorm: dict | None, plan_first: bool = True, secant: bool = True) -> dict:
+                    renorm: dict | None, plan_first: bool = True, secant: bool = True,
+                    linearise_at: str = "matched") -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
-    plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity."""
+    plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
+    linearise_at "matched" measures the chain's sensitivity where the chain reproduces the first hit's real critical
+    state (secant.matched_command), "trial" at that trial's own command."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
 
@@ -625,7 +632,18 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             if renorm is not None or sens is None:
                 # one linearisation point for the whole run (the first trial that hit): the chain's sensitivity
                 # is rough from point to point, and moving the point swaps that roughness for another's
-                sens = gauss_newton.Sensitivity.of_chain(model, next(tr.u for tr in trials if tr.hit))
+                first = next(tr for tr in trials if tr.hit)
+                match = None
+                if linearise_at == "matched":
+                    match = gauss_newton.matched_command(model, rope_plan.state_vector(first.state)[0], w, first.u,
+                                                         seed)
+                sens = gauss_newton.Sensitivity.of_chain(model, first.u if match is None else match.u)
+                sens.match = match
+                if progress and match is not None:
+                    progress(f"    chain's sensitivity measured where it matches trial {first.index + 1}'s real state: "
+                             f"misfit {match.misfit_at_trial:.3f} at its command -> {match.misfit:.3f}, "
+                             f"{float(np.abs(match.u - first.u).max()):.2f} away ({match.chain_rollouts} chains, "
+                             f"{match.wall_s:.1f} s)")
             if secant and renorm is not None:
                 Zb = rope_plan.state_vector(best.state)[0]
                 others = [tr for tr in trials if tr.hit and tr is not best]

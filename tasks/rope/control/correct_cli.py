@@ -61,6 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "command (fixed parameters only; renormalised arms then take gn steps)")
     p.add_argument("--no-plan-first", action="store_true",
                    help="(gn, plan) run the start command as trial 1 instead of the model's own plan from it")
+    p.add_argument("--linearise-at", choices=("matched", "trial"), default="matched",
+                   help="(gn steps) measure the chain's sensitivity where the chain reproduces the first hit's real "
+                        "critical state (matched, space mapping's parameter extraction) or at that trial's own "
+                        "command (trial)")
     p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE,
                    help="(plan; gn's first plan) CMA-ES population per search")
     p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS,
@@ -245,7 +249,8 @@ def run(args) -> int:
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
                       refit_generations=args.refit_generations, min_radius=args.min_radius,
-                      prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps)
+                      prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
+                      linearise_at=args.linearise_at)
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -262,7 +267,7 @@ def run(args) -> int:
         "error_meaning": "rope.py's weighted critical-state error to the goal: shape/length + 0.1 velocity/speed + "
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
-        "settings": {"method": args.method, "plan_first": not args.no_plan_first,
+        "settings": {"method": args.method, "plan_first": not args.no_plan_first, "linearise_at": args.linearise_at,
                      "radius": args.radius if args.radius is not None else _default("radius", args.method),
                      "reg": args.reg if args.reg is not None else _default("reg", args.method),
                      "fd_step": args.fd_step, "seed": args.seed,

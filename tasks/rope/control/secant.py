@@ -18,8 +18,14 @@ local sensitivity is much better than its map, and re-measuring it at every new 
 for another and discards what the trials taught; measured once and corrected by every trial it stays consistent
 (README, "Why Gauss-Newton steps through the chain's sensitivity", has the development runs).
 
+Where the sensitivity is measured (space mapping's parameter extraction): not at the trial's own command but at
+the command under which the chain reproduces the critical state the real rope showed there (matched_command).
+The chain at its own command is in another state than the rope was; at the matched command it passes through the
+rope's state, and its sensitivity there is the closer one (development runs in the README).
+
 Renormalised ("renormalise", steps "gn"): after every trial the chain's parameters are refitted to the trials
-(renormalise.refit) and its sensitivity is re-measured on the refitted chain at the same first command; because
+(renormalise.refit) and its sensitivity is re-measured on the refitted chain, where it matches the same first trial
+(at that trial's command with linearise_at "trial"); because
 that prior moves with the refit, the trials correct it together rather than one by one (ridge regression of all
 secant pairs toward the prior, each pair one directional derivative, the prior weighing RIDGE of one).
 """
@@ -38,6 +44,10 @@ GN_FD_STEP = 0.3  # units of u: the chain's sensitivity over 1.5 cm, 15 cm/s, 3 
 GN_RADIUS = 1.0  # initial trust radius (units of u)
 GN_REG = 1e-2  # Levenberg term relative to mean diag(F^T F)
 RIDGE = 0.05  # weight of the prior sensitivity against one secant pair's directional derivative (renormalised)
+MATCH_REG = 1e-2  # per unit of u squared, against the squared weighted residual: keeps the matched command near
+MATCH_SIGMA = 0.3  # the trial's command where the chain cannot tell commands apart; CMA-ES step, generations and
+MATCH_GENERATIONS = 40  # population of the match (40 x 48 chains, about 0.2 s here)
+MATCH_POPSIZE = 48
 
 
 def residual_weights(goal: crit.Target) -> np.ndarray:
@@ -59,6 +69,7 @@ class Sensitivity:
     pairs: int = 0  # secant pairs learned so far
     chain_rollouts: int = 0
     wall_s: float = 0.0
+    match: Match | None = None  # where it was measured, when not at a trial's own command
 
     @classmethod
     def of_chain(cls, model, u: np.ndarray, step: float = GN_FD_STEP) -> Sensitivity:
@@ -92,7 +103,58 @@ class Sensitivity:
         return {"chain_rollouts": self.chain_rollouts, "chain_wall_s": self.wall_s, "secant_pairs": self.pairs,
                 "columns_not_central": [i for i, c in enumerate(self.columns) if c != "central"],
                 "relative_correction": float(np.linalg.norm(self.S - self.prior)
-                                             / max(np.linalg.norm(self.prior), 1e-12))}
+                                             / max(np.linalg.norm(self.prior), 1e-12))} | (
+            {} if self.match is None else self.match.record())
+
+
+@dataclass
+class Match:
+    """The command under which the chain best reproduces a measured critical state."""
+
+    u: np.ndarray
+    trial_u: np.ndarray  # the real trial's command
+    misfit_at_trial: float  # |w (Z_chain - Z_real)| at the trial's command (NaN: the chain misses there)
+    misfit: float  # the same at the matched command
+    chain_rollouts: int
+    wall_s: float
+
+    def record(self) -> dict:
+        return {"linearised_at": self.u.tolist(), "distance_from_trial": float(np.abs(self.u - self.trial_u).max()),
+                "misfit_at_trial": self.misfit_at_trial, "misfit_at_match": self.misfit,
+                "match_rollouts": self.chain_rollouts, "match_wall_s": self.wall_s}
+
+
+def matched_command(model, z_real: np.ndarray, w: np.ndarray, u_trial: np.ndarray, seed: int = 0,
+                    reg: float = MATCH_REG) -> Match:
+    """argmin_u |w (Z_chain(u) - z_real)|^2 + reg |u - u_trial|^2 by CMA-ES from the trial's command (the chain's map
+    is rough, so no gradient); the trial's own command when nothing matches better."""
+    from wrenorm.cmaes import BatchedCMAES
+
+    t = time.perf_counter()
+    space = model.space
+    u_trial = np.asarray(u_trial, dtype=np.float64)
+
+    def misfit(U):
+        with np.errstate(invalid="ignore"):
+            r = w[None] * (state_vector(model.states(U)) - z_real[None])
+            return np.sum(r * r, axis=1), np.sum((U - u_trial[None]) ** 2, axis=1)
+
+    m0, _ = misfit(u_trial[None])
+    best_u, best_cost, rollouts = u_trial.copy(), float(m0[0]) if np.isfinite(m0[0]) else np.inf, 1
+    es = BatchedCMAES(u_trial[None], MATCH_SIGMA, space.lower, space.upper, [seed + 1], MATCH_POPSIZE,
+                      MATCH_GENERATIONS, tolfun=1e-12, tolx=1e-8)
+    while not es.done:
+        U = es.ask()
+        m, d = misfit(U)
+        cost = np.where(np.isfinite(m), m + reg * d, np.inf)
+        rollouts += len(U)
+        es.tell(cost)
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            best_u, best_cost = U[j].copy(), float(cost[j])
+    m1, _ = misfit(best_u[None])
+    return Match(best_u, u_trial.copy(), float(np.sqrt(m0[0])), float(np.sqrt(m1[0])), rollouts + 1,
+                 time.perf_counter() - t)
 
 
 def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG) -> np.ndarray:
