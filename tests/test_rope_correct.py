@@ -176,16 +176,21 @@ def test_residual_weights_make_the_observables_residual_linear_in_the_state(prob
 
 
 def test_secant_corrections_reproduce_the_trials():
-    """Broyden: S reproduces the latest pair exactly and leaves directions orthogonal to it alone; ridge: a
-    vanishing prior weight reproduces every pair (within their span), a heavy one keeps the prior."""
+    """Ridge over the secant pairs: with one pair and a vanishing prior weight it is Broyden's update (the pair
+    reproduced exactly, directions orthogonal to it left at the prior); with several, a vanishing weight reproduces
+    every pair (within their span), a heavy one keeps the prior; refitting counts the pairs afresh."""
     rng = np.random.default_rng(5)
     prior = rng.normal(size=(9, 4))
     sens = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * 4)
     du, dz = rng.normal(size=4), rng.normal(size=9)
-    sens.broyden(du, dz)
-    assert np.allclose(sens.S @ du, dz) and sens.pairs == 1
-    ortho = np.linalg.svd(du[None])[2][1]
-    assert np.allclose(sens.S @ ortho, prior @ ortho)
+    sens.ridge([du], [dz], weight=1e-9)
+    assert np.allclose(sens.S @ du, dz, atol=1e-6) and sens.pairs == 1
+    ortho = np.linalg.svd(du[None])[2][1:]
+    assert np.allclose(sens.S @ ortho.T, prior @ ortho.T)
+    broyden = prior + np.outer(dz - prior @ du, du) / (du @ du)
+    assert np.allclose(sens.S, broyden, atol=1e-6)
+    sens.ridge([du, 2 * du], [dz, 2 * dz])
+    assert sens.pairs == 2
     dus, dzs = [rng.normal(size=4) for _ in range(3)], [rng.normal(size=9) for _ in range(3)]
     tight = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * 4)
     tight.ridge(dus, dzs, weight=1e-9)

@@ -259,8 +259,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
     method "qp": a linear trust-region step through the coarse model's FD sensitivity.
-    secant: learn how the model's error changes with u from pairs of real trials (Broyden; for
-      "plan" a rank-one term of the offset, for "qp" of F). Default: on for "plan", off for "qp".
+    secant: learn how the model's error changes with u from pairs of real trials (for "gn" a ridge fit of all
+      pairs toward the chain's sensitivity, for "plan" a Broyden term of the offset, for "qp" of F). Default: on
+      for "gn" and "plan", off for "qp".
     freeze_place ("plan"): predict the contact place from the trials, not from the coarse chain,
       whose contact jumps between segment pairs (measured: soft rope, 20 links, fitted: stalls at
       0.085 with the model's place, reaches 0.037 in 6 trials with it frozen).
@@ -605,8 +606,6 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         trials.append(trial)
         if best is not None:
             trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
-            if secant and sens is not None and renorm is None and trial.hit and best.hit:
-                sens.broyden(u - best.u, (rope_plan.state_vector(st) - rope_plan.state_vector(best.state))[0])
         if accepted:
             best = trial
         if _reported_and_done(trial, best, max_trials, tolerance, trust.radius, progress, on_trial):
@@ -644,7 +643,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                              f"misfit {match.misfit_at_trial:.3f} at its command -> {match.misfit:.3f}, "
                              f"{float(np.abs(match.u - first.u).max()):.2f} away ({match.chain_rollouts} chains, "
                              f"{match.wall_s:.1f} s)")
-            if secant and renorm is not None:
+            if secant:
                 Zb = rope_plan.state_vector(best.state)[0]
                 others = [tr for tr in trials if tr.hit and tr is not best]
                 sens.ridge([tr.u - best.u for tr in others],
@@ -670,9 +669,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
-                         "ridge": gauss_newton.RIDGE if renorm else None,
-                         "correction": ("none" if not secant else "ridge over all trials" if renorm
-                                        else "Broyden per trial"),
+                         "ridge": gauss_newton.RIDGE if secant else None,
+                         "correction": "ridge over all trials" if secant else "none",
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
                                           "shrink": trust.SHRINK, "min_radius": trust.min_radius}},
         "trials": trials,

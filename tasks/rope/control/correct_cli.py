@@ -76,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "weight of |u - u_best|^2 (default 1e-4)")
     p.add_argument("--fd-step", type=float, default=FD_STEP, help="(qp) finite-difference step (units of u)")
     p.add_argument("--secant", action=argparse.BooleanOptionalAction, default=None,
-                   help="learn how the model's error changes with u from pairs of real trials (Broyden); "
+                   help="learn how the model's error changes with u from pairs of real trials (gn: ridge over all "
+                        "pairs toward the chain's sensitivity; plan, qp: Broyden); "
                         "default on for gn and plan, off for qp; gn without it steps through the chain's sensitivity "
                         "alone")
     p.add_argument("--model-place", action="store_true",

@@ -2,9 +2,10 @@
 
 The chain is used LINEARLY: its sensitivity S = dZ/du (the critical state per unit of command, a central
 difference over GN_FD_STEP units, all 2 dim(u) + 1 chains in one rollout) is the prior of the real rope's
-sensitivity, and every real trial corrects it along the direction it moved (a secant pair: the change of the
-real critical state between the trial and the best one). The next command is the trust-region Gauss-Newton
-step from the best trial on the real residual,
+sensitivity, and the real trials correct it along the directions they moved (secant pairs: the change of the
+real critical state between each trial and the best one), all pairs together by ridge regression toward the
+prior, each pair one directional derivative, the prior weighing RIDGE of one. The next command is the
+trust-region Gauss-Newton step from the best trial on the real residual,
 
     du = argmin |W (S du) + e_best|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
 
@@ -25,9 +26,12 @@ rope's state, and its sensitivity there is the closer one (development runs in t
 
 Renormalised ("renormalise", steps "gn"): after every trial the chain's parameters are refitted to the trials
 (renormalise.refit) and its sensitivity is re-measured on the refitted chain, where it matches the same first trial
-(at that trial's command with linearise_at "trial"); because
-that prior moves with the refit, the trials correct it together rather than one by one (ridge regression of all
-secant pairs toward the prior, each pair one directional derivative, the prior weighing RIDGE of one).
+(at that trial's command with linearise_at "trial"); the trials then correct that new prior the same way.
+
+Why ridge over all pairs rather than Broyden's update one pair at a time (the loop's first version): Broyden keeps
+each earlier correction only as far as later ones leave it alone, and a pair taken against an earlier best command
+is corrected again against the new best; the ridge fit weighs every pair the same at every step (README has the
+development runs).
 """
 from __future__ import annotations
 
@@ -79,18 +83,13 @@ class Sensitivity:
         S = np.where(np.isfinite(jac.J), jac.J, 0.0)
         return cls(S.copy(), S, jac.kinds, 0, jac.evaluations, time.perf_counter() - t)
 
-    def broyden(self, du: np.ndarray, dz: np.ndarray) -> None:
-        """Reproduce the change dz the real rope made over du with the smallest change of S."""
-        if du @ du > 0 and np.all(np.isfinite(dz)):
-            self.S = self.S + np.outer(dz - self.S @ du, du) / (du @ du)
-            self.pairs += 1
-
     def ridge(self, dus: list, dzs: list, weight: float = RIDGE) -> None:
         """S = argmin sum |(dz_k - S du_k) / |du_k||^2 + weight |S - prior|_F^2 over all pairs at once: each pair is
         one directional derivative, whatever its length (a short step near the best teaches as much as a long
-        one, as in Broyden's update)."""
+        one). With one pair and weight -> 0 this is Broyden's update of the prior."""
         n = self.prior.shape[1]
         A, B = weight * np.eye(n), weight * self.prior
+        self.pairs = 0
         for du, dz in zip(dus, dzs):
             norm2 = float(du @ du)
             if norm2 > 0 and np.all(np.isfinite(dz)):
