@@ -472,19 +472,13 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     for k in range(max_trials):
         pred_state, alone = rope_plan.predicted_states(model, u[None], offset)
         predicted = float(goal.terms(pred_state)["total"][0])
-        t = time.perf_counter()
-        st, terms = _measure(real, space, goal, u)
-        accepted = best is None or float(terms["total"][0]) < best.total
-        trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
-                      predicted, scale_used, float(goal.terms(alone)["total"][0]), predicted_state=pred_state,
-                      model_values=model.values.copy())
+        trial = _real_trial(real, model, goal, k, u, best, trust, plan_radius, predicted, scale_used,
+                            float(goal.terms(alone)["total"][0]), pred_state)
         trials.append(trial)
-        if best is not None:
-            trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
-        if accepted:
+        if trial.accepted:
             best = trial
         if trial.hit:
-            hits.append((k, u.copy(), st))
+            hits.append((k, u.copy(), trial.state))
         if _reported_and_done(trial, best, max_trials, tolerance, trust.radius, progress, on_trial):
             break
         # renormalise: refit the chain to the trials so far, then plan on it around the best trial
@@ -530,6 +524,20 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                             "min_radius": trust.min_radius}},
         "trials": trials,
     }
+
+
+def _real_trial(real, model: CoarseModel, goal: crit.Target, k: int, u: np.ndarray, best: Trial | None, trust,
+                plan_radius: float, predicted: float, scale_used, model_total: float, pred_state) -> Trial:
+    """Trial k at command u on the real rope: its record, accepted when it beats the best so far, and the trust
+    region's verdict on the prediction that chose it."""
+    t = time.perf_counter()
+    st, terms = _measure(real, model.space, goal, u)
+    accepted = best is None or float(terms["total"][0]) < best.total
+    trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
+                  predicted, scale_used, model_total, predicted_state=pred_state, model_values=model.values.copy())
+    if best is not None:
+        trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
+    return trial
 
 
 def _trial_line(trial: Trial, max_trials: int, radius: float) -> str:
@@ -597,16 +605,10 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     sens: gauss_newton.Sensitivity | None = None
     plan_radius, stopped = 2.0 * space.bound, None
     for k in range(max_trials):
-        t = time.perf_counter()
-        st, terms = _measure(real, space, goal, u)
-        accepted = best is None or float(terms["total"][0]) < best.total
-        trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
-                      predicted, scale_used, _model_total(model, goal, u), predicted_state=pred_state,
-                      model_values=model.values.copy())
+        trial = _real_trial(real, model, goal, k, u, best, trust, plan_radius, predicted, scale_used,
+                            _model_total(model, goal, u), pred_state)
         trials.append(trial)
-        if best is not None:
-            trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
-        if accepted:
+        if trial.accepted:
             best = trial
         if _reported_and_done(trial, best, max_trials, tolerance, trust.radius, progress, on_trial):
             break
