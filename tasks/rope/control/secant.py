@@ -47,7 +47,7 @@ from wrenorm.tasks.rope.control.plan import state_vector, with_offset
 GN_FD_STEP = 0.3  # units of u: the chain's sensitivity over 1.5 cm, 15 cm/s, 3 % of a segment's time
 GN_RADIUS = 1.0  # initial trust radius (units of u)
 GN_REG = 1e-2  # Levenberg term relative to mean diag(F^T F)
-RIDGE = 0.05  # weight of the prior sensitivity against one secant pair's directional derivative (renormalised)
+RIDGE = 0.05  # weight of the prior sensitivity against one secant pair's directional derivative
 MATCH_REG = 1e-2  # per unit of u squared, against the squared weighted residual: keeps the matched command near
 MATCH_SIGMA = 0.3  # the trial's command where the chain cannot tell commands apart; CMA-ES step, generations and
 MATCH_GENERATIONS = 40  # population of the match (40 x 48 chains, about 0.2 s here)
