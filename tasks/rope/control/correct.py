@@ -483,17 +483,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
             break
         # renormalise: refit the chain to the trials so far, then plan on it around the best trial
         if hits:
-            r = rn.refit(model, hits, goal, model.values, prior_centre, best=best.index, seed=seed + 100 * k,
-                         prior_scale=prior_scale, decay=decay, anchored=anchored,
-                         generations=refit_generations or rn.REFIT_GENERATIONS)
-            model = CoarseModel(model.problem, r.values, space, model.label)
-            trial.refit = r.as_dict(pspace)
-            if progress:
-                moved = ", ".join(f"{n} x{v / prior_centre[i]:.2g}" for i, (n, v) in
-                                  enumerate(zip(pspace.names, r.values)) if pspace.parameters[i].frozen is False
-                                  and prior_centre[i] > 0)
-                progress(f"    refit to {len(hits)} trials: loss {r.loss_start:.3f} -> {r.loss:.3f} "
-                         f"({r.evaluations} chains x trials, {r.wall_s:.1f} s); vs measured: {moved}")
+            model = _refit_to_trials(model, hits, goal, trial, settings, best.index, seed + 100 * k, progress,
+                                     anchored)
         offset = rope_plan.Offset.zero(space.dim, goal.dim, best.u)
         if refit_offset and best.hit:
             offset = _offset_from_trials(model, trials, best, freeze_place)
@@ -563,6 +554,25 @@ def _reported_and_done(trial: Trial, best: Trial, max_trials: int, tolerance: fl
     return done
 
 
+def _refit_to_trials(model: CoarseModel, hits: list, goal: crit.Target, trial: Trial, settings: dict,
+                     best_index: int, seed: int, progress, anchored: bool = False) -> CoarseModel:
+    """Renormalise: the chain refitted to the trials that hit so far (renormalise.refit, with the prior and trial
+    weights of `settings`); the refit goes into `trial`'s record and the progress line."""
+    from wrenorm.tasks.rope.control import renormalise as rn
+
+    pspace, centre = model.problem.space, settings["prior_centre"]
+    r = rn.refit(model, hits, goal, model.values, centre, best=best_index, seed=seed,
+                 prior_scale=settings["prior_scale"], decay=settings["decay"], anchored=anchored,
+                 generations=settings["generations"])
+    trial.refit = r.as_dict(pspace)
+    if progress:
+        moved = ", ".join(f"{n} x{v / centre[i]:.2g}" for i, (n, v) in enumerate(zip(pspace.names, r.values))
+                          if pspace.parameters[i].frozen is False and centre[i] > 0)
+        progress(f"    refit to {len(hits)} trials: loss {r.loss_start:.3f} -> {r.loss:.3f} "
+                 f"({r.evaluations} chains x trials, {r.wall_s:.1f} s); vs the prior's centre: {moved}")
+    return CoarseModel(model.problem, r.values, model.space, model.label)
+
+
 def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) -> dict:
     from wrenorm.tasks.rope.control import renormalise as rn
 
@@ -614,14 +624,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             break
         hits = [(tr.index, tr.u, tr.state) for tr in trials if tr.hit]
         if renorm is not None and hits:
-            r = rn.refit(model, hits, goal, model.values, renorm["prior_centre"], best=best.index,
-                         seed=seed + 100 * k, prior_scale=renorm["prior_scale"], decay=renorm["decay"],
-                         generations=renorm["generations"])
-            model = CoarseModel(model.problem, r.values, space, model.label)
-            trial.refit = r.as_dict(pspace)
-            if progress:
-                progress(f"    refit to {len(hits)} trials: loss {r.loss_start:.3f} -> {r.loss:.3f} "
-                         f"({r.evaluations} chains x trials, {r.wall_s:.1f} s)")
+            model = _refit_to_trials(model, hits, goal, trial, renorm, best.index, seed + 100 * k, progress)
         if not best.hit:
             # no critical state to step from: the chain plans alone around the best command
             p, u, scale_used, trust.radius = _plan_or_look_closer(
@@ -643,7 +646,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 if progress and match is not None:
                     progress(f"    chain's sensitivity measured where it matches trial {first.index + 1}'s real state: "
                              f"misfit {match.misfit_at_trial:.3f} at its command -> {match.misfit:.3f}, "
-                             f"{float(np.abs(match.u - first.u).max()):.2f} away ({match.chain_rollouts} chains, "
+                             f"{match.distance:.2f} away ({match.chain_rollouts} chains, "
                              f"{match.wall_s:.1f} s)")
             if secant:
                 Zb = rope_plan.state_vector(best.state)[0]

@@ -117,8 +117,13 @@ class Match:
     chain_rollouts: int
     wall_s: float
 
+    @property
+    def distance(self) -> float:
+        """How far the match lies from the trial's command (units of u, the largest component)."""
+        return float(np.abs(self.u - self.trial_u).max())
+
     def record(self) -> dict:
-        return {"linearised_at": self.u.tolist(), "distance_from_trial": float(np.abs(self.u - self.trial_u).max()),
+        return {"linearised_at": self.u.tolist(), "distance_from_trial": self.distance,
                 "misfit_at_trial": self.misfit_at_trial, "misfit_at_match": self.misfit,
                 "match_rollouts": self.chain_rollouts, "match_wall_s": self.wall_s}
 
@@ -139,7 +144,8 @@ def matched_command(model, z_real: np.ndarray, w: np.ndarray, u_trial: np.ndarra
             return np.sum(r * r, axis=1), np.sum((U - u_trial[None]) ** 2, axis=1)
 
     m0, _ = misfit(u_trial[None])
-    best_u, best_cost, rollouts = u_trial.copy(), float(m0[0]) if np.isfinite(m0[0]) else np.inf, 1
+    best_u, best_m, rollouts = u_trial.copy(), float(m0[0]), 1
+    best_cost = best_m if np.isfinite(best_m) else np.inf
     es = BatchedCMAES(u_trial[None], MATCH_SIGMA, space.lower, space.upper, [seed + 1], MATCH_POPSIZE,
                       MATCH_GENERATIONS, tolfun=1e-12, tolx=1e-8)
     while not es.done:
@@ -150,9 +156,8 @@ def matched_command(model, z_real: np.ndarray, w: np.ndarray, u_trial: np.ndarra
         es.tell(cost)
         j = int(np.argmin(cost))
         if cost[j] < best_cost:
-            best_u, best_cost = U[j].copy(), float(cost[j])
-    m1, _ = misfit(best_u[None])
-    return Match(best_u, u_trial.copy(), float(np.sqrt(m0[0])), float(np.sqrt(m1[0])), rollouts + 1,
+            best_u, best_m, best_cost = U[j].copy(), float(m[j]), float(cost[j])
+    return Match(best_u, u_trial.copy(), float(np.sqrt(m0[0])), float(np.sqrt(best_m)), rollouts,
                  time.perf_counter() - t)
 
 
