@@ -252,6 +252,38 @@ def test_gn_correction_records_what_each_step_learned(problem):
                for t in plain["trials"][:-1] if t.hit)
 
 
+def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
+    """Space mapping's step: on a rope that is the chain under a shifted command, trial 2 is trial 1's command moved by
+    the match's offset the other way (inside the box and the hand limits), and it improves on trial 1; the renormalised
+    loop, whose refitted chain reproduces trial 1 at its own command, keeps the Gauss-Newton step."""
+    space = CommandSpace(PATHS["flick"])
+    chain = CoarseRope(problem, problem.space.measured)
+    delta = np.where(np.arange(space.dim) % 3 == 0, 0.4, 0.0)
+
+    class ShiftedCommand:
+        runs, wall_s = 0, 0.0
+
+        def __call__(self, path):
+            return chain(space.decode(space.encode(path) + delta))
+
+    goal = crit.Target.from_reference(chain(PATHS["flick_fast"]))
+    model = CoarseModel(problem, problem.space.measured, space)
+    res = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6, method="gn",
+                  first_step="space-mapping", **FAST_PLAN)
+    t1, t2 = res["trials"]
+    match = np.array(t1.sensitivity["linearised_at"])
+    assert res["first_step"] == "space-mapping" and t1.sensitivity["step"] == "space mapping"
+    np.testing.assert_allclose(t2.u, space.limit_step(t1.u, t1.u - match)[0])
+    assert np.abs(match - t1.u).max() > 0.1 and t2.total < 0.7 * t1.total
+    gn = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6, method="gn",
+                 **FAST_PLAN)
+    assert gn["first_step"] == "gn" and gn["trials"][0].sensitivity["step"] == "gauss-newton"
+    assert np.array_equal(gn["trials"][0].u, t1.u) and not np.allclose(gn["trials"][1].u, t2.u)
+    renorm = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6,
+                     method="renormalise", first_step="space-mapping", refit_generations=2, **FAST_PLAN)
+    assert renorm["first_step"] == "gn" and renorm["trials"][0].sensitivity["step"] == "gauss-newton"
+
+
 def test_qp_correction_still_improves(problem):
     space = CommandSpace(PATHS["flick"])
     real = CoarseRope(problem, shifted(problem))
@@ -343,6 +375,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         correct(None, None, None, np.zeros(13), linearise_at="goal")
     assert main(["correct", "rope", "--out", str(tmp_path / "o"), "--linearise-at", "goal"]) == 2
     assert "--linearise-at" in capsys.readouterr().err
+    with pytest.raises(InputError, match="first_step"):
+        correct(None, None, None, np.zeros(13), first_step="newton")
+    assert main(["correct", "rope", "--out", str(tmp_path / "o2"), "--first-step", "newton"]) == 2
+    assert "--first-step" in capsys.readouterr().err
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",

@@ -249,12 +249,14 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
             min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
-            linearise_at: str = "matched") -> dict:
+            linearise_at: str = "matched", first_step: str = "gn") -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
       Gauss-Newton step from the best trial through the chain's sensitivity, measured once (with linearise_at
       "matched" where the chain reproduces the first hit's real state) and corrected by every trial (secant.py).
+      first_step "space-mapping": trial 2 (after the planned trial 1, with fixed parameters) is space mapping's step
+      (secant.space_mapping_step) instead of the Gauss-Newton step; "gn" keeps every step Gauss-Newton.
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -283,6 +285,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
     if linearise_at not in ("matched", "trial"):
         raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
+    if first_step not in ("gn", "space-mapping"):
+        raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     space = model.space
@@ -296,7 +300,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
                                reg, seed, popsize, generations, min_radius, progress, on_trial, renorm,
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
-                               linearise_at=linearise_at)
+                               linearise_at=linearise_at, first_step=first_step)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -589,12 +593,14 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
                     generations: int | None, min_radius: float | None, progress, on_trial,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
-                    linearise_at: str = "matched") -> dict:
+                    linearise_at: str = "matched", first_step: str = "gn") -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
     linearise_at "matched" measures the chain's sensitivity where the chain reproduces the first hit's real critical
-    state (secant.matched_command), "trial" at that trial's own command."""
+    state (secant.matched_command), "trial" at that trial's own command. first_step "space-mapping": trial 2 is
+    space mapping's step from the match of the planned trial 1 (fixed parameters only: a chain refitted to trial 1
+    reproduces it at its own command, so its match would not move)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
 
@@ -653,10 +659,18 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 others = [tr for tr in trials if tr.hit and tr is not best]
                 sens.ridge([tr.u - best.u for tr in others],
                            [rope_plan.state_vector(tr.state)[0] - Zb for tr in others])
-            u, scale_used = gauss_newton.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space, trust.radius,
-                                                 reg)
+            step = "gauss-newton"
+            if (first_step == "space-mapping" and k == 0 and plan_first and renorm is None and sens.match is not None
+                    and best is trial):
+                step = "space mapping"
+                u, scale_used = gauss_newton.space_mapping_step(sens.match, space)
+                if progress:
+                    progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
+            else:
+                u, scale_used = gauss_newton.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space,
+                                                     trust.radius, reg)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
-            trial.sensitivity = sens.record()
+            trial.sensitivity = sens.record() | {"step": step}
         predicted = float(goal.terms(pred_state)["total"][0])
         plan_radius = trust.radius
         trial.sensitivity["plan_radius"] = plan_radius
@@ -673,6 +687,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "secant": bool(secant), "plan_first": bool(plan_first), "trial0_plan": planning, "trials_used": len(trials),
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
+        "first_step": first_step if renorm is None else "gn",
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

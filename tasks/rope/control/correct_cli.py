@@ -65,6 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) measure the chain's sensitivity where the chain reproduces the first hit's real "
                         "critical state (matched, space mapping's parameter extraction) or at that trial's own "
                         "command (trial)")
+    p.add_argument("--first-step", choices=("gn", "space-mapping"), default="gn",
+                   help="(gn steps, fixed parameters) trial 2 as a Gauss-Newton step (gn) or as space mapping's step: "
+                        "the command moved by the offset of trial 1's match the other way (space-mapping)")
     p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE,
                    help="(plan; gn's first plan) CMA-ES population per search")
     p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS,
@@ -251,7 +254,7 @@ def run(args) -> int:
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
                       refit_generations=args.refit_generations, min_radius=args.min_radius,
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
-                      linearise_at=args.linearise_at)
+                      linearise_at=args.linearise_at, first_step=args.first_step)
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -269,6 +272,7 @@ def run(args) -> int:
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
         "settings": {"method": args.method, "plan_first": not args.no_plan_first, "linearise_at": args.linearise_at,
+                     "first_step": args.first_step,
                      "radius": args.radius if args.radius is not None else _default("radius", args.method),
                      "reg": args.reg if args.reg is not None else _default("reg", args.method),
                      "fd_step": args.fd_step, "seed": args.seed,

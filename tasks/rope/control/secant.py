@@ -161,6 +161,14 @@ def matched_command(model, z_real: np.ndarray, w: np.ndarray, u_trial: np.ndarra
                  time.perf_counter() - t)
 
 
+def space_mapping_step(match: Match, space) -> tuple[np.ndarray, float]:
+    """Aggressive space mapping's first step (its mapping's Jacobian taken as the identity): the rope under the
+    trial's command acted as the chain under the matched command, and the trial's command was the chain's own plan,
+    so the command moves by the match's offset the other way, for the rope to act as the chain did under its plan.
+    The feasible command (box and hand limits) and its step scale."""
+    return space.limit_step(match.trial_u, match.trial_u - match.u)
+
+
 def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG) -> np.ndarray:
     """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius, lam = reg mean diag(F^T F)."""
     from scipy.optimize import lsq_linear
