@@ -272,16 +272,16 @@ def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
                   first_step="space-mapping", **FAST_PLAN)
     t1, t2 = res["trials"]
     match = np.array(t1.sensitivity["linearised_at"])
-    assert res["first_step"] == "space-mapping" and t1.sensitivity["step"] == "space mapping"
+    assert res["first_step"] == t1.sensitivity["step"] == "space mapping"
     np.testing.assert_allclose(t2.u, space.limit_step(t1.u, t1.u - match)[0])
     assert np.abs(match - t1.u).max() > 0.1 and t2.total < 0.7 * t1.total
     gn = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6, method="gn",
                  **FAST_PLAN)
-    assert gn["first_step"] == "gn" and gn["trials"][0].sensitivity["step"] == "gauss-newton"
+    assert gn["first_step"] == gn["trials"][0].sensitivity["step"] == "gauss-newton"
     assert np.array_equal(gn["trials"][0].u, t1.u) and not np.allclose(gn["trials"][1].u, t2.u)
     renorm = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6,
                      method="renormalise", first_step="space-mapping", refit_generations=2, **FAST_PLAN)
-    assert renorm["first_step"] == "gn" and renorm["trials"][0].sensitivity["step"] == "gauss-newton"
+    assert renorm["first_step"] == renorm["trials"][0].sensitivity["step"] == "gauss-newton"
 
 
 def test_qp_correction_still_improves(problem):
@@ -377,8 +377,14 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert "--linearise-at" in capsys.readouterr().err
     with pytest.raises(InputError, match="first_step"):
         correct(None, None, None, np.zeros(13), first_step="newton")
+    for needs in ({"method": "qp"}, {"method": "plan"}, {"linearise_at": "trial"}):
+        with pytest.raises(InputError, match="space mapping's step needs"):
+            correct(None, None, None, np.zeros(13), first_step="space-mapping", **needs)
     assert main(["correct", "rope", "--out", str(tmp_path / "o2"), "--first-step", "newton"]) == 2
     assert "--first-step" in capsys.readouterr().err
+    assert main(["correct", "rope", "--out", str(tmp_path / "o3"), "--first-step", "space-mapping", "--method",
+                 "plan"]) == 2
+    assert "space mapping's step needs" in capsys.readouterr().err and not (tmp_path / "o3").exists()
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",

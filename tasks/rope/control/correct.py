@@ -287,6 +287,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
+    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
+    if first_step == "space-mapping" and not (gn_steps and linearise_at == "matched"):
+        raise InputError("--first-step", "first_step", "space mapping's step needs Gauss-Newton steps (--method gn) "
+                                                       "and the match (--linearise-at matched)")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     space = model.space
@@ -687,7 +691,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "secant": bool(secant), "plan_first": bool(plan_first), "trial0_plan": planning, "trials_used": len(trials),
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
-        "first_step": first_step if renorm is None else "gn",
+        "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

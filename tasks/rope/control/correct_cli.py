@@ -171,6 +171,9 @@ def run(args) -> int:
     if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
+    if args.first_step == "space-mapping" and not (args.method == "gn" and args.linearise_at == "matched"):
+        raise InputError("--first-step", "first_step", "space mapping's step needs Gauss-Newton steps (--method gn) "
+                                                       "and the match (--linearise-at matched)")
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
