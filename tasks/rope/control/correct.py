@@ -287,10 +287,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
-    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
-    if first_step == "space-mapping" and not (gn_steps and linearise_at == "matched"):
-        raise InputError("--first-step", "first_step", "space mapping's step needs Gauss-Newton steps (--method gn) "
-                                                       "and the match (--linearise-at matched)")
+    check_first_step(first_step, method == "gn" or (method == "renormalise" and steps == "gn"), linearise_at)
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     space = model.space
@@ -428,6 +425,13 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         "best_u": best.u,
         "trials": trials,
     }
+
+
+def check_first_step(first_step: str, gn_steps: bool, linearise_at: str) -> None:
+    """Space mapping's step is taken from the match of trial 1, so it needs Gauss-Newton steps and the match."""
+    if first_step == "space-mapping" and not (gn_steps and linearise_at == "matched"):
+        raise InputError("--first-step", "first_step", "space mapping's step needs Gauss-Newton steps (--method gn) "
+                                                       "and the match (--linearise-at matched)")
 
 
 def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int, plan_opts: dict, progress):
@@ -664,8 +668,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 sens.ridge([tr.u - best.u for tr in others],
                            [rope_plan.state_vector(tr.state)[0] - Zb for tr in others])
             step = "gauss-newton"
-            if (first_step == "space-mapping" and k == 0 and plan_first and renorm is None and sens.match is not None
-                    and best is trial):
+            if first_step == "space-mapping" and k == 0 and plan_first and renorm is None:
                 step = "space mapping"
                 u, scale_used = gauss_newton.space_mapping_step(sens.match, space)
                 if progress:

@@ -125,6 +125,7 @@ def run(args) -> int:
         CoarseModel,
         CoarseRope,
         StoredTrials,
+        check_first_step,
         correct,
         fit_parameters,
         parameters_from_file,
@@ -171,9 +172,7 @@ def run(args) -> int:
     if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
-    if args.first_step == "space-mapping" and not (args.method == "gn" and args.linearise_at == "matched"):
-        raise InputError("--first-step", "first_step", "space mapping's step needs Gauss-Newton steps (--method gn) "
-                                                       "and the match (--linearise-at matched)")
+    check_first_step(args.first_step, args.method == "gn", args.linearise_at)
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
