@@ -46,8 +46,10 @@ def run_one(out: Path, variant: str, seed: int, args) -> dict:
     return {"command": " ".join(["python"] + cmd[1:]), "returncode": proc.returncode, "wall_s": wall}
 
 
-def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> tuple[str, dict]:
-    cells, summary = {}, {p: [] for p in params}
+def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> tuple[str, dict, dict]:
+    """The campaign's table, its summary per arm, and every run's trials (error, accepted, predicted error), so
+    that two campaigns can be compared trial for trial without the run folders."""
+    cells, summary, trials_of = {}, {p: [] for p in params}, {}
     meta = json.loads((out / "campaign.json").read_text()) if (out / "campaign.json").exists() else {}
     for v in variants:
         for s in seeds:
@@ -62,6 +64,9 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
                 n = run["trials_to_tolerance"]
                 cells[(v, s, p)] = str(n) if run["success"] else f"- ({run['best_error']:.3f})"
                 summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"]))
+                trials_of.setdefault(f"{v}-s{s}", {})[p] = [
+                    {"error": t["error"], "accepted": t["accepted"], "predicted_error": t.get("predicted_error")}
+                    for t in run["trials"]]
     lines = ["| rope | seed | " + " | ".join(params) + " | wall (min) |", "|---|---|" + "---|" * (len(params) + 1)]
     for v in variants:
         for s in seeds:
@@ -88,7 +93,7 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
         lines.append(f"| {p} | {len(rows)} | {reached} | {np.median(trials):g} | "
                      + ", ".join(f"{v} {m:g}" for v, m in per_rope.items()) + f" | {best:.3f} | "
                      + ", ".join(f"{v} {m:.3f}" for v, m in per_rope_err.items()) + " |")
-    return "\n".join(lines) + "\n", stats
+    return "\n".join(lines) + "\n", stats, trials_of
 
 
 def main(argv=None) -> int:
@@ -128,9 +133,9 @@ def main(argv=None) -> int:
 
         with ThreadPoolExecutor(max_workers=args.workers) as pool:  # each cell is its own process
             list(pool.map(one, cells))
-    text, stats = table(args.out, args.variants, args.seeds, args.params)
+    text, stats, trials_of = table(args.out, args.variants, args.seeds, args.params)
     (args.out / "campaign.md").write_text(text)
-    meta["summary"] = stats
+    meta["summary"], meta["trials"] = stats, trials_of
     meta_file.write_text(json.dumps(meta, indent=1))
     print(text)
     return 0

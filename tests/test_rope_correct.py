@@ -520,10 +520,45 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
     from pathlib import Path
 
     examples = Path(__file__).resolve().parents[1] / "examples"
-    bad = [[str(examples / "correct_campaign.py"), "--workers", "0", "--out", str(tmp_path / "c")],
-           [str(examples / "diagnostics" / "correct_stall.py"), str(tmp_path / "no-run")]]
-    for argv in bad:
-        r = subprocess.run([sys.executable, *argv], capture_output=True, text=True)
+    diagnostics = examples / "diagnostics"
+    bad = {"workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
+           "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
+           "no-run/correct.json: not a finished correction": [diagnostics / "critical_velocity.py",
+                                                               tmp_path / "no-run", "fitted"],
+           "rope-sensitivity.npz: not the output of `run`": [diagnostics / "rope_sensitivity_prior.py", "compare",
+                                                             tmp_path / "no-run"],
+           "needs --out OUT and --linearise-at trial": [diagnostics / "rope_sensitivity_prior.py", "run",
+                                                        "--variant", "heavy", "--out", tmp_path / "o"]}
+    for expected, argv in bad.items():
+        r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr
         last = r.stderr.strip().splitlines()[-1]  # argparse prints its usage first; the error names the field
-        assert "workers: must be >= 1" in last or "correct.json: not a finished" in last, r.stderr
+        assert expected in last, r.stderr
+
+
+def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
+    """--table-only over finished runs: the counts follow the runs' trials, and campaign.json keeps those trials."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    errors = {("stiff", 0): [0.3, 0.2, 0.04], ("stiff", 1): [0.3, 0.25, 0.2, 0.1], ("soft", 0): [0.3, 0.05]}
+    for (v, s), errs in errors.items():
+        reached = next((i + 1 for i, e in enumerate(errs) if e <= 0.05), None)
+        run = {"success": reached is not None, "trials_to_tolerance": reached, "best_error": min(errs),
+               "trials": [{"error": e, "accepted": True, "predicted_error": e / 2} for e in errs]}
+        (tmp_path / f"{v}-s{s}").mkdir()
+        (tmp_path / f"{v}-s{s}" / "correct.json").write_text(json.dumps({"max_trials": 10, "runs": {"fitted": run}}))
+    r = subprocess.run([sys.executable, str(examples / "correct_campaign.py"), "--out", str(tmp_path), "--variants",
+                        "stiff", "soft", "--seeds", "0", "1", "--params", "fitted", "--table-only"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    meta = json.loads((tmp_path / "campaign.json").read_text())
+    summary = meta["summary"]["fitted"]
+    assert summary["runs"] == 3 and summary["reached"] == 2 and summary["median"] == 3.0  # 3, 11, 2
+    assert summary["per_rope"] == {"stiff": 7.0, "soft": 2.0}
+    assert [t["error"] for t in meta["trials"]["stiff-s1"]["fitted"]] == errors[("stiff", 1)]
+    assert meta["trials"]["soft-s0"]["fitted"][1] == {"error": 0.05, "accepted": True, "predicted_error": 0.025}
+    assert "| stiff | 1 | - (0.100) |" in (tmp_path / "campaign.md").read_text()

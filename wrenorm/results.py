@@ -12,13 +12,14 @@ import numpy as np
 SCHEMA = "wrenorm.result/1"
 
 
-def _jsonable(obj):
+def jsonable(obj):
+    """obj with numpy arrays and scalars as plain lists and numbers, and non-finite floats as None (JSON null)."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, (np.floating, float)):
         v = float(obj)
         return v if np.isfinite(v) else None
@@ -58,7 +59,7 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, durable: bool = Tru
 
 
 def write_json(path: str | os.PathLike, obj: dict, durable: bool = True) -> Path:
-    return write_atomic(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", durable)
+    return write_atomic(path, json.dumps(jsonable(obj), indent=2, allow_nan=False) + "\n", durable)
 
 
 def versions() -> dict:

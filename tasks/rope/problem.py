@@ -360,18 +360,10 @@ class RopeProblem(Problem):
             return out
         res = self.simulate(values, conditions, trajectory_every=1)
         C = len(conditions)
-        s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
         for i, j in zip(*np.nonzero(miss)):
             cs = conditions[j].data
-            b = i * C + j
-            t_ref = float(cs.target.state.time[0])
-            x = t_ref / self.dt
-            k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
-            u = min(x - k, 1.0)  # a horizon shorter than t_ref: the last state, never extrapolated
-            pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
-            vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
-            out[i, j] = cs.target.state_error(resample(pos, s_nodes, s_k), resample(vel, s_nodes, s_k),
-                                              cs.steps * self.dt)
+            pos, vel = self._state_at(res, i * C + j, float(cs.target.state.time[0]))
+            out[i, j] = cs.target.state_error(pos, vel, cs.steps * self.dt)
         return out
 
     def state_at_critical_time(self, values: np.ndarray, conditions: Sequence[Condition]) -> np.ndarray:
@@ -381,24 +373,30 @@ class RopeProblem(Problem):
         values = np.atleast_2d(values)
         res = self.simulate(values, conditions, trajectory_every=1)
         B, C = values.shape[0], len(conditions)
-        s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
         out = np.full((B, C), np.inf)
         for j, c in enumerate(conditions):
             cs = c.data
             t_ref = float(cs.target.state.time[0])
-            x = t_ref / self.dt
-            k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
-            u = min(x - k, 1.0)
             for i in range(B):
                 b = i * C + j
                 if res.status[b] == 2:  # blew up
                     continue
-                pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
-                vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
+                pos, vel = self._state_at(res, b, t_ref)
                 if np.all(np.isfinite(pos)) and np.all(np.isfinite(vel)):
-                    out[i, j] = cs.target.state_error(resample(pos, s_nodes, s_k), resample(vel, s_nodes, s_k),
-                                                      t_ref)
+                    out[i, j] = cs.target.state_error(pos, vel, t_ref)
         return out
+
+    def _state_at(self, res, b: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Chain b's positions and velocities at time t (from the motion's start) at the K points: positions
+        interpolated inside the step, velocity that step's difference (the rule of the event kernel); a horizon
+        shorter than t gives the last state, never an extrapolation."""
+        x = t / self.dt
+        k = min(int(np.floor(x)), res.trajectory.shape[0] - 2)
+        u = min(x - k, 1.0)
+        pos = (1 - u) * res.trajectory[k, b] + u * res.trajectory[k + 1, b]
+        vel = (res.trajectory[k + 1, b] - res.trajectory[k, b]) / self.dt
+        s_nodes, s_k = np.linspace(0.0, 1.0, self.n), np.linspace(0.0, 1.0, SAMPLES)
+        return resample(pos, s_nodes, s_k), resample(vel, s_nodes, s_k)
 
     def held_out_comparison(self, fitted: np.ndarray, measured: np.ndarray) -> dict:
         """Held-out error ratio fitted / measured: scored as the validation does (no-hit chains by their state at

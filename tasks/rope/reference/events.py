@@ -790,9 +790,9 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
                      missing=getattr(ref, "missing", None), hand=ref.hand)
         if path is not None:
             try:
-                from wrenorm.results import _jsonable, write_atomic
+                from wrenorm.results import jsonable, write_atomic
 
-                write_atomic(path, json.dumps(_jsonable(_to_json(det))))
+                write_atomic(path, json.dumps(jsonable(_to_json(det))))
             except OSError:  # a read-only cache only costs time
                 pass
     try:

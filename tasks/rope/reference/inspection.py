@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def inspect_reference(path) -> dict:
     """Everything `inspect` reports about one file, as plain data (raises InputError on a bad file)."""
-    from wrenorm.results import _jsonable
+    from wrenorm.results import jsonable
     from wrenorm.tasks.rope.observable import reference_critical
     from wrenorm.tasks.rope.reference.generate import load_reference
 
@@ -42,7 +42,7 @@ def inspect_reference(path) -> dict:
             "time": ref.sim_contact_time if np.isfinite(ref.sim_contact_time) else None,
             "s": None if ref.sim_contact_s is None else [float(x) for x in ref.sim_contact_s]},
     })
-    return _jsonable(out)
+    return jsonable(out)
 
 
 def _ms(x) -> str:
