@@ -528,7 +528,9 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
            "rope-sensitivity.npz: not the output of `run`": [diagnostics / "rope_sensitivity_prior.py", "compare",
                                                              tmp_path / "no-run"],
            "needs --out OUT and --linearise-at trial": [diagnostics / "rope_sensitivity_prior.py", "run",
-                                                        "--variant", "heavy", "--out", tmp_path / "o"]}
+                                                        "--variant", "heavy", "--out", tmp_path / "o"],
+           "run takes fixed parameters only": [diagnostics / "rope_sensitivity_prior.py", "run", "--linearise-at",
+                                               "trial", "--out", tmp_path / "o", "--params", "renormalised"]}
     for expected, argv in bad.items():
         r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr

@@ -45,6 +45,10 @@ def run(argv: list[str]) -> int:
     if value("--out") is None or value("--linearise-at") != "trial" or value("--engine") not in (None, "newton"):
         _fail("run needs --out OUT and --linearise-at trial (the rope's sensitivity is measured at trial 1's "
               "command), on the newton rope")
+    params = argv[argv.index("--params") + 1:] if "--params" in argv else []
+    if any(a.startswith("renormalised") for a in params):
+        _fail("run takes fixed parameters only (--params fitted or measured): a renormalised arm re-measures its "
+              "sensitivity after every trial, 26 fine runs each")
     out = Path(value("--out"))
     ropes = {}
 
