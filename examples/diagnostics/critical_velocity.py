@@ -81,6 +81,8 @@ def main(argv=None) -> int:
     commands = [("goal", get_hand_path(settings["goal"]))]
     commands += [(f"trial {t['trial']}", space.decode(t["command_u"])) for t in result["runs"][arm]["trials"]]
     coarse_goal, fine_goal = states(commands[0][1], settings)
+    if coarse_goal is None or fine_goal is None:
+        _fail(f"the {settings['variant']} rope never hits itself under the goal {settings['goal']!r}")
     targets = [crit.Target(g, _length(settings), _speed(g), dict(crit.WEIGHTS))
                for g in (coarse_goal, fine_goal)]
     print(f"{settings['variant']} rope on {settings.get('engine', 'newton')}: error to the goal, the scoring rule "

@@ -80,7 +80,7 @@ def run(argv: list[str]) -> int:
 
 def compare(folder: Path) -> int:
     from wrenorm.tasks.rope.control.command import CommandSpace
-    from wrenorm.tasks.rope.control.correct import CoarseModel, StoredTrials, fit_parameters
+    from wrenorm.tasks.rope.control.correct import CoarseModel, StoredTrials
     from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
     from wrenorm.tasks.rope.reference.paths import get_hand_path
@@ -89,14 +89,16 @@ def compare(folder: Path) -> int:
         saved = np.load(folder / FILE)
         settings = json.loads((folder / "settings.json").read_text())
         J, u = saved["J"], saved["u"]
+        result = json.loads((folder / "correct.json").read_text())
     except (OSError, ValueError, KeyError) as e:
         _fail(f"{folder / FILE}: not the output of `run` ({type(e).__name__})")
+    if "fitted" not in result["runs"]:
+        _fail(f"{folder / 'correct.json'}: no fitted run (run with --params fitted)")
     goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
     goal = crit.Target.from_reference(goal_ref)
     problem = RopeProblem([goal_ref], segments=settings["segments"], dt=settings["dt"], names=[settings["goal"]])
     space = CommandSpace(get_hand_path(settings["start"]))
-    fitted, _ = fit_parameters(settings["variant"], settings["segments"], settings["dt"], settings["seed"],
-                               settings["fit_generations"])
+    fitted = np.array([result["runs"]["fitted"]["parameters"][name] for name in problem.space.names])  # the run's chain
     w = secant.residual_weights(goal)
     trial = load_reference(StoredTrials(None, folder / "real-trials").file_for(space.decode(u)))
     z = state_vector(crit.from_reference(trial))[0]
