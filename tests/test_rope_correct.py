@@ -521,7 +521,13 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
 
     examples = Path(__file__).resolve().parents[1] / "examples"
     diagnostics = examples / "diagnostics"
-    bad = {"workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
+    measured_only = tmp_path / "measured-only"  # a `run` folder of another arm: compare needs the fitted chain
+    measured_only.mkdir()
+    np.savez(measured_only / "rope-sensitivity.npz", J=np.zeros((129, 13)), u=np.zeros(13), step=0.3)
+    (measured_only / "settings.json").write_text("{}")
+    (measured_only / "correct.json").write_text('{"runs": {"measured": {}}}')
+    bad = {"correct.json: no fitted run": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only],
+           "workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
            "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
            "no-run/correct.json: not a finished correction": [diagnostics / "critical_velocity.py",
                                                                tmp_path / "no-run", "fitted"],
