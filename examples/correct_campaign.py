@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wrenorm.results import write_atomic
+
 ROPES = ["stiff", "soft", "heavy", "light", "long", "damped", "heavy_end"]
 
 
@@ -126,17 +128,15 @@ def main(argv=None) -> int:
             with lock:
                 if "skipped" not in rec:
                     meta["runs"][f"{v}-s{s}"] = rec
-                    tmp = meta_file.with_suffix(".tmp")
-                    tmp.write_text(json.dumps(meta, indent=1))
-                    tmp.replace(meta_file)
+                    write_atomic(meta_file, json.dumps(meta, indent=1))
                 print(f"   {v} seed {s}: {rec}", flush=True)
 
         with ThreadPoolExecutor(max_workers=args.workers) as pool:  # each cell is its own process
             list(pool.map(one, cells))
     text, stats, trials_of = table(args.out, args.variants, args.seeds, args.params)
-    (args.out / "campaign.md").write_text(text)
+    write_atomic(args.out / "campaign.md", text)
     meta["summary"], meta["trials"] = stats, trials_of
-    meta_file.write_text(json.dumps(meta, indent=1))
+    write_atomic(meta_file, json.dumps(meta, indent=1))
     print(text)
     return 0
 

@@ -536,7 +536,12 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
            "needs --out OUT and --linearise-at trial": [diagnostics / "rope_sensitivity_prior.py", "run",
                                                         "--variant", "heavy", "--out", tmp_path / "o"],
            "run takes fixed parameters only": [diagnostics / "rope_sensitivity_prior.py", "run", "--linearise-at",
-                                               "trial", "--out", tmp_path / "o", "--params", "renormalised"]}
+                                               "trial", "--out", tmp_path / "o", "--params", "renormalised"],
+           "--segments 2: the chain takes 3-63 links": [diagnostics / "rope_sensitivity_prior.py", "compare",
+                                                        measured_only, "--segments", "2"],
+           "chain 64: give the chain's links first, 3-63": [diagnostics / "rope_sensitivity_prior.py", "chain", "64",
+                                                            "--out", tmp_path / "o"],
+           "chain needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "chain", "20", "--variant", "heavy"]}
     for expected, argv in bad.items():
         r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr
@@ -570,3 +575,28 @@ def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
     assert [t["error"] for t in meta["trials"]["stiff-s1"]["fitted"]] == errors[("stiff", 1)]
     assert meta["trials"]["soft-s0"]["fitted"][1] == {"error": 0.05, "accepted": True, "predicted_error": 0.025}
     assert "| stiff | 1 | - (0.100) |" in (tmp_path / "campaign.md").read_text()
+
+
+def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):
+    """rope_sensitivity_prior's bound (parameters whose sensitivity lies closest to a given one): handed the
+    sensitivity of a chain with known parameters, it must find parameters whose sensitivity is that one, from the
+    measured values that are far from it."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "diagnostics" / "rope_sensitivity_prior.py"
+    spec = importlib.util.spec_from_file_location("rope_sensitivity_prior", path)
+    diag = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(diag)
+    space = CommandSpace(PATHS["flick"])
+    u = np.zeros(space.dim)
+    goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
+    w = secant.residual_weights(goal)
+    J = secant.Sensitivity.of_chain(CoarseModel(problem, shifted(problem), space), u).S
+    start = CoarseModel(problem, problem.space.measured, space)
+    P0 = secant.Sensitivity.of_chain(start, u).S
+    d0 = np.linalg.norm(w[:, None] * (P0 - J)) / np.linalg.norm(w[:, None] * J)
+    values, d = diag.best_parameters(start, J, w, u, secant.GN_FD_STEP, seed=0)
+    P = secant.Sensitivity.of_chain(CoarseModel(problem, values, space), u).S
+    assert d0 > 0.1 and d < 0.2 * d0
+    assert np.isclose(np.linalg.norm(w[:, None] * (P - J)) / np.linalg.norm(w[:, None] * J), d)

@@ -1,17 +1,26 @@
 """How much of the correction's gap is the chain's sensitivity? Run the loop with the ROPE's own sensitivity as
-its prior, and compare the chain's sensitivity with the rope's (README, "How much of the gap is the chain's
-sensitivity"). A diagnosis, not a method: the rope's sensitivity costs 26 extra fine runs (real trials on a robot).
+its prior, or with a finer chain's, and compare the chain's sensitivity with the rope's (README, "How much of the gap
+is the chain's sensitivity" and "Is a chain of 11 masses enough"). A diagnosis, not a method: the rope's sensitivity
+costs 26 extra fine runs (real trials on a robot).
 
     python examples/diagnostics/rope_sensitivity_prior.py run --variant heavy --seed 4 --params fitted \\
         --linearise-at trial --no-record --out runs/oracle-heavy-s4
-    python examples/diagnostics/rope_sensitivity_prior.py compare runs/oracle-heavy-s4
+    python examples/diagnostics/rope_sensitivity_prior.py chain 20 --variant heavy --seed 4 --params fitted \\
+        --no-record --out runs/chain20-heavy-s4
+    python examples/diagnostics/rope_sensitivity_prior.py compare runs/oracle-heavy-s4 [--segments 20]
+        [--best-parameters]
 
 `run` is `correct rope` (its options after `run`; fixed parameters, `--linearise-at trial`) with the chain's
 central difference at trial 1's command replaced by the fine rope's (the same step, 26 fine runs, not counted as
 trials), kept in OUT/rope-sensitivity.npz; the secant pairs then correct it as they correct the chain's.
+`chain N` is `correct rope` (its options after N; fixed parameters) with the chain's sensitivity and the match it is
+measured at taken on an N-link chain fitted as the run's, trial 1 still planned on the run's own chain.
 `compare` prints, per block of the critical state, how far the chain's sensitivity (fitted parameters, at trial 1's
 command and where it matches trial 1's state; measured parameters at that match) lies from the rope's: the weighted
 relative error (0 alike, 1 no better than zero) and the mean cosine of the columns (position and velocity).
+`--segments N` asks the same of an N-link chain, its parameters fitted as the run's were (same throws, seed and
+generations); `--best-parameters` adds the chain whose parameters were chosen to bring its sensitivity closest to the
+rope's (on the answer itself: a bound on what the parameters can absorb at that resolution, not a method).
 """
 from __future__ import annotations
 
@@ -78,9 +87,100 @@ def run(argv: list[str]) -> int:
     return main(["correct", "rope", *argv])
 
 
-def compare(folder: Path) -> int:
+def chain(segments: int, argv: list[str]) -> int:
+    """The loop with its sensitivity (and the match it is measured at) taken on a chain of `segments` links, fitted
+    as the run's own chain is (the same throws, seed and generations); trial 1 is still the run's own chain's plan."""
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope.control.correct import CoarseModel, fit_parameters
+    from wrenorm.tasks.rope.problem import RopeProblem
+
+    if "--out" not in argv[:-1]:
+        _fail("chain needs --out OUT")
+    params = argv[argv.index("--params") + 1:] if "--params" in argv else []
+    if any(a.startswith("renormalised") for a in params):
+        _fail("chain takes fixed parameters only (--params fitted or measured)")
+    out = Path(argv[argv.index("--out") + 1])
+    models = {}
+    of_chain, matched_command = secant.Sensitivity.of_chain.__func__, secant.matched_command
+
+    def other(model):
+        if model.label not in models:
+            settings = json.loads((out / "settings.json").read_text())
+            problem = model.problem
+            other_problem = RopeProblem([c.data.ref for c in problem.train], segments=segments, dt=settings["dt"],
+                                        names=[c.name for c in problem.train])
+            if model.label == "measured":
+                values = other_problem.space.measured
+            else:
+                values, _ = fit_parameters(settings["variant"], segments, settings["dt"], settings["seed"],
+                                           settings["fit_generations"], settings["device"])
+            models[model.label] = CoarseModel(other_problem, values, model.space, f"{model.label}, {segments} links")
+            print(f"rope_sensitivity_prior: the sensitivity from a {segments}-link chain ({model.label})",
+                  file=sys.stderr, flush=True)
+        return models[model.label]
+
+    secant.Sensitivity.of_chain = classmethod(lambda cls, model, u, step=secant.GN_FD_STEP:
+                                              of_chain(cls, other(model), u, step))
+    secant.matched_command = lambda model, z, w, u, seed=0, reg=secant.MATCH_REG: matched_command(
+        other(model), z, w, u, seed, reg)
+    return main(["correct", "rope", *argv])
+
+
+def _block_cells(goal, w: np.ndarray, P: np.ndarray, J: np.ndarray) -> str:
+    cells = []
+    for block, sl in list(goal.blocks.items()) + [("all", slice(None))]:
+        A, B = w[sl, None] * P[sl], w[sl, None] * J[sl]
+        rel = float(np.linalg.norm(A - B) / max(np.linalg.norm(B), 1e-15))
+        cell = f"{block} {rel:.2f}"
+        if block in ("position", "velocity"):
+            keep = np.linalg.norm(B, axis=0) > 1e-9
+            cos = np.sum(A * B, 0)[keep] / (np.linalg.norm(A, axis=0) * np.linalg.norm(B, axis=0) + 1e-15)[keep]
+            cell += f" ({float(np.mean(cos)):.2f})"
+        cells.append(cell)
+    return ", ".join(cells)
+
+
+def best_parameters(model, J: np.ndarray, w: np.ndarray, u: np.ndarray, step: float, seed: int,
+                    generations: int = 40, popsize: int = 24) -> tuple[np.ndarray, float]:
+    """The chain's parameters whose sensitivity at u lies closest to the rope's J (weighted relative error), by
+    CMA-ES over the free parameters. Chosen on the answer: a bound on what parameters can absorb, not a method.
+    A candidate whose chain misses on either side of any column scores as infinitely far."""
+    from wrenorm.cmaes import BatchedCMAES
+
+    problem, space, pspace = model.problem, model.space, model.problem.space
+    n = space.dim
+    X = np.concatenate([u[None], np.clip(u[None] + step * np.eye(n), space.lower, space.upper),
+                        np.clip(u[None] - step * np.eye(n), space.lower, space.upper)])
+    hands, span = model.hands(X), np.diag(X[1:n + 1] - X[n + 1:])
+    B_ = np.linalg.norm(w[:, None] * J)
+
+    def distance(values):
+        st = crit.from_rollout(problem.simulate(values, hands), problem.n, 0.0)
+        Z = state_vector(st).reshape(len(values), len(X), -1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            S = np.transpose((Z[:, 1:n + 1] - Z[:, n + 1:]) / span[None, :, None], (0, 2, 1))
+            d = np.linalg.norm((w[None, :, None] * (S - J[None])).reshape(len(values), -1), axis=1) / B_
+        return np.where(np.isfinite(d), d, np.inf)
+
+    best_v, best_d = model.values.copy(), float(distance(model.values[None])[0])
+    F = int(pspace.free_mask.sum())
+    es = BatchedCMAES(pspace.to_unit(model.values)[None], 0.2, np.zeros(F), np.ones(F), [seed + 1], popsize,
+                      generations)
+    while not es.done:
+        unit = es.ask()
+        values = pspace.from_unit(unit)
+        values[:, ~pspace.free_mask] = model.values[~pspace.free_mask]
+        d = distance(values)
+        es.tell(d)
+        j = int(np.argmin(d))
+        if d[j] < best_d:
+            best_v, best_d = values[j].copy(), float(d[j])
+    return best_v, best_d
+
+
+def compare(folder: Path, segments: int | None = None, best: bool = False) -> int:
     from wrenorm.tasks.rope.control.command import CommandSpace
-    from wrenorm.tasks.rope.control.correct import CoarseModel, StoredTrials
+    from wrenorm.tasks.rope.control.correct import CoarseModel, StoredTrials, fit_parameters
     from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
     from wrenorm.tasks.rope.reference.paths import get_hand_path
@@ -96,31 +196,31 @@ def compare(folder: Path) -> int:
         _fail(f"{folder / 'correct.json'}: no fitted run (run with --params fitted)")
     goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
     goal = crit.Target.from_reference(goal_ref)
-    problem = RopeProblem([goal_ref], segments=settings["segments"], dt=settings["dt"], names=[settings["goal"]])
+    segments = settings["segments"] if segments is None else segments
+    problem = RopeProblem([goal_ref], segments=segments, dt=settings["dt"], names=[settings["goal"]])
     space = CommandSpace(get_hand_path(settings["start"]))
-    fitted = np.array([result["runs"]["fitted"]["parameters"][name] for name in problem.space.names])  # the run's chain
+    if segments == settings["segments"]:  # the run's own chain
+        fitted = np.array([result["runs"]["fitted"]["parameters"][name] for name in problem.space.names])
+    else:  # the same fit as the run's, at the other resolution
+        fitted, _ = fit_parameters(settings["variant"], segments, settings["dt"], settings["seed"],
+                                   settings["fit_generations"], settings["device"])
     w = secant.residual_weights(goal)
     trial = load_reference(StoredTrials(None, folder / "real-trials").file_for(space.decode(u)))
     z = state_vector(crit.from_reference(trial))[0]
     model = CoarseModel(problem, fitted, space, "fitted")
     match = secant.matched_command(model, z, w, u, settings["seed"])
-    priors = {"fitted, at trial 1's command": secant.Sensitivity.of_chain(model, u, float(saved["step"])).S,
-              "fitted, where it matches trial 1": secant.Sensitivity.of_chain(model, match.u, float(saved["step"])).S,
+    step = float(saved["step"])
+    priors = {"fitted, at trial 1's command": secant.Sensitivity.of_chain(model, u, step).S,
+              "fitted, where it matches trial 1": secant.Sensitivity.of_chain(model, match.u, step).S,
               "measured, at that match": secant.Sensitivity.of_chain(
-                  CoarseModel(problem, problem.space.measured, space, "measured"), match.u, float(saved["step"])).S}
-    print(f"{folder}: the chain's sensitivity against the rope's (relative error; mean column cosine)")
+                  CoarseModel(problem, problem.space.measured, space, "measured"), match.u, step).S}
+    if best:
+        values, _ = best_parameters(model, J, w, u, step, settings["seed"])
+        priors["best parameters, at trial 1's command"] = secant.Sensitivity.of_chain(
+            CoarseModel(problem, values, space, "best"), u, step).S
+    print(f"{folder}: the {segments}-link chain's sensitivity against the rope's (relative error; mean column cosine)")
     for name, P in priors.items():
-        cells = []
-        for block, sl in list(goal.blocks.items()) + [("all", slice(None))]:
-            A, B = w[sl, None] * P[sl], w[sl, None] * J[sl]
-            rel = float(np.linalg.norm(A - B) / max(np.linalg.norm(B), 1e-15))
-            cell = f"{block} {rel:.2f}"
-            if block in ("position", "velocity"):
-                keep = np.linalg.norm(B, axis=0) > 1e-9
-                cos = np.sum(A * B, 0)[keep] / (np.linalg.norm(A, axis=0) * np.linalg.norm(B, axis=0) + 1e-15)[keep]
-                cell += f" ({float(np.mean(cos)):.2f})"
-            cells.append(cell)
-        print(f"  {name:34s} " + ", ".join(cells))
+        print(f"  {name:38s} " + _block_cells(goal, w, P, J))
     return 0
 
 
@@ -128,9 +228,24 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["run"]:
         return run(argv[1:])
-    if argv[:1] == ["compare"] and len(argv) == 2:
-        return compare(Path(argv[1]))
-    _fail("usage: rope_sensitivity_prior.py run [correct rope options] | compare RUN_FOLDER")
+    if argv[:1] == ["chain"]:
+        if len(argv) < 2 or not argv[1].isdigit() or not 3 <= int(argv[1]) <= 63:
+            _fail(f"chain {argv[1] if len(argv) > 1 else ''}: give the chain's links first, 3-63")
+        return chain(int(argv[1]), argv[2:])
+    if argv[:1] == ["compare"]:
+        import argparse
+
+        p = argparse.ArgumentParser(prog="rope_sensitivity_prior.py compare")
+        p.add_argument("folder", type=Path)
+        p.add_argument("--segments", type=int, default=None, help="a chain of this many links, fitted as the run's")
+        p.add_argument("--best-parameters", action="store_true",
+                       help="also the parameters whose sensitivity lies closest to the rope's (a bound)")
+        args = p.parse_args(argv[1:])
+        if args.segments is not None and not 3 <= args.segments <= 63:
+            _fail(f"--segments {args.segments}: the chain takes 3-63 links")
+        return compare(args.folder, args.segments, args.best_parameters)
+    _fail("usage: rope_sensitivity_prior.py run [correct rope options] | chain N [correct rope options] | "
+          "compare RUN_FOLDER [--segments N] [--best-parameters]")
     return 2
 
 
