@@ -44,21 +44,29 @@ def _fail(message: str) -> None:
     sys.exit(2)
 
 
+def _option(argv: list[str], flag: str) -> str | None:
+    """The value after `flag` in `correct rope`'s options, or None."""
+    return argv[argv.index(flag) + 1] if flag in argv[:-1] else None
+
+
+def _fixed_parameters_only(argv: list[str], command: str, why: str = "") -> None:
+    """Both loops patch the sensitivity measured once per run; a renormalised arm re-measures it after every trial."""
+    params = argv[argv.index("--params") + 1:] if "--params" in argv else []
+    if any(a.startswith("renormalised") for a in params):
+        _fail(f"{command} takes fixed parameters only (--params fitted or measured){why}")
+
+
 def run(argv: list[str]) -> int:
     from wrenorm.cli import main
     from wrenorm.tasks.rope.control.correct import NewtonRope
 
-    def value(flag):
-        return argv[argv.index(flag) + 1] if flag in argv[:-1] else None
-
-    if value("--out") is None or value("--linearise-at") != "trial" or value("--engine") not in (None, "newton"):
+    if (_option(argv, "--out") is None or _option(argv, "--linearise-at") != "trial"
+            or _option(argv, "--engine") not in (None, "newton")):
         _fail("run needs --out OUT and --linearise-at trial (the rope's sensitivity is measured at trial 1's "
               "command), on the newton rope")
-    params = argv[argv.index("--params") + 1:] if "--params" in argv else []
-    if any(a.startswith("renormalised") for a in params):
-        _fail("run takes fixed parameters only (--params fitted or measured): a renormalised arm re-measures its "
-              "sensitivity after every trial, 26 fine runs each")
-    out = Path(value("--out"))
+    _fixed_parameters_only(argv, "run", ": a renormalised arm re-measures its sensitivity after every trial, 26 fine "
+                                        "runs each")
+    out = Path(_option(argv, "--out"))
     ropes = {}
 
     def of_rope(cls, model, u, step=secant.GN_FD_STEP):
@@ -94,12 +102,10 @@ def chain(segments: int, argv: list[str]) -> int:
     from wrenorm.tasks.rope.control.correct import CoarseModel, fit_parameters
     from wrenorm.tasks.rope.problem import RopeProblem
 
-    if "--out" not in argv[:-1]:
+    if _option(argv, "--out") is None:
         _fail("chain needs --out OUT")
-    params = argv[argv.index("--params") + 1:] if "--params" in argv else []
-    if any(a.startswith("renormalised") for a in params):
-        _fail("chain takes fixed parameters only (--params fitted or measured)")
-    out = Path(argv[argv.index("--out") + 1])
+    _fixed_parameters_only(argv, "chain")
+    out = Path(_option(argv, "--out"))
     models = {}
     of_chain, matched_command = secant.Sensitivity.of_chain.__func__, secant.matched_command
 
