@@ -5,8 +5,14 @@ Formats (Michelis et al., srl-ethz/fishsim, MIT licence):
                             metres from the 0.142 m distance between the two head markers.
   rotatedMarkers_fX_YZ.csv  2 columns, metres, 9 rows per frame, rotated into the head frame
                             with the head's progress added back; used only when no pixel file
-                            for that label exists (its head markers still give the head track).
-Label X.YZ (motor rate in Hz) comes from the file name.
+                            for that label exists (its head markers still give the forward track,
+                            but the heading is constant by construction: Rate.frame "head", and
+                            the head's yaw and sway cannot be measured from it).
+Label X.YZ (motor rate in Hz) comes from the file name; the frame rate is the format's 60 fps unless
+given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
+dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many
+frames repeat the previous one exactly (duplicated frames). Flagged, not refused (tail_beat_check):
+a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
 Forward speed (real and simulated alike): least-squares straight line through the head centre
 (mean of markers 0 and 1) over the track, direction = principal axis of the positions, oriented
@@ -24,23 +30,28 @@ import numpy as np
 
 from wrenorm.errors import InputError
 
-FPS = 60.0
+FPS = 60.0  # the fishsim format's frame rate (options.FPS, the --fps default)
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
 N_MARKERS = 9
 MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest rates
 MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
+HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
+MAX_REPEATED_FRAMES = 0.2  # share of frames equal to the previous one; tracked video never repeats exactly
+TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
+TAIL_BEAT_PER_LABEL_RANGE = (0.5, 1.0)  # outside: flagged (a frame rate off by 2x lands at 0.375 or 1.5)
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
 BUILTIN = "fishsim_kinematics.npz"
 
 
 @dataclass
 class Rate:
-    """One recorded motor rate: world-frame marker tracks in metres and what we derive from them."""
+    """One recorded motor rate: marker tracks in metres and what we derive from them."""
     label: float
-    markers: np.ndarray          # (frames, 9, 2) metres, world frame
+    markers: np.ndarray          # (frames, 9, 2) metres
     source: str = ""
     fps: float = FPS
+    frame: str = "world"         # "world" (markers_*.csv, built-in); "head" (rotatedMarkers: heading constant)
     tail_freq: float = 0.0       # Hz, tail-beat frequency
     speed: float = 0.0           # m/s, measured forward speed
     yaw_amp: float = 0.0         # rad, amplitude of the head's yaw oscillation at tail_freq
@@ -64,7 +75,8 @@ def _read_csv(path: Path, columns: int) -> np.ndarray:
     try:
         with warnings.catch_warnings():  # an empty file is reported below as a column-count error
             warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(path, delimiter=",", ndmin=2)
+            # utf-8-sig: spreadsheet exports start with a byte-order mark, which is no part of the first number
+            data = np.loadtxt(path, delimiter=",", ndmin=2, encoding="utf-8-sig")
     except ValueError as exc:
         raise InputError(str(path), "contents", f"not a numeric CSV ({exc})") from None
     if data.shape[1] != columns:
@@ -82,9 +94,36 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     if len(data) < MIN_FRAMES:
         raise InputError(str(path), "rows", f"{len(data)} frames, need at least {MIN_FRAMES}")
     markers = data.reshape(-1, N_MARKERS, 2)
+    _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
+    _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
     return markers * (HEAD_MARKER_DISTANCE / head_px)
+
+
+def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int) -> None:
+    """A marker at exactly (0, 0) is a tracker that lost it and wrote zeros: used, it drags the scale, the head
+    track or the tail wave to the image corner for those frames."""
+    which = list(which)
+    zero = np.all(markers[:, which] == 0.0, axis=-1)
+    if zero.any():
+        frame, k = np.argwhere(zero)[0]
+        marker = which[k]
+        row = frame * rows_per_frame + (marker + 1 if rows_per_frame > 1 else 1)
+        raise InputError(str(path), f"row {row} marker {marker}", f"at exactly (0, 0) in frame {frame + 1} "
+                         f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate or remove "
+                         "those frames")
+
+
+def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
+    """Tracked video jitters by at least a pixel's rounding from frame to frame: many frames equal to the one before
+    are a lower frame rate written out twice (or more), which would halve the speed and the tail-beat frequency."""
+    repeated = np.all(markers[1:] == markers[:-1], axis=(1, 2))
+    share = float(repeated.mean())
+    if share >= MAX_REPEATED_FRAMES:
+        raise InputError(str(path), "rows", f"{int(repeated.sum())} of {len(markers)} frames ({100 * share:.0f} %) "
+                         "repeat the previous frame exactly: duplicated frames; remove the copies and give the "
+                         "clip's true frame rate with --fps")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
@@ -104,21 +143,43 @@ def read_rotated_markers(path: Path) -> np.ndarray:
     markers = data.reshape(-1, N_MARKERS, 2)
     if len(markers) < MIN_FRAMES:
         raise InputError(str(path), "rows", f"{len(markers)} frames, need at least {MIN_FRAMES}")
+    # marker 0 is the head frame's origin, at (0, 0) in the first frame by construction
+    _check_dropouts(path, markers, range(1, N_MARKERS), rows_per_frame=N_MARKERS)
+    _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=N_MARKERS)
+    # no pixel scale here: the file must already be in metres (a mm or cm export would swim at km/h)
+    apart = float(np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean())
+    lo, hi = (HEAD_MARKER_DISTANCE * f for f in HEAD_DISTANCE_RANGE)
+    if not lo <= apart <= hi:
+        raise InputError(str(path), "units", f"head markers 0 and 1 are {apart:.4g} (file units) apart on average, "
+                         f"{HEAD_MARKER_DISTANCE} m on the robot: metres expected (millimetres or centimetres?)")
     return markers
 
 
-def load_dir(path) -> list[Rate]:
-    """Every markers_f*.csv (else rotatedMarkers_f*.csv) in `path`, sorted by label."""
+def check_fps(fps, source: str = "--fps") -> float:
+    fps = float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(source, "fps", f"frame rate must be a positive number of frames per second, got {fps:g}")
+    return fps
+
+
+def load_dir(path, fps: float = FPS) -> list[Rate]:
+    """Every markers_f*.csv (else rotatedMarkers_f*.csv) in `path`, sorted by label; `fps` frames per second."""
     path = Path(path)
+    fps = check_fps(fps)
     if not path.is_dir():
         raise InputError(str(path), "--data", "directory not found")
-    found: dict[float, tuple[str, Path]] = {}
+    by_kind: dict[tuple[str, float], Path] = {}
     for f in sorted(path.iterdir()):
         got = _label_of(f)
         if got is None:
             continue
-        kind, label = got
+        if got in by_kind:  # markers_f1_0.csv and markers_f1_00.csv: keeping either would hide the other
+            raise InputError(str(path), "file names", f"{by_kind[got].name} and {f.name} both hold label "
+                             f"{got[1]:.2f} Hz: keep one")
+        by_kind[got] = f
+    found: dict[float, tuple[str, Path]] = {}
+    for (kind, label), f in by_kind.items():
         if label not in found or kind == "markers":
             found[label] = (kind, f)
     if not found:
@@ -127,8 +188,22 @@ def load_dir(path) -> list[Rate]:
     for label in sorted(found):
         kind, f = found[label]
         markers = read_pixel_markers(f) if kind == "markers" else read_rotated_markers(f)
-        rates.append(analyse(Rate(label=label, markers=markers, source=f.name)))
+        rates.append(analyse(Rate(label=label, markers=markers, source=f.name, fps=fps,
+                                  frame="world" if kind == "markers" else "head")))
     return rates
+
+
+def tail_beat_check(rates: list[Rate]) -> dict:
+    """Tail-beat frequency / label of each clip against this robot's ~0.75: far off, the frame rate is the usual
+    culprit (a 120 fps clip read at 60 fps halves it). Flagged, not refused: another robot may beat otherwise."""
+    lo, hi = TAIL_BEAT_PER_LABEL_RANGE
+    ratios = {f"{r.label:.2f}": r.tail_freq / r.label if r.label > 0 else None for r in rates}
+    flagged = [f"{r.source or r.name}: tail-beat frequency {r.tail_freq:.3f} Hz is {ratio:.2f} x the label "
+               f"{r.label:.2f} Hz, this robot beats at ~{TAIL_BEAT_PER_LABEL} x: is the frame rate ({r.fps:g} fps) "
+               f"right? (--fps)" for r, ratio in zip(rates, ratios.values())
+               if ratio is not None and not lo <= ratio <= hi]
+    return {"tail_beat_per_label": ratios, "expected": TAIL_BEAT_PER_LABEL, "accepted_range": [lo, hi],
+            "fps": sorted({r.fps for r in rates}), "flagged": flagged}
 
 
 def parse_labels(text, rates: list[Rate], source: str = "--train") -> list[float]:

@@ -49,6 +49,14 @@ FEATURES = ("speed", "yaw_amp", "yaw_phase", "sway_amp", "sway_phase", "surge2_a
 UNITS = {"speed": "m/s", "yaw_amp": "rad", "yaw_phase": "rad", "sway_amp": "m", "sway_phase": "rad",
          "surge2_amp": "m/s", "surge2_phase": "rad", "surge1_amp": "m/s", "surge1_phase": "rad"}
 PHASES = tuple(f for f in FEATURES if f.endswith("_phase"))
+# need the head's heading and lateral motion in the world: a head-frame clip (rotatedMarkers, data.Rate.frame
+# "head") holds the heading constant by construction, so its yaw is zero and its "sway" is not the head's
+WORLD_FRAME = ("yaw_amp", "yaw_phase", "sway_amp", "sway_phase")
+
+
+def unmeasurable(rates) -> tuple[str, ...]:
+    """The FEATURES these clips cannot measure: WORLD_FRAME where any clip is in the head frame."""
+    return WORLD_FRAME if any(getattr(r, "frame", "world") == "head" for r in rates) else ()
 
 
 def head_signals(m0: np.ndarray, m1: np.ndarray):

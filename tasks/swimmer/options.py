@@ -10,6 +10,7 @@ DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/tes
 TAIL_BODIES = 6  # the robot's five plates and the fin (tasks/swimmer/body.py LINKS)
 DEFAULT_TRAIN = [1.00, 1.75]  # the published fit's training rates
 VISCOSITY = 0.0013  # Pa s, the published model's water
+FPS = 60.0  # frames/s of the fishsim marker files (data.FPS; repeated so that this module stays cheap to import)
 # feature sets (features.FEATURES); the speed is always first, the headline
 FEATURE_SETS = {
     "speed": ("speed",),
@@ -38,6 +39,8 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
     """The clips and the body model: what `select swimmer` studies as well as what a fit fits."""
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
+    add_number(p, "--fps", default=FPS, lo=0.0, lo_open=True, hi=100000.0, unit="frames/s",
+               help="frame rate of the --data clips (60: the fishsim format; the built-in data carry theirs)")
     add_list(p, "--train", default=list(DEFAULT_TRAIN), item=_label, metavar="HZ",
              help="training motor-rate labels (every other rate validates)")
     p.add_argument("--virtual-mass", action="store_true",
@@ -50,10 +53,13 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
 def add_fit_arguments(p: argparse.ArgumentParser) -> None:
     """What a fit matches and how it simulates: `select swimmer` chooses features and prior itself, so it takes
     none of these (accepting them there would ignore them in silence)."""
-    p.add_argument("--features", default=DEFAULT_FEATURES, metavar="SET|LIST",
+    # default None, not the set's name: the default drops what head-frame clips cannot measure (said so), a
+    # feature asked for by name is refused there instead
+    p.add_argument("--features", default=None, metavar="SET|LIST",
                    help=f"trajectory features fitted per training rate, each normalised by its beat-to-beat noise: a "
                         f"set {list(FEATURE_SETS)} or a comma-separated list of {list(FEATURE_SETS['all'])}; the "
-                        f"speed is always fitted (default: {DEFAULT_FEATURES})")
+                        f"speed is always fitted (default: {DEFAULT_FEATURES}, less yaw and sway where a clip is "
+                        f"rotatedMarkers, in the head frame)")
     add_number(p, "--prior-scale", default=DEFAULT_PRIOR_SCALE, lo=0.0, hi=20.0, unit="e-folds",
                help="std of the Gaussian prior on ln(coefficient) around the published values (ln 3 = 1.10: a "
                     "factor of 3); 0: no prior")

@@ -41,6 +41,10 @@ PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kut
 COEFFICIENTS = tuple(PUBLISHED)
 DEFAULT_TRAIN = "1.00,1.75"
 TOLERANCE = 0.02  # m/s
+# per-beat noise (SI: m, m/s, rad) below which a feature does not vary from beat to beat: video markers resolve
+# ~1 mm and ~10 mrad, so anything at this level is a constant of the clip (or rounding), and dividing by it
+# would weigh that feature ~1e9 times over every other
+NEGLIGIBLE_NOISE = 1e-9
 
 
 def parameter_space(prior_scale: float | None = None, free_viscosity: bool = FREE_VISCOSITY) -> ParameterSpace:
@@ -77,25 +81,40 @@ def parse_features(text) -> tuple:
     return ("speed",) + tuple(n for n in names if n != "speed")
 
 
-def noise_model(conditions, names) -> dict:
+def noise_model(conditions, names, in_fit=()) -> dict:
     """Per-beat noise of each feature, pooled over the given (training) clips: the within-clip sample
     variance over beats, weighted by its degrees of freedom (beats - 1); amplitudes pooled as a fraction of
     the clip's amplitude, the speed and phases in their own units. The noise of a clip's feature (its mean
-    over n beats) is that per-beat std / sqrt(n)."""
+    over n beats) is that per-beat std / sqrt(n).
+
+    A feature of `in_fit` whose noise is zero, not finite or below NEGLIGIBLE_NOISE in a training clip is not
+    measurable there (e.g. the yaw of a clip whose heading is constant): an InputError naming it and the clips,
+    never a residual divided by ~0."""
+    clips = "training clips " + ", ".join(getattr(c.data, "source", "") or c.name for c in conditions)
     out = {}
     for f in names:
         num, dof = 0.0, 0
+        relative = f.endswith("_amp")
         for c in conditions:
             sp, val, n = c.meta["feature_spread"][f], c.meta["features"][f], c.meta["feature_spread"]["beats"]
             if n < 2 or not np.isfinite(sp):
                 continue
-            x = sp / abs(val) if f.endswith("_amp") else sp
+            with np.errstate(divide="ignore", invalid="ignore"):  # an amplitude of exactly 0: checked below
+                x = sp / abs(val) if relative else sp
             num += (n - 1) * x * x
             dof += n - 1
         if dof == 0:
             raise InputError("training clips", f, "fewer than two complete beats in every training clip: "
                                                   "no noise estimate")
-        out[f] = {"per_beat": float(np.sqrt(num / dof)), "relative": f.endswith("_amp"), "dof": dof}
+        per_beat = float(np.sqrt(num / dof))
+        out[f] = {"per_beat": per_beat, "relative": relative, "dof": dof}
+        if f in in_fit:
+            absolute = [per_beat * abs(c.meta["features"][f]) if relative else per_beat for c in conditions]
+            smallest = min(absolute)
+            if not (np.isfinite(smallest) and smallest > NEGLIGIBLE_NOISE):
+                raise InputError(clips, f, f"per-beat noise {smallest:.3g} {feat.UNITS[f]}: the feature does not "
+                                           f"vary from beat to beat, so it is not measurable from these clips; "
+                                           f"leave it out of --features")
     return out
 
 
@@ -140,7 +159,7 @@ class SwimmerProblem(Problem):
 
     def __init__(self, rates: list, train_labels: list[float], device: str = "cpu", dt: float = body.DEFAULT_DT,
                  warm_seconds: float = 2.0, meas_seconds: float = 3.0, virtual_mass: bool = False,
-                 gait_mode: str = "chain", source: str = "built-in", features=DEFAULT_FEATURES,
+                 gait_mode: str = "chain", source: str = "built-in", features=None,
                  prior_scale: float | None = DEFAULT_PRIOR_SCALE, speed_weight: float = 1.0, scheme: int = 2,
                  bodies: int = len(body.LINKS), free_viscosity: bool = FREE_VISCOSITY):
         self.device = device
@@ -156,7 +175,25 @@ class SwimmerProblem(Problem):
         self.tolerance = TOLERANCE
         self.dt, self.warm_seconds, self.meas_seconds, self.virtual_mass = dt, warm_seconds, meas_seconds, virtual_mass
         self.scheme = int(scheme)
-        self.features = parse_features(features)
+        # features None: the default set, less what these clips cannot measure; asked for by name, such a
+        # feature is refused rather than quietly dropped
+        self.features = parse_features(DEFAULT_FEATURES if features is None else features)
+        self.unmeasurable = feat.unmeasurable(rates)
+        self.warnings: list[str] = []
+        if self.unmeasurable:
+            head_clips = [r.source or r.name for r in rates if r.frame == "head"]
+            asked = [f for f in self.features if f in self.unmeasurable]
+            if asked and features is not None:
+                raise InputError(head_clips[0], "--features",
+                                 f"{', '.join(asked)} need the head's heading and lateral motion in the world; this "
+                                 "rotatedMarkers file is in the head frame (heading constant): leave them out or "
+                                 "give its markers_*.csv")
+            self.features = tuple(f for f in self.features if f not in self.unmeasurable)
+            self.warnings.append(f"{', '.join(head_clips)}: head frame (rotatedMarkers, heading constant): "
+                                 f"{', '.join(self.unmeasurable)} cannot be measured and are left out of the fit "
+                                 f"(fitted: {', '.join(self.features)})")
+        self.data_checks = data.tail_beat_check(rates)
+        self.warnings += self.data_checks["flagged"]
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
                            "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
@@ -174,7 +211,7 @@ class SwimmerProblem(Problem):
                                                          "feature_spread": spread}))
         self.train = [c for c in conds if c.meta["label"] in train_labels]
         self.held_out = [c for c in conds if c.meta["label"] not in train_labels]
-        self.noise = noise_model(self.train, feat.FEATURES)
+        self.noise = noise_model(self.train, feat.FEATURES, in_fit=self.features)
         self._batches: dict = {}
 
     def sigma(self, cond, name: str) -> float:
@@ -294,6 +331,8 @@ class SwimmerProblem(Problem):
                          "noise": self.sigma(c, f), "in_fit": f in self.features,
                          "fitted_normalised_residual":
                              float(feat.feature_difference(sim[f][0, j], real, f) / self.sigma(c, f))}
+                if f in self.unmeasurable and self.rates[c.name].frame == "head":  # artefacts of the head frame
+                    fe[f].update(real=None, noise=None, fitted_normalised_residual=None, measurable=False)
             speeds[f"{c.meta['label']:.2f}"] = {
                 "real": c.meta["speed"], "fitted": float(sim["speed"][0, j]), "measured": float(sim["speed"][1, j]),
                 "fitted_relative_error": float(sim["speed"][0, j] / c.meta["speed"] - 1.0),
@@ -304,15 +343,20 @@ class SwimmerProblem(Problem):
                 "real_speed_per_beat": feat.real_features(self.rates[c.name])[2]["speed"].tolist(),
                 "real_path_speed": path_speed(self.rates[c.name]),
                 "gait": gait_summary(self.rates[c.name], self.gaits[c.name]),
-                "real_heading": {k: v for k, v in real_heading(self.rates[c.name]).items()
-                                 if k != "path_direction_deg"}}
+                # a head-frame clip's heading is constant by construction: no turn or crab angle to report
+                "real_heading": {k: (v if self.rates[c.name].frame == "world" else None)
+                                 for k, v in real_heading(self.rates[c.name]).items() if k != "path_direction_deg"},
+                "frame": self.rates[c.name].frame,
+                "tail_beat_per_label": self.data_checks["tail_beat_per_label"][f"{c.meta['label']:.2f}"]}
         val = [f"{c.meta['label']:.2f}" for c in self.held_out]
         mae = {k: float(np.mean([abs(speeds[v][k] - speeds[v]["real"]) for v in val])) if val else None
                for k in ("fitted", "measured", "ebt")}
         worst = max((abs(speeds[v]["fitted_relative_error"]) for v in val), default=None)
         return {"speeds": speeds, "speed_mae": mae, "worst_relative_speed_error": worst,
                 "ebt_constants": {"c1": ebt["c1"], "c2": ebt["c2"]}, "data_source": self.source,
+                "warnings": list(self.warnings), "data_checks": self.data_checks,
                 "features": {"fitted": list(self.features), "speed_weight": self.speed_weight,
+                             "not_measurable": list(self.unmeasurable),
                              "doc": feat.__doc__.split("\n\n")[2].strip(), "units": feat.UNITS,
                              "noise": {f: dict(v, meaning="per-beat std pooled over the training clips (amplitudes "
                                                           "as a fraction of the clip's); a clip's noise is it / "
@@ -502,9 +546,21 @@ def real_heading(rate) -> dict:
 # --- building ---------------------------------------------------------------------------------
 
 def _rates(args):
+    fps = data.check_fps(getattr(args, "fps", data.FPS))
     if getattr(args, "data", None) is None:
-        return data.load_builtin(), f"built-in ({data.BUILTIN})"
-    return data.load_dir(args.data), str(args.data)
+        rates = data.load_builtin()
+        if any(r.fps != fps for r in rates):  # the built-in tracks carry their rate: --fps would be ignored in silence
+            raise InputError("--fps", "fps", f"applies to --data clips; the built-in data are {rates[0].fps:g} fps")
+        return rates, f"built-in ({data.BUILTIN})"
+    return data.load_dir(args.data, fps), str(args.data)
+
+
+def warn(problem) -> None:
+    """The problem's warnings (features left out, tail-beat flags) on stderr, as they arise: once per command."""
+    import sys
+
+    for w in problem.warnings:
+        print(f"wrenorm: warning: {w}", file=sys.stderr, flush=True)
 
 
 def _check_dt(dt: float, source: str = "--dt") -> float:
@@ -523,7 +579,7 @@ def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LIN
     return SwimmerProblem(rates, labels, device=device, dt=dt,
                           virtual_mass=bool(getattr(args, "virtual_mass", False)),
                           gait_mode=getattr(args, "gait", "chain"), source=source,
-                          features=getattr(args, "features", DEFAULT_FEATURES), prior_scale=_prior_scale(args),
+                          features=getattr(args, "features", None), prior_scale=_prior_scale(args),
                           speed_weight=float(getattr(args, "speed_weight", 1.0)),
                           scheme=1 if getattr(args, "integrator", "ros2") == "euler" else 2,
                           bodies=bodies)
@@ -532,8 +588,10 @@ def _problem(args, device, rates, source, labels, dt, bodies: int = len(body.LIN
 def build_problems(args, device: str) -> list[SwimmerProblem]:
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
-    return [_problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)),
-                     _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies"))]
+    problems = [_problem(args, device, rates, source, labels, _check_dt(getattr(args, "dt", body.DEFAULT_DT)),
+                         _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies"))]
+    warn(problems[0])
+    return problems
 
 
 # --- resolution flow ---------------------------------------------------------------------------
@@ -554,9 +612,12 @@ def flow_problems(args, device: str) -> list[SwimmerProblem]:
         if len(set(counts)) != len(counts):
             raise InputError("--resolutions", "bodies", f"repeated body count in {counts}")
         dt = _check_dt(getattr(args, "dt", body.DEFAULT_DT))
-        return [_problem(args, device, rates, source, labels, dt, n) for n in counts]
-    bodies = _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies")
-    dts = sorted(_check_dt(d, "--resolutions") for d in (args.resolutions or FLOW_DT))
-    if len(set(dts)) != len(dts):
-        raise InputError("--resolutions", "dt", f"repeated time step in {dts}")
-    return [_problem(args, device, rates, source, labels, dt, bodies) for dt in dts]
+        problems = [_problem(args, device, rates, source, labels, dt, n) for n in counts]
+    else:
+        bodies = _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies")
+        dts = sorted(_check_dt(d, "--resolutions") for d in (args.resolutions or FLOW_DT))
+        if len(set(dts)) != len(dts):
+            raise InputError("--resolutions", "dt", f"repeated time step in {dts}")
+        problems = [_problem(args, device, rates, source, labels, dt, bodies) for dt in dts]
+    warn(problems[0])
+    return problems

@@ -67,6 +67,7 @@ class Study:
 
     def __init__(self, rates, train_labels, generations=GENERATIONS, virtual_mass=False, gait="chain",
                  quiet=False):
+        from wrenorm.tasks.swimmer import features as feat
         from wrenorm.tasks.swimmer import problem as sw
 
         self.sw = sw
@@ -74,7 +75,11 @@ class Study:
         self.rates = [r for r in rates if any(abs(r.label - t) < 1e-6 for t in self.labels)]
         self.generations, self.quiet = int(generations), quiet
         self.model = {"virtual_mass": bool(virtual_mass), "gait_mode": gait}
-        self.noise = self.problem(self.labels, "all", None).noise
+        # head-frame clips (rotatedMarkers) cannot measure the yaw or sway groups: they are no candidates
+        unmeasurable = set(feat.unmeasurable(self.rates))
+        self.groups = {g: fs for g, fs in GROUPS.items() if not unmeasurable & set(fs)}
+        self.every = ("speed", *[f for fs in self.groups.values() for f in fs])
+        self.noise = self.problem(self.labels, self.every, None).noise
 
     def problem(self, train, features, prior, viscosity=False, **model):
         p = self.sw.SwimmerProblem(self.rates, list(train), features=features, prior_scale=prior,
@@ -110,7 +115,7 @@ def information(study: Study, point=None, viscosity: bool = False) -> dict:
     from wrenorm.jacobian import jacobian
     from wrenorm.uncertainty import _std
 
-    p = study.problem(study.labels, "all", None, viscosity)
+    p = study.problem(study.labels, study.every, None, viscosity)
     point = p.space.measured if point is None else np.asarray(point, np.float64)
     space = p.space
     u0 = np.clip(space.to_unit(point), 0.0, 1.0)
@@ -128,8 +133,8 @@ def information(study: Study, point=None, viscosity: bool = False) -> dict:
                 "fisher_diagonal": dict(zip(names, np.diag(JtJ).tolist())),
                 "data_std_efolds": dict(zip(names, std.tolist()))}
 
-    groups = [g for g, fs in GROUPS.items() if fs]
-    every = ["speed"] + [f for g in groups for f in GROUPS[g]]
+    groups = [g for g, fs in study.groups.items() if fs]
+    every = list(study.every)
     out = {"point": space.as_dict(point), "speed": summary(["speed"])}
     for g in groups:
         out[f"speed+{g}"] = summary(["speed", *GROUPS[g]])
@@ -141,7 +146,7 @@ def information(study: Study, point=None, viscosity: bool = False) -> dict:
 
 def reachability(study: Study) -> dict:
     out = {}
-    for g, fs in GROUPS.items():
+    for g, fs in study.groups.items():
         t0 = time.perf_counter()
         p = study.problem(study.labels, ("speed", *fs), None)
         v, loss = study.fit(p)
@@ -155,7 +160,7 @@ def reachability(study: Study) -> dict:
 
 
 def candidate_sets(reach: dict) -> dict:
-    ok = [g for g, fs in GROUPS.items() if fs and reach[g]["reachable"]]
+    ok = [g for g in reach if GROUPS[g] and reach[g]["reachable"]]
     sets = {"speed": ("speed",)}
     for g in ok:
         sets[g] = ("speed", *GROUPS[g])

@@ -1,0 +1,198 @@
+"""Robotic-fish inputs in foreign shapes: head-frame (rotated) clips, their units, the frame rate, duplicated
+frames, tracking dropouts, byte-order marks and doubled labels. Each is refused in one line naming the file, or
+used and said so; never fitted as nonsense in silence."""
+import argparse
+
+import numpy as np
+import pytest
+
+from wrenorm.errors import InputError
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
+
+
+@pytest.fixture(scope="module")
+def rates():
+    return sd.load_builtin()
+
+
+def _file_name(kind: str, label: float) -> str:
+    return f"{kind}_f{label:.2f}".replace(".", "_") + ".csv"
+
+
+def _write_pixels(folder, rate, scale=950.0, markers=None, name=None):
+    """A markers_*.csv of the rate (or of `markers`, metres) in pixels at `scale` px/m."""
+    m = rate.markers if markers is None else markers
+    path = folder / (name or _file_name("markers", rate.label))
+    np.savetxt(path, (m * scale).reshape(len(m), -1), delimiter=",")
+    return path
+
+
+def _write_rotated(folder, rate, scale=1.0):
+    """A rotatedMarkers_*.csv as fishsim writes it: the head frame, the head's forward progress added back (the fish
+    swims towards -x of its head frame), 9 rows per frame; `scale` 1000 is a millimetre export."""
+    rot = sd.head_frame(rate.markers)
+    rot[..., 0] -= rate.speed * np.arange(len(rot))[:, None] / sd.FPS
+    path = folder / _file_name("rotatedMarkers", rate.label)
+    np.savetxt(path, rot.reshape(-1, 2) * scale, delimiter=",")
+    return path
+
+
+def _mixed_folder(folder, rates, rotated=(1.0, 1.75)):
+    """Pixel files for every rate but `rotated`, which come as head-frame files only."""
+    for r in rates:
+        (_write_rotated if r.label in rotated else _write_pixels)(folder, r)
+    return folder
+
+
+# --- 1. head-frame clips: yaw and sway are not measurable ---------------------------------------
+
+def test_head_frame_clips_leave_yaw_and_sway_out_and_say_so(tmp_path, rates, capsys):
+    got = sd.load_dir(_mixed_folder(tmp_path, rates))
+    assert [r.frame for r in got] == ["world", "head", "world", "head", "world"]
+    args = argparse.Namespace(data=tmp_path, train=[1.0, 1.75], dt=0.016, features=None, fps=60.0)
+    prob = swimmer.build_problems(args, "cpu")[0]
+    assert prob.features == ("speed", "surge2_amp", "surge2_phase")
+    err = capsys.readouterr().err
+    assert "rotatedMarkers_f1_00.csv" in err and "yaw_amp" in err and "left out of the fit" in err
+    # every training feature's noise is a real beat-to-beat spread, not ~1e-17 (the objective was ~1e31)
+    for c in prob.train:
+        assert all(prob.sigma(c, f) > 1e-6 for f in prob.features)
+    rep = prob.report(prob.space.measured, prob.space.measured)
+    assert any("head frame" in w for w in rep["warnings"])
+    assert rep["features"]["not_measurable"] == ["yaw_amp", "yaw_phase", "sway_amp", "sway_phase"]
+    head, world = rep["speeds"]["1.00"], rep["speeds"]["0.50"]
+    assert head["frame"] == "head" and head["features"]["yaw_amp"]["real"] is None
+    yaw = head["features"]["yaw_amp"]
+    assert not yaw["in_fit"] and yaw["fitted_normalised_residual"] is None
+    assert world["features"]["yaw_amp"]["real"] > 0.05  # a world clip still measures its yaw, out of the fit
+
+
+def test_a_yaw_or_sway_feature_asked_for_on_head_frame_clips_is_refused(tmp_path, rates):
+    got = sd.load_dir(_mixed_folder(tmp_path, rates))
+    for asked in ("yaw", "all", "speed,sway_phase"):
+        with pytest.raises(InputError) as e:
+            swimmer.SwimmerProblem(got, [1.0, 1.75], dt=0.016, features=asked)
+        assert e.value.source == "rotatedMarkers_f1_00.csv" and e.value.field == "--features"
+        assert "head frame" in e.value.problem
+    assert swimmer.SwimmerProblem(got, [1.0, 1.75], dt=0.016, features="surge2").features[1:] == ("surge2_amp",
+                                                                                                   "surge2_phase")
+
+
+def test_a_feature_without_beat_to_beat_noise_is_an_error_not_a_division_by_zero(tmp_path, rates):
+    """A head-frame export named like a pixel file: the frame cannot tell, the noise model can (its yaw is ~1e-17
+    rad in every beat)."""
+    flat = {}
+    for r in rates:
+        if r.label in (1.0, 1.75):
+            flat[r.label] = sd.read_rotated_markers(_write_rotated(tmp_path, r))
+    got = [sd.analyse(sd.Rate(label=r.label, markers=flat.get(r.label, r.markers), source=f"clip_{r.label:.2f}"))
+           for r in rates]
+    with pytest.raises(InputError) as e:
+        swimmer.SwimmerProblem(got, [1.0, 1.75], dt=0.016, features="yaw")
+    assert e.value.field == "yaw_amp" and "not measurable" in e.value.problem
+    assert "clip_1.00" in e.value.source and "clip_1.75" in e.value.source
+    # out of the fit, the same clips build (the feature is only reported)
+    swimmer.SwimmerProblem(got, [1.0, 1.75], dt=0.016, features="surge2")
+
+
+# --- 2. rotated files must be in metres ------------------------------------------------------------
+
+@pytest.mark.parametrize("scale,shown", [(1000.0, "142"), (100.0, "14.2")])
+def test_rotated_files_in_millimetres_or_centimetres_are_refused(tmp_path, rates, scale, shown):
+    _write_rotated(tmp_path, rates[1], scale=scale)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "rotatedMarkers_f1_00.csv" in e.value.source and e.value.field == "units"
+    assert shown in e.value.problem and "metres expected" in e.value.problem
+
+
+# --- 3. frame rate -----------------------------------------------------------------------------------
+
+def _upsampled(markers, factor=2):
+    """Linear interpolation to `factor` x the frame rate (a 120 fps export of the same swim)."""
+    n = len(markers)
+    t = np.arange(0, n - 1 + 1e-9, 1.0 / factor)
+    flat = markers.reshape(n, -1)
+    return np.stack([np.interp(t, np.arange(n), flat[:, j]) for j in range(flat.shape[1])], 1).reshape(len(t), -1, 2)
+
+
+def test_fps_carries_into_the_rates_and_a_wrong_one_is_flagged(tmp_path, rates):
+    r = rates[1]
+    _write_pixels(tmp_path, r, markers=_upsampled(r.markers))
+    at60 = sd.load_dir(tmp_path)[0]
+    at120 = sd.load_dir(tmp_path, fps=120.0)[0]
+    assert at120.fps == 120.0
+    assert abs(at120.speed - r.speed) < 0.002 and abs(at120.tail_freq - r.tail_freq) < 0.01
+    assert abs(at60.tail_freq - r.tail_freq / 2) < 0.01  # read at 60 fps: half the speed and beat
+    flagged = sd.tail_beat_check([at60])["flagged"]
+    assert len(flagged) == 1 and "markers_f1_00.csv" in flagged[0] and "--fps" in flagged[0]
+    assert sd.tail_beat_check([at120])["flagged"] == [] and sd.tail_beat_check(rates)["flagged"] == []
+    for bad in (0.0, -60.0, float("nan")):
+        with pytest.raises(InputError, match="fps"):
+            sd.load_dir(tmp_path, fps=bad)
+    # the built-in tracks carry their rate: another --fps would be ignored, so it is refused
+    with pytest.raises(InputError, match="built-in"):
+        swimmer._rates(argparse.Namespace(data=None, fps=120.0))
+
+
+def test_a_flagged_tail_beat_reaches_the_problem_warnings_and_stderr(tmp_path, rates, capsys):
+    for r in rates:
+        _write_pixels(tmp_path, r, markers=_upsampled(r.markers) if r.label == 2.25 else None)
+    args = argparse.Namespace(data=tmp_path, train=[1.0, 1.75], dt=0.016, features=None, fps=60.0)
+    prob = swimmer.build_problems(args, "cpu")[0]
+    assert len(prob.warnings) == 1 and "markers_f2_25.csv" in prob.warnings[0]
+    assert prob.data_checks["flagged"] == prob.warnings
+    assert abs(prob.data_checks["tail_beat_per_label"]["2.25"] - 0.37) < 0.03
+    assert "markers_f2_25.csv" in capsys.readouterr().err
+
+
+def test_duplicated_frames_are_refused(tmp_path, rates):
+    _write_pixels(tmp_path, rates[1], markers=np.repeat(rates[1].markers, 2, axis=0))
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_00.csv" in e.value.source and "duplicated frames" in e.value.problem
+    rot = tmp_path / "rot"
+    rot.mkdir()
+    path = _write_rotated(rot, rates[1])
+    frames = np.loadtxt(path, delimiter=",").reshape(-1, 9, 2)
+    np.savetxt(path, np.repeat(frames, 3, axis=0).reshape(-1, 2), delimiter=",")
+    with pytest.raises(InputError, match="duplicated frames"):
+        sd.load_dir(rot)
+
+
+# --- 4. tracking dropouts ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("marker", [1, 8])
+def test_a_marker_at_exactly_zero_is_a_dropout(tmp_path, rates, marker):
+    px = rates[1].markers * 950.0
+    px[100:103, marker] = 0.0
+    _write_pixels(tmp_path, rates[1], scale=1.0, markers=px)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_00.csv" in e.value.source and e.value.field == f"row 101 marker {marker}"
+    assert "tracking dropout" in e.value.problem
+
+
+# --- 5. byte-order mark, two files of one label -----------------------------------------------------
+
+def test_a_byte_order_mark_is_read_past(tmp_path, rates):
+    path = _write_pixels(tmp_path, rates[1])
+    text = path.read_text().replace("\n", "\r\n")
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    got = sd.load_dir(tmp_path)[0]
+    assert abs(got.speed - rates[1].speed) < 1e-6
+
+
+def test_two_files_of_one_label_are_refused_naming_both(tmp_path, rates):
+    _write_pixels(tmp_path, rates[1])
+    _write_pixels(tmp_path, rates[4], name="markers_f1_0.csv")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_0.csv" in e.value.problem and "markers_f1_00.csv" in e.value.problem
+    # a pixel file and a rotated file of one label stay fine: the pixel file is used
+    ok = tmp_path / "ok"
+    ok.mkdir()
+    _write_pixels(ok, rates[1])
+    _write_rotated(ok, rates[1])
+    assert [r.frame for r in sd.load_dir(ok)] == ["world"]
