@@ -139,6 +139,58 @@ def test_file_errors(tmp_path):
         load_reference(tmp_path / "pickle.npz")
 
 
+@pytest.mark.parametrize("frame, hangs", [
+    ((lambda v: v[..., [0, 2, 1]] * [1, 1, -1]), "-y"),  # Y-up (gravity along -y)
+    ((lambda v: v * [1, -1, -1]), "+z"),  # z down
+], ids=["y_up", "z_down"])
+def test_gravity_must_be_minus_z(tmp_path, frame, hangs):
+    """A recording in a Y-up or z-down frame is refused by name (the chain falls along -z, so it would fit a rope
+    thrown sideways or upwards); the same rope in the file's own frame loads."""
+    d = as_dict(hanging_ref())
+    write_npz(tmp_path / "ok.npz", d)
+    load_reference(tmp_path / "ok.npz")
+    d.update(markers=frame(d["markers"]), hand=frame(d["hand"]))
+    write_npz(tmp_path / "turned.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "turned.npz")
+    assert e.value.field == "markers" and f"hangs along {hangs}" in e.value.problem
+    assert "gravity must be -z" in e.value.problem
+
+
+def test_every_shipped_and_test_reference_hangs_along_minus_z():
+    from pathlib import Path
+
+    shipped = Path(builtin_reference_path("flick")).parent.glob("rope_*.npz")
+    fixtures = (Path(__file__).parent / "data").glob("*.npz")
+    files = sorted(shipped) + sorted(fixtures)
+    assert len(files) >= 9
+    for f in files:
+        load_reference(f)  # raises on a wrong gravity axis, a wrong density, ...
+
+
+@pytest.mark.parametrize("mass, radius, hint", [(200.0, R, "grams instead of kg?"), (2e-4, 0.02, "mass too small")])
+def test_implausible_density_names_mass(tmp_path, mass, radius, hint):
+    """A mass in grams passes the mass range alone (1e-4..1e3 kg) but makes the rope 1000x denser than any rope."""
+    d = as_dict(hanging_ref())
+    d.update(mass=mass, radius=radius)
+    write_npz(tmp_path / "units.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "units.npz")
+    density = mass / (L * np.pi * radius**2)
+    assert e.value.field == "mass" and hint in e.value.problem and f"{density:.3g} kg/m^3" in e.value.problem
+
+
+def test_horizontal_origin_moves_to_the_hand(tmp_path):
+    """The loader starts x and y at the held end's first position (the chain's float32 state loses precision far
+    from the origin); z keeps its height."""
+    d = as_dict(hanging_ref())
+    d.update(markers=d["markers"] + [90.0, -60.0, 0.5], hand=d["hand"] + [90.0, -60.0, 0.5])
+    write_npz(tmp_path / "far.npz", d)
+    ref, far = hanging_ref(), load_reference(tmp_path / "far.npz")
+    np.testing.assert_allclose(far.hand[0], [0.0, 0.0, 2.1])
+    np.testing.assert_allclose(far.markers, ref.markers + [0.0, 0.0, 0.5], atol=1e-12)
+
+
 def _check_only_input_errors(path, data):
     write_npz(path, data)
     try:

@@ -217,3 +217,48 @@ def test_validation_scores_a_chain_that_never_hits_by_its_state_not_a_penalty():
                 assert errs[i, j] == pytest.approx(pen[i, j])
             else:
                 assert pen[i, j] >= NO_HIT and errs[i, j] < NO_HIT
+
+
+def test_moving_the_origin_sideways_does_not_change_the_loss(tmp_path):
+    """The same throw recorded 90 m and -60 m from the origin (the chain's state is float32: 8 um resolution there)
+    scores as the original at the measured parameters: the loader starts x and y at the held end."""
+    from wrenorm.tasks.rope.reference.generate import (
+        builtin_reference_path,
+        load_reference,
+        reference_arrays,
+        save_reference,
+    )
+
+    ref = load_reference(builtin_reference_path("flick_fast"))
+    far = reference_arrays(ref)
+    far.update(markers=far["markers"] + [90.0, -60.0, 0.0], hand=far["hand"] + [90.0, -60.0, 0.0])
+    np.savez(tmp_path / "far.npz", **far)
+    moved = load_reference(tmp_path / "far.npz")
+    here, there = (task.RopeProblem([r], segments=SEG, dt=DT) for r in (ref, moved))
+    measured = here.space.measured[None]
+    assert there.errors(measured, there.train)[0, 0] == pytest.approx(here.errors(measured, here.train)[0, 0],
+                                                                      abs=1e-6)
+    save_reference(tmp_path / "again.npz", moved)  # what the loader moved loads again unchanged
+    np.testing.assert_array_equal(load_reference(tmp_path / "again.npz").hand[0], moved.hand[0])
+
+
+def test_same_recording_as_fit_and_validation_reference_is_refused(tmp_path, capsys):
+    """One recording under two names, as --reference and --validate (or twice among --reference), would validate
+    the fit on its own data ("absorbed"): refused in one line naming both files."""
+    import shutil
+    from pathlib import Path
+
+    from wrenorm.cli import main as cli
+
+    data = Path(__file__).parent / "data"
+    fast, wide = data / "mujoco_default_flick_fast.npz", data / "mujoco_default_flick_wide.npz"
+    copy = tmp_path / "copy_of_fast.npz"
+    shutil.copy(fast, copy)
+    common = ["--generations", "2", "--popsize", "4", "--no-record", "--quiet"]
+    cases = [(["--reference", str(fast), str(wide), "--validate", str(copy)], "as --reference and as --validate"),
+             (["--reference", str(fast), str(copy)], "twice among --reference")]
+    for roles, what in cases:
+        assert cli(["fit", "rope", *roles, *common, "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(copy) in err[0] and str(fast) in err[0] and what in err[0], err
+        assert not (tmp_path / "run" / "result.json").exists()

@@ -493,8 +493,26 @@ def build_problems(args, device: str) -> list[Problem]:
         held, held_names = [], []
     else:
         held, held_names = builtin_references("held_out"), list(HELD_OUT_PATHS)
+    refuse_repeated_recordings([(r, "--reference") for r in train] + [(r, "--validate") for r in held])
     return [RopeProblem(train, held, segments=args.segments, dt=args.dt, device=device, names=names,
                         held_names=held_names, iterations=args.iterations, screening=screening)]
+
+
+def refuse_repeated_recordings(refs_and_roles) -> None:
+    """One recording given twice (the same file, or a copy under another name) as a fit and a validation
+    reference is a validation on the training data ("absorbed" means nothing then); twice among the fit
+    references it counts double. Compared by marker content (generate.marker_digest), not by name."""
+    from wrenorm.tasks.rope.reference.generate import marker_digest
+
+    seen: dict = {}
+    for ref, role in refs_and_roles:
+        key = marker_digest(ref)
+        if key in seen:
+            first, first_role = seen[key]
+            where = f"twice among {role}" if role == first_role else f"as {first_role} and as {role}"
+            raise InputError(ref.file, "markers", f"the same recording as {first.file} (identical marker data), given "
+                                                  f"{where}: give each recording once")
+        seen[key] = (ref, role)
 
 
 def screen_references(paths, role: str, rows: list, warn=None) -> tuple[list, list]:

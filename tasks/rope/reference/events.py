@@ -25,8 +25,9 @@ Method (README, "Events in motion capture", has the measurements behind every th
 4. Confidence (`Detection.reasons` says why in sentences): an earlier near-contact within the gap's
    uncertainty (the only way to report a contact late), a slow approach, an unresolved curl at the contact
    (chord/arc < 2/pi: more than a half turn between two markers), a one-frame touch whose pieces then pass
-   each other instead of staying together, bridged (occluded) markers next to the event, an event long
-   after the rope's fastest motion. Marker noise widens the uncertainty; it never moves the contact level.
+   each other instead of staying together, bridged (occluded) markers bounding the contact, near it, or
+   stretching the rope before it (the contact may lie in the gap), an event long after the rope's fastest
+   motion. Marker noise widens the uncertainty; it never moves the contact level.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-VERSION = 4  # bump when the detector's answer can change (keys the event cache)
+VERSION = 5  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -42,6 +43,8 @@ GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton de
 SHAPE_ERROR_FRACTION = 0.25  # typical shape error of a bent interval / its spheroid half-width (newton dev)
 MAX_BRIDGE_TIME = 0.02  # s: occlusions longer than this are not trusted near the event
 MAX_MISSING_FRACTION = 0.5  # a marker missing in more of the frames makes the file unusable
+STRETCH_SLACK = 0.02  # chord/arc above 1 that bridged samples may show before they count as stretching the rope
+#                      (observed samples of the MuJoCo dev files reach 1.01; noise is added on top)
 SUBSEGMENT_PER_RADIUS = 1.5  # sub-segment length <= 1.5 radius: sagitta error < ~1 mm on tight curls
 NEAR_GAP = 0.02  # m: interval pairs whose rigorous bound is below this get the exact reconstructed gap
 CONTACT_LEVEL = 5e-4  # m: surfaces this close touch. Fine simulators' first impacts last 1.5-3 ms, after which the
@@ -414,6 +417,58 @@ def estimate_noise(X: np.ndarray, missing: np.ndarray | None = None) -> float:
     return float(np.median(np.abs(d3)) / (0.6745 * np.sqrt(20.0)))
 
 
+def _missing_spans(column: np.ndarray, w0: int, w1: int) -> list:
+    """(first, last) frames of each run of missing samples in `column` (T,) that overlaps frames [w0, w1)."""
+    edges = np.diff(np.concatenate([[0], column.astype(np.int8), [0]]))
+    return [(int(a), int(b) - 1) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))
+            if a < w1 and b > w0]
+
+
+def _bridged_gap_reasons(time, X, S, missing, ratio, arc, radius, margin, k, s_contact, ends, w0, w1) -> list:
+    """Sentences for bridged samples that may hide the first contact (empty when none do).
+
+    The markers bounding the contact intervals are judged by the caller; a marker one interval further was
+    missed there (markers 9-11 bridged for 195 ms over a contact at s=0.88, and the reconstruction, straight
+    through the guessed markers, found a contact 41 ms later at s=0.73 with nothing flagged). Two signs:
+    (1) near: a bridged sample within the event's window (frames w0..w1) whose marker sat within reach of the
+    contact point: the rope on either side of the marker, one interval long, plus the two radii; (2) stretch:
+    bridged samples before the end of that window whose interval chord exceeds its arc (beyond the slack observed
+    samples get, and the noise): a rope cannot stretch, so the interpolated positions are wrong there."""
+    sfrac = S / S[-1]
+    contact = np.stack([np.array([np.interp(s_c * S[-1], S, X[k, :, c]) for c in range(3)]) for s_c in s_contact])
+    reach = np.maximum(np.concatenate([[0.0], arc]), np.concatenate([arc, [0.0]])) + 2.0 * radius  # (M,)
+    out = []
+    near = []
+    for m in np.flatnonzero(missing[w0:w1].any(axis=0)):
+        if m in ends:
+            continue
+        f = w0 + np.flatnonzero(missing[w0:w1, m])
+        dist = np.linalg.norm(X[f, m][:, None, :] - contact[None], axis=-1).min()
+        if dist <= reach[m]:
+            near.append((int(m), float(dist)))
+    if near:
+        ms = [m for m, _ in near]
+        spans = [sp for m in ms for sp in _missing_spans(missing[:, m], w0, w1)]
+        t0, t1 = time[min(a for a, _ in spans)], time[max(b for _, b in spans)]
+        where = ", ".join(f"{sfrac[m]:.2f}" for m in ms)
+        out.append(f"bridged markers near the contact: markers {ms} (s={where}) were "
+                   f"missing from t={t0:.3f} to {t1:.3f} s, around the event, and were interpolated in time within "
+                   f"{1000 * min(d for _, d in near):.0f} mm of the contact point: the contact may lie in the gap, "
+                   "where the rope's shape is a guess")
+    bridged = (missing[:, :-1] | missing[:, 1:])[:w1]  # (frames, M-1) intervals with an interpolated end
+    slack = 1.0 + STRETCH_SLACK + margin / arc  # (M-1,)
+    stretched = bridged & (ratio[:w1] > slack[None, :])
+    if stretched.any():
+        f, i = np.unravel_index(np.argmax(np.where(stretched, ratio[:w1], 0.0)), stretched.shape)
+        spans = _missing_spans(missing[:, i] | missing[:, i + 1], f, f + 1)
+        a, b = spans[0] if spans else (f, f)
+        out.append(f"bridged markers stretch the rope: between markers {i} and {i + 1} (s={sfrac[i]:.2f}-"
+                   f"{sfrac[i + 1]:.2f}) the interpolated markers lie {ratio[f, i]:.2f}x as far apart as the rope "
+                   f"between them is long at t={time[f]:.3f} s (missing from t={time[a]:.3f} to {time[b]:.3f} s): "
+                   "the interpolation is wrong there, and the contact may lie in the gap")
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- detection
 
 def _crossing(gap: np.ndarray, start: int = 0):
@@ -693,6 +748,12 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             reasons.append(f"markers {ms} bounding the contact were occluded within {1000 * time_tolerance:.0f} ms "
                            "of the event and bridged by interpolation in time")
             low.append("occlusion")
+        gap_reasons = _bridged_gap_reasons(time, X, S, missing, ratio, a, radius, margin, k, (sa, sb), ends, w0, w1)
+        diag["bridged_gap_reasons"] = len(gap_reasons)
+        if gap_reasons:
+            reasons.extend(gap_reasons)
+            if "occlusion" not in low:
+                low.append("occlusion")
     diag["rules_fired"] = low
     conf = "low" if low else "high"
     ev = CollisionEvent(k, t_event, sa, sb, float(gap_series[k - 1] + level), float(gap[k] + level), "detected", conf,

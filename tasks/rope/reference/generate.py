@@ -6,7 +6,9 @@ File format (.npz; README, "Reference format", documents every field): time (T,)
 mass (kg), radius (m); optional bend_stiffness (N m^2), marker_arclength (M,) in [0, 1] (default
 evenly spaced), source (text), critical_time (s, a user's annotation of the first self-contact that
 overrides detection), sim_contact_time (s, NaN when none) and sim_contact_s (2,) (the simulator's own
-first contact, for tests). Other fields are ignored. Bad files raise InputError(path, field, problem).
+first contact, for tests). Other fields are ignored. Bad files raise InputError(path, field, problem), among them
+a rope that does not hang along -z and a density outside what ropes are made of; the loader moves x and y so that the
+hand starts at x = y = 0.
 """
 from __future__ import annotations
 
@@ -23,12 +25,18 @@ from wrenorm.errors import InputError
 from wrenorm.tasks.rope.reference.events import MAX_MISSING_FRACTION, CollisionEvent, bridge_missing, detect_reference
 
 __all__ = ["RopeReference", "CollisionEvent", "load_reference", "save_reference", "first_self_collision",
-           "generate_reference", "builtin_references", "add_reference_arguments", "run_reference"]
+           "generate_reference", "builtin_references", "add_reference_arguments", "run_reference", "marker_digest"]
 
 REQUIRED = ("time", "markers", "hand", "length", "mass", "radius")
 OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s")
 FRAME_RATE = 250.0  # Hz: 4 ms frames resolve a tip moving at ~10 m/s to 4 cm
 DEFAULT_DURATION = 1.5  # s: every built-in path collides by ~1.05 s
+# kg/m^3: ropes are 1000-1500 (nylon, polyester) and up to ~2400 with a dense core (the built-in rope); the band is
+# wide on purpose, a unit slip (grams, millimetres) moves the density by 1e3 or more
+DENSITY_RANGE = (50.0, 20000.0)
+GRAVITY_MIN_RESULTANT = 0.3  # the rope's mean direction must be at least this consistent to be judged
+GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
+GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
 
 
 @dataclass
@@ -83,6 +91,34 @@ def _scalar(src: str, name: str, value, lo: float, hi: float, unit: str) -> floa
     return x
 
 
+def _check_gravity_axis(src: str, markers: np.ndarray, hand: np.ndarray, s: np.ndarray) -> None:
+    """Refuse a file whose rope does not hang along -z (a Y-up or z-down frame): the chain falls along -z.
+
+    Over the clip, the unit vector from the hand to the rope's centre (markers weighted by the arc length they
+    stand for) points mostly down: a thrown rope spends most of the time below the hand, and the shipped, test and
+    generated references start hanging at rest (mean z component -0.46 .. -0.93, horizontal at most 0.35). A file
+    is refused only when another axis clearly dominates (the mean direction is at least 0.5 along it and 1.5x its
+    downward part); when the direction swings too much to tell (mean resultant below 0.3), nothing is said."""
+    weight = np.gradient(s) if len(s) > 2 else np.full(len(s), 0.5)
+    centre = np.einsum("tmk,m->tk", markers, weight / weight.sum())
+    offset = centre - hand
+    norm = np.linalg.norm(offset, axis=1)
+    keep = norm > 1e-9
+    if not keep.any():
+        return
+    mean = (offset[keep] / norm[keep, None]).mean(axis=0)
+    if np.linalg.norm(mean) < GRAVITY_MIN_RESULTANT:
+        return
+    down = max(-mean[2], 0.0)
+    names = ("+x", "-x", "+y", "-y", "+z")
+    along = np.array([mean[0], -mean[0], mean[1], -mean[1], mean[2]])
+    k = int(np.argmax(along))
+    if along[k] >= GRAVITY_MIN_DOMINANT and along[k] > GRAVITY_DOMINANCE * down:
+        raise InputError(src, "markers", f"the rope hangs along {names[k]}, not -z (hand to rope centre, mean over "
+                                         f"the clip: ({mean[0]:+.2f}, {mean[1]:+.2f}, {mean[2]:+.2f})): gravity must "
+                                         "be -z (rotate a Y-up or z-down frame)")
+
+
 def validate_arrays(src: str, data: dict) -> RopeReference:
     """Check every field of a reference given as a dict of arrays; returns the RopeReference."""
     for key in REQUIRED:
@@ -95,6 +131,14 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     radius = _scalar(src, "radius", data["radius"], 0.0, length, "m")
     if not 0.0 < radius < 0.25 * length:
         raise InputError(src, "radius", f"{radius:g} m must be > 0 and well below the length {length:g} m")
+    # Units: the density the three scalars imply. A mass in grams (or a radius in millimetres) passes each range
+    # check alone but puts the rope 1000x outside what any rope is made of.
+    density = mass / (length * np.pi * radius**2)
+    if not DENSITY_RANGE[0] <= density <= DENSITY_RANGE[1]:
+        hint = "grams instead of kg?" if density > DENSITY_RANGE[1] else "mass too small or radius too large?"
+        raise InputError(src, "mass", f"{mass:g} kg on a rope {length:g} m long of radius {radius:g} m is a density of "
+                                      f"{density:.3g} kg/m^3, outside [{DENSITY_RANGE[0]:g}, {DENSITY_RANGE[1]:g}] "
+                                      f"kg/m^3 for ropes: {hint}")
     bend = None
     if data.get("bend_stiffness") is not None:
         bend = _scalar(src, "bend_stiffness", data["bend_stiffness"], 0.0, 1e3, "N m^2")
@@ -159,6 +203,13 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if reach > allowed:
         raise InputError(src, "markers", f"first marker is up to {reach:.3g} m from the hand, expected within "
                                          f"{allowed:.3g} m (marker 0 is the held end)")
+    _check_gravity_axis(src, markers, hand, s)
+    # The chain has no horizontal origin (gravity along -z, no floor or wall), but it runs in float32: 90 m from
+    # the origin a coordinate keeps 8 um, and the fit moved. Horizontal coordinates start at the held end; z keeps
+    # its meaning (the fine simulators' floor, the built-in hand paths' height).
+    origin = np.array([hand[0, 0], hand[0, 1], 0.0])
+    markers = markers - origin
+    hand = hand - origin
     source = ""
     if data.get("source") is not None:
         source = str(np.asarray(data["source"]).reshape(-1)[0]) if np.asarray(data["source"]).size else ""
@@ -184,6 +235,20 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
             raise InputError(src, "sim_contact_s", "must be two arc-length fractions in [0, 1] (or NaN)")
     return RopeReference(time, markers, hand, length, mass, radius, bend, s, source, critical_time, sim_t, sim_s,
                          missing if missing.any() else None, src)
+
+
+def marker_digest(ref: RopeReference) -> str:
+    """A hash of a reference's marker data (positions as loaded, origin moved to the hand's first x, y, and which
+    samples were missing): equal for the same recording under two names, whatever its clock or file name."""
+    import hashlib
+
+    h = hashlib.sha256()
+    missing = np.zeros(ref.markers.shape[:2], bool) if ref.missing is None else np.asarray(ref.missing, bool)
+    for a in (np.asarray(ref.markers, np.float64), missing):
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def load_reference(path) -> RopeReference:
