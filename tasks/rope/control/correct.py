@@ -249,7 +249,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
             min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
-            linearise_at: str = "matched", first_step: str = "gn") -> dict:
+            linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
+            recorded_until: str = "first") -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -257,6 +258,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       "matched" where the chain reproduces the first hit's real state) and corrected by every trial (secant.py).
       first_step "space-mapping": trial 2 (after the planned trial 1, with fixed parameters) is space mapping's step
       (secant.space_mapping_step) instead of the Gauss-Newton step; "gn" keeps every step Gauss-Newton.
+      recorded: [(u, CriticalStates)] the real rope's critical states under commands recorded before the trials
+      (the start throw): each that hit is one more secant pair for the Gauss-Newton steps (not a trial);
+      recorded_until "first": only until the trials give a pair of their own, "every": at every step.
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -301,7 +305,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
                                reg, seed, popsize, generations, min_radius, progress, on_trial, renorm,
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
-                               linearise_at=linearise_at, first_step=first_step)
+                               linearise_at=linearise_at, first_step=first_step, recorded=recorded,
+                               recorded_until=recorded_until)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -601,16 +606,25 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
                     generations: int | None, min_radius: float | None, progress, on_trial,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
-                    linearise_at: str = "matched", first_step: str = "gn") -> dict:
+                    linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
+                    recorded_until: str = "first") -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
     linearise_at "matched" measures the chain's sensitivity where the chain reproduces the first hit's real critical
     state (secant.matched_command), "trial" at that trial's own command. first_step "space-mapping": trial 2 is
     space mapping's step from the match of the planned trial 1 (fixed parameters only: a chain refitted to trial 1
-    reproduces it at its own command, so its match would not move)."""
+    reproduces it at its own command, so its match would not move). recorded: the real rope's critical states
+    under commands recorded before the trials, secant pairs beside the trials' own: with recorded_until "first" only
+    while the trials have none (a pair across the ~3 units from the start throw to trial 1 is the mean slope over a
+    long stretch: it helps the first step, and once the trials give local pairs it blurs them; README, "The start
+    throw as a secant pair"), with "every" at every step."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
+
+    if recorded_until not in ("first", "every"):
+        raise InputError("--start-pair", "recorded_until", f"{recorded_until!r} is not 'first' or 'every'")
+    recorded = [(np.asarray(u, dtype=np.float64), st) for u, st in (recorded or []) if st.hit[0]]
 
     space, pspace = model.space, model.problem.space
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
@@ -664,9 +678,11 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                              f"{match.wall_s:.1f} s)")
             if secant:
                 Zb = rope_plan.state_vector(best.state)[0]
-                others = [tr for tr in trials if tr.hit and tr is not best]
-                sens.ridge([tr.u - best.u for tr in others],
-                           [rope_plan.state_vector(tr.state)[0] - Zb for tr in others])
+                others = [(tr.u, tr.state) for tr in trials if tr.hit and tr is not best]
+                if not others or recorded_until == "every":
+                    others += recorded
+                sens.ridge([u_k - best.u for u_k, _ in others],
+                           [rope_plan.state_vector(st_k)[0] - Zb for _, st_k in others])
             step = "gauss-newton"
             if first_step == "space-mapping" and k == 0 and plan_first and renorm is None:
                 step = "space mapping"
@@ -695,6 +711,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
+        "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

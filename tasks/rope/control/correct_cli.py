@@ -68,6 +68,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--first-step", choices=("gn", "space-mapping"), default="gn",
                    help="(gn steps, fixed parameters) trial 2 as a Gauss-Newton step (gn) or as space mapping's step: "
                         "the command moved by the offset of trial 1's match the other way (space-mapping)")
+    p.add_argument("--start-pair", choices=("none", "first", "every"), default="none",
+                   help="(gn steps) the real rope's critical state under the start command, recorded before the "
+                        "trials (newton: the start throw's built-in reference, which the fitted parameters were fitted "
+                        "to; another engine: one run of it before the trials, as for the goal), as one more secant "
+                        "pair correcting the chain's sensitivity, not counted as a trial: until the trials give a pair "
+                        "of their own (first), at every step (every), or not (none)")
     p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE,
                    help="(plan; gn's first plan) CMA-ES population per search")
     p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS,
@@ -111,6 +117,18 @@ def _goal_reference(name: str, variant: str, progress):
         return load_reference(p)
     progress(f"generating the goal: {variant} rope under {name} into {p}")
     return generate_reference(name, p, variant=variant)
+
+
+def _start_recording(args, real, start_path, out, progress):
+    """The real rope under the start command, recorded before the trials: on newton the start throw's built-in
+    reference (what the fitted parameters were fitted to), on another engine or the coarse stand-in one run of it,
+    kept in OUT/start so a resumed run reads it back."""
+    if args.real == "fine" and args.engine == "newton":
+        return _goal_reference(args.start, args.variant, progress)
+    from wrenorm.tasks.rope.control.correct import StoredTrials
+
+    progress(f"recording the start throw {args.start} before the trials")
+    return StoredTrials(real.real, out / "start")(start_path)
 
 
 def run(args) -> int:
@@ -215,6 +233,17 @@ def run(args) -> int:
     if real.folder.exists() and any(real.folder.iterdir()):
         progress(f"resuming: {len(list(real.folder.glob('trial-*.npz')))} real trials on record in {real.folder}")
 
+    recorded, start_record = [], None
+    if args.start_pair != "none":
+        start_ref = _start_recording(args, real, start_path, out, progress)
+        start_state = crit.from_reference(start_ref)
+        recorded = [(np.zeros(space.dim), start_state)]
+        start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
+                        "error": float(goal.terms(start_state)["total"][0]),
+                        "source": "built-in reference" if args.real == "fine" and args.engine == "newton"
+                        else f"one {args.engine if args.real == 'fine' else 'coarse'} run before the trials"}
+        if not start_state.hit[0]:
+            progress(f"  the rope under the start command {args.start} never hits itself: no start pair")
     u0 = np.zeros(space.dim)
     if args.perturb > 0:
         u0 = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
@@ -256,7 +285,8 @@ def run(args) -> int:
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
                       refit_generations=args.refit_generations, min_radius=args.min_radius,
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
-                      linearise_at=args.linearise_at, first_step=args.first_step)
+                      linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
+                      recorded_until="every" if args.start_pair == "every" else "first")
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -265,7 +295,8 @@ def run(args) -> int:
         "schema": "wrenorm.correct/1", "system": SYSTEM, "variant": args.variant, "real_system": real_doc,
         "goal": {"path": args.goal, "critical_time": float(goal.state.time[0]), "contact_arclength":
                  goal.state.s[0].tolist(), "command_u_of_goal_path": u_goal},
-        "start": {"path": args.start, "perturb": args.perturb, "command_u": u0.tolist()},
+        "start": {"path": args.start, "perturb": args.perturb, "command_u": u0.tolist(),
+                  "recorded_pair": start_record},
         "command": {"names": space.names, "scales": space.scales.tolist(), "bound": space.bound,
                     "max_speed": space.max_speed, "max_acceleration": space.max_acceleration,
                     "meaning": "u = waypoint offsets / scale (positions m, velocities m/s) and log duration ratios"},
@@ -274,7 +305,7 @@ def run(args) -> int:
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
         "settings": {"method": args.method, "plan_first": not args.no_plan_first, "linearise_at": args.linearise_at,
-                     "first_step": args.first_step,
+                     "first_step": args.first_step, "start_pair": args.start_pair,
                      "radius": args.radius if args.radius is not None else _default("radius", args.method),
                      "reg": args.reg if args.reg is not None else _default("reg", args.method),
                      "fd_step": args.fd_step, "seed": args.seed,
