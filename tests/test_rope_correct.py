@@ -385,6 +385,13 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert main(["correct", "rope", "--out", str(tmp_path / "o3"), "--first-step", "space-mapping", "--method",
                  "plan"]) == 2
     assert "space mapping's step needs" in capsys.readouterr().err and not (tmp_path / "o3").exists()
+    assert main(["correct", "rope", "--out", str(tmp_path / "o4"), "--start-pair", "first", "--method", "plan"]) == 2
+    assert "--start-pair" in capsys.readouterr().err and not (tmp_path / "o4").exists()
+    assert main(["correct", "rope", "--out", str(tmp_path / "o5"), "--start-pair", "always"]) == 2
+    with pytest.raises(InputError, match="needs --method gn"):
+        correct(None, None, None, np.zeros(13), method="plan", recorded=[(np.zeros(13), None)])
+    with pytest.raises(InputError, match="recorded_until"):
+        correct(None, None, None, np.zeros(13), recorded_until="sometimes")
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",

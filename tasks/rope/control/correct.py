@@ -292,6 +292,11 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
     check_first_step(first_step, method == "gn" or (method == "renormalise" and steps == "gn"), linearise_at)
+    if recorded_until not in ("first", "every"):
+        raise InputError("--start-pair", "recorded_until", f"{recorded_until!r} is not 'first' or 'every'")
+    if recorded and not (method == "gn" or (method == "renormalise" and steps == "gn")):
+        raise InputError("--start-pair", "recorded", "a recorded pair corrects the Gauss-Newton steps' sensitivity: "
+                                                     "it needs --method gn (the plan and qp loops would ignore it)")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
     space = model.space
@@ -618,12 +623,10 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     under commands recorded before the trials, secant pairs beside the trials' own: with recorded_until "first" only
     while the trials have none (a pair across the ~3 units from the start throw to trial 1 is the mean slope over a
     long stretch: it helps the first step, and once the trials give local pairs it blurs them; README, "The start
-    throw as a secant pair"), with "every" at every step."""
+    throw as one more secant pair"), with "every" at every step."""
     from wrenorm.tasks.rope.control import plan as rope_plan
     from wrenorm.tasks.rope.control import renormalise as rn
 
-    if recorded_until not in ("first", "every"):
-        raise InputError("--start-pair", "recorded_until", f"{recorded_until!r} is not 'first' or 'every'")
     recorded = [(np.asarray(u, dtype=np.float64), st) for u, st in (recorded or []) if st.hit[0]]
 
     space, pspace = model.space, model.problem.space

@@ -191,6 +191,9 @@ def run(args) -> int:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
     check_first_step(args.first_step, args.method == "gn", args.linearise_at)
+    if args.start_pair != "none" and args.method != "gn":
+        raise InputError("--start-pair", "start_pair", "the start pair corrects the Gauss-Newton steps' sensitivity: "
+                                                       f"it needs --method gn, not {args.method}")
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
