@@ -109,13 +109,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
 
 
-def _goal_reference(name: str, variant: str, progress):
+def _builtin_reference(name: str, variant: str, progress):
+    """The fine rope's built-in throw under a named hand path (the goal, the start throw), generated when not cached."""
     from wrenorm.tasks.rope.reference.generate import builtin_reference_path, generate_reference, load_reference
 
     p = builtin_reference_path(name, variant)
     if p.exists():
         return load_reference(p)
-    progress(f"generating the goal: {variant} rope under {name} into {p}")
+    progress(f"generating the {variant} rope's {name} throw into {p}")
     return generate_reference(name, p, variant=variant)
 
 
@@ -124,7 +125,7 @@ def _start_recording(args, real, start_path, out, progress):
     reference (what the fitted parameters were fitted to), on another engine or the coarse stand-in one run of it,
     kept in OUT/start so a resumed run reads it back."""
     if args.real == "fine" and args.engine == "newton":
-        return _goal_reference(args.start, args.variant, progress)
+        return _builtin_reference(args.start, args.variant, progress)
     from wrenorm.tasks.rope.control.correct import StoredTrials
 
     progress(f"recording the start throw {args.start} before the trials")
@@ -215,7 +216,7 @@ def run(args) -> int:
         goal_ref = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
                                                              args.device), out / "goal")(goal_path)
     else:
-        goal_ref = _goal_reference(args.goal, args.variant, progress)
+        goal_ref = _builtin_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
     fitted, fit_info = None, None
     if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":

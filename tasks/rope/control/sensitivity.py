@@ -217,7 +217,7 @@ def run(args) -> int:
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, fit_parameters, parameters_from_file
-    from wrenorm.tasks.rope.control.correct_cli import _goal_reference
+    from wrenorm.tasks.rope.control.correct_cli import _builtin_reference
     from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS, get_hand_path
@@ -240,7 +240,7 @@ def run(args) -> int:
     out = prepare_out(args.out or Path("runs") / f"sensitivity-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=False, force=args.force)
     t_all = time.perf_counter()
-    ref = _goal_reference(args.path, args.variant, progress)
+    ref = _builtin_reference(args.path, args.variant, progress)
     problem = RopeProblem([ref], segments=args.segments, dt=args.dt, device=device, names=[args.path])
     fit_info = None
     if args.params == "measured":
@@ -272,7 +272,7 @@ def run(args) -> int:
                            args.marker_noise, args.time_noise, args.command_step, args.snr, extra_cov)
     progress("parameter sensitivity over the built-in throws")
     names = list(FIT_PATHS) + list(HELD_OUT_PATHS)
-    refs = [_goal_reference(n, args.variant, progress) for n in names]
+    refs = [_builtin_reference(n, args.variant, progress) for n in names]
     pproblem = RopeProblem(refs, segments=args.segments, dt=args.dt, device=device, names=names)
     par = parameter_analysis(pproblem, values, [crit.Target.from_reference(r) for r in refs], names,
                              args.param_fd_step, args.param_step, args.snr, args.marker_noise, args.time_noise)
