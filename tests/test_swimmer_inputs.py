@@ -161,6 +161,20 @@ def test_duplicated_frames_are_refused(tmp_path, rates):
         sd.load_dir(rot)
 
 
+def test_columns_written_x_then_y_are_refused_naming_the_layout(tmp_path, rates):
+    """x0..x8, y0..y8 instead of x0, y0, x1, y1, ...: read as pairs the chain's length jumps from frame to frame (it
+    used to fail later as 'fewer than 3 distinct tail markers', true but not the cause)."""
+    for r in rates:
+        px = r.markers * 950.0
+        path = tmp_path / _file_name("markers", r.label)
+        np.savetxt(path, np.concatenate([px[..., 0], px[..., 1]], axis=1), delimiter=",")
+        with pytest.raises(InputError) as e:
+            sd.read_pixel_markers(path)
+        assert e.value.source == str(path) and e.value.field == "columns" and "x0..x8, y0..y8" in e.value.problem
+    for r in rates:  # the shipped layout is read as before
+        assert sd._body_length_spread(r.markers) < sd.BODY_LENGTH_SPREAD
+
+
 # --- 4. tracking dropouts ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("marker", [1, 8])
