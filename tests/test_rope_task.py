@@ -254,11 +254,22 @@ def test_same_recording_as_fit_and_validation_reference_is_refused(tmp_path, cap
     fast, wide = data / "mujoco_default_flick_fast.npz", data / "mujoco_default_flick_wide.npz"
     copy = tmp_path / "copy_of_fast.npz"
     shutil.copy(fast, copy)
+    from wrenorm.tasks.rope.reference.generate import load_reference, reference_arrays, same_recording
+
+    moved = reference_arrays(load_reference(fast))  # moved 5 m in x, y: the loader's origin move gives it back
+    shift = np.array([5.0, -3.0, 0.0])
+    moved.update(markers=moved["markers"] + shift, hand=moved["hand"] + shift)
+    np.savez(tmp_path / "moved_fast.npz", **moved)
+    assert same_recording(load_reference(fast), load_reference(tmp_path / "moved_fast.npz"))
+    assert not same_recording(load_reference(fast), load_reference(wide))
     common = ["--generations", "2", "--popsize", "4", "--no-record", "--quiet"]
     cases = [(["--reference", str(fast), str(wide), "--validate", str(copy)], "as --reference and as --validate"),
-             (["--reference", str(fast), str(copy)], "twice among --reference")]
+             (["--reference", str(fast), str(copy)], "twice among --reference"),
+             (["--reference", str(tmp_path / "moved_fast.npz"), str(wide), "--validate", str(copy)],
+              "as --reference and as --validate")]
     for roles, what in cases:
         assert cli(["fit", "rope", *roles, *common, "--out", str(tmp_path / "run")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and str(copy) in err[0] and str(fast) in err[0] and what in err[0], err
+        first = roles[1]
+        assert len(err) == 1 and str(copy) in err[0] and first in err[0] and what in err[0], err
         assert not (tmp_path / "run" / "result.json").exists()

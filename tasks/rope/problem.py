@@ -499,20 +499,20 @@ def build_problems(args, device: str) -> list[Problem]:
 
 
 def refuse_repeated_recordings(refs_and_roles) -> None:
-    """One recording given twice (the same file, or a copy under another name) as a fit and a validation
-    reference is a validation on the training data ("absorbed" means nothing then); twice among the fit
-    references it counts double. Compared by marker content (generate.marker_digest), not by name."""
-    from wrenorm.tasks.rope.reference.generate import marker_digest
+    """One recording given twice (the same file, a copy under another name, or a copy moved in the horizontal) as a
+    fit and a validation reference is a validation on the training data ("absorbed" means nothing then); twice among
+    the fit references it counts double. Compared by marker content after the loader moves the horizontal origin to
+    the hand (generate.same_recording), not by name."""
+    from wrenorm.tasks.rope.reference.generate import same_recording
 
-    seen: dict = {}
+    seen: list = []
     for ref, role in refs_and_roles:
-        key = marker_digest(ref)
-        if key in seen:
-            first, first_role = seen[key]
-            where = f"twice among {role}" if role == first_role else f"as {first_role} and as {role}"
-            raise InputError(ref.file, "markers", f"the same recording as {first.file} (identical marker data), given "
-                                                  f"{where}: give each recording once")
-        seen[key] = (ref, role)
+        for first, first_role in seen:
+            if same_recording(first, ref):
+                where = f"twice among {role}" if role == first_role else f"as {first_role} and as {role}"
+                raise InputError(ref.file, "markers", f"the same recording as {first.file} (marker data equal within "
+                                                      f"1 um), given {where}: give each recording once")
+        seen.append((ref, role))
 
 
 def screen_references(paths, role: str, rows: list, warn=None) -> tuple[list, list]:

@@ -25,7 +25,7 @@ from wrenorm.errors import InputError
 from wrenorm.tasks.rope.reference.events import MAX_MISSING_FRACTION, CollisionEvent, bridge_missing, detect_reference
 
 __all__ = ["RopeReference", "CollisionEvent", "load_reference", "save_reference", "first_self_collision",
-           "generate_reference", "builtin_references", "add_reference_arguments", "run_reference", "marker_digest"]
+           "generate_reference", "builtin_references", "add_reference_arguments", "run_reference", "same_recording"]
 
 REQUIRED = ("time", "markers", "hand", "length", "mass", "radius")
 OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s")
@@ -237,18 +237,22 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                          missing if missing.any() else None, src)
 
 
-def marker_digest(ref: RopeReference) -> str:
-    """A hash of a reference's marker data (positions as loaded, origin moved to the hand's first x, y, and which
-    samples were missing): equal for the same recording under two names, whatever its clock or file name."""
-    import hashlib
+SAME_RECORDING_TOLERANCE = 1e-6  # m: far below any tracker's precision, far above float64 round-off of a moved copy
 
-    h = hashlib.sha256()
-    missing = np.zeros(ref.markers.shape[:2], bool) if ref.missing is None else np.asarray(ref.missing, bool)
-    for a in (np.asarray(ref.markers, np.float64), missing):
-        a = np.ascontiguousarray(a)
-        h.update(str((a.dtype, a.shape)).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+
+def same_recording(a: RopeReference, b: RopeReference) -> bool:
+    """Whether two references hold one recording: the same samples missing and every marker within 1 um, after the
+    loader has moved each horizontal origin to its hand (so a copy moved in x, y is the same recording, whatever its
+    clock or file name)."""
+    if a.markers.shape != b.markers.shape:
+        return False
+    miss_a = np.zeros(a.markers.shape[:2], bool) if a.missing is None else np.asarray(a.missing, bool)
+    miss_b = np.zeros(b.markers.shape[:2], bool) if b.missing is None else np.asarray(b.missing, bool)
+    if not np.array_equal(miss_a, miss_b):
+        return False
+    seen = ~miss_a
+    diff = np.abs(np.asarray(a.markers, np.float64)[seen] - np.asarray(b.markers, np.float64)[seen])
+    return bool(np.all(diff <= SAME_RECORDING_TOLERANCE))
 
 
 def load_reference(path) -> RopeReference:
