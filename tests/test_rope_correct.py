@@ -446,7 +446,8 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, par
     assert len(list(store.folder.glob("trial-*.npz"))) == 2  # the refused resume touched nothing
     assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(cut)]) == 0
     again = json.loads((cut / "correct.json").read_text())
-    assert again["real_trials_read_back"] == 2 and again["real_runs"] == done["real_runs"] - 2
+    # the two kept trials and the start throw's recording (OUT/start) are read back, not run again
+    assert again["real_trials_read_back"] == 2 and again["real_runs"] == done["real_runs"] - 3
     assert [t["error"] for t in again["runs"][params]["trials"]] == [t["error"] for t in trials]
     values = lambda rows: [t["refit"] and t["refit"]["values"] for t in rows]  # noqa: E731
     assert values(again["runs"][params]["trials"]) == values(trials)
@@ -651,10 +652,38 @@ def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
 
     from wrenorm.cli import main
 
-    out = tmp_path / "paired"
-    assert main(CORRECT_QUICK + ["--max-trials", "2", "--start-pair", "first", "--out", str(out)]) == 0
+    out = tmp_path / "paired"  # "first" is the default with Gauss-Newton steps
+    assert main(CORRECT_QUICK + ["--max-trials", "2", "--out", str(out)]) == 0
     done = json.loads((out / "correct.json").read_text())
     rec = done["start"]["recorded_pair"]
     assert rec["path"] == "flick" and rec["hit"] and rec["error"] > 0 and "coarse" in rec["source"]
     assert done["runs"]["measured"]["recorded_pairs"] == 1 and done["settings"]["start_pair"] == "first"
     assert len(list((out / "start").glob("trial-*.npz"))) == 1
+
+
+def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tmp_path):
+    """Left out, --start-pair is "first" with Gauss-Newton steps and "none" with plan and qp (which would ignore
+    it); named with them it is refused. A run saved before the option existed resumes without a start pair, as it
+    ran, and asking for one there is refused."""
+    import argparse
+
+    from wrenorm.tasks.rope.control import correct_cli
+
+    assert correct_cli.start_pair_for(None, "gn") == "first"
+    assert correct_cli.start_pair_for(None, "plan") == "none" and correct_cli.start_pair_for(None, "qp") == "none"
+    assert correct_cli.start_pair_for("every", "gn") == "every"
+    assert correct_cli.start_pair_for("none", "plan") == "none"
+    with pytest.raises(InputError, match="--method gn"):
+        correct_cli.start_pair_for("first", "qp")
+
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
+           if k not in correct_cli._NOT_SAVED and k != "start_pair"}
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert args.start_pair == "none" and args.segments == 12
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--start-pair", "first"])
+    with pytest.raises(InputError, match="without a start pair"):
+        correct_cli._restore_settings(args)

@@ -68,12 +68,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--first-step", choices=("gn", "space-mapping"), default="gn",
                    help="(gn steps, fixed parameters) trial 2 as a Gauss-Newton step (gn) or as space mapping's step: "
                         "the command moved by the offset of trial 1's match the other way (space-mapping)")
-    p.add_argument("--start-pair", choices=("none", "first", "every"), default="none",
+    p.add_argument("--start-pair", choices=("none", "first", "every"), default=None,
                    help="(gn steps) the real rope's critical state under the start command, recorded before the "
                         "trials (newton: the start throw's built-in reference, which the fitted parameters were fitted "
                         "to; another engine: one run of it before the trials, as for the goal), as one more secant "
                         "pair correcting the chain's sensitivity, not counted as a trial: until the trials give a pair "
-                        "of their own (first), at every step (every), or not (none)")
+                        "of their own (first, the default with --method gn), at every step (every), or not (none, the "
+                        "default with plan and qp)")
     p.add_argument("--popsize", type=int, default=DEFAULT_POPSIZE,
                    help="(plan; gn's first plan) CMA-ES population per search")
     p.add_argument("--generations", type=int, default=DEFAULT_GENERATIONS,
@@ -118,6 +119,17 @@ def _builtin_reference(name: str, variant: str, progress):
         return load_reference(p)
     progress(f"generating the {variant} rope's {name} throw into {p}")
     return generate_reference(name, p, variant=variant)
+
+
+def start_pair_for(start_pair: str | None, method: str) -> str:
+    """--start-pair as run: left out, "first" with Gauss-Newton steps (measured in the README) and "none" with the
+    other methods, which would ignore it; named with another method, refused."""
+    if start_pair is None:
+        return "first" if method == "gn" else "none"
+    if start_pair != "none" and method != "gn":
+        raise InputError("--start-pair", "start_pair", "the start pair corrects the Gauss-Newton steps' sensitivity: "
+                                                       f"it needs --method gn, not {method}")
+    return start_pair
 
 
 def _start_recording(args, real, start_path, out, progress):
@@ -192,9 +204,7 @@ def run(args) -> int:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
     check_first_step(args.first_step, args.method == "gn", args.linearise_at)
-    if args.start_pair != "none" and args.method != "gn":
-        raise InputError("--start-pair", "start_pair", "the start pair corrects the Gauss-Newton steps' sensitivity: "
-                                                       f"it needs --method gn, not {args.method}")
+    args.start_pair = start_pair_for(args.start_pair, args.method)
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
@@ -428,6 +438,11 @@ def _restore_settings(args) -> None:
                                                                 f"this run asks for {given!r}; resume with the same "
                                                                 "options (or leave them out)")
         setattr(args, key, value)
+    if "start_pair" not in saved:  # saved before --start-pair existed: those runs had no start pair
+        if args.start_pair not in (None, "none"):
+            raise InputError("--start-pair", "start_pair", f"the interrupted correction ran without a start pair, "
+                                                           f"this run asks for {args.start_pair!r}; leave it out")
+        args.start_pair = "none"
 
 
 def _default(name: str, method: str) -> float:
