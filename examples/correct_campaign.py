@@ -48,10 +48,25 @@ def run_one(out: Path, variant: str, seed: int, args) -> dict:
     return {"command": " ".join(["python"] + cmd[1:]), "returncode": proc.returncode, "wall_s": wall}
 
 
+def mixed_settings(settings_of: dict) -> list[str]:
+    """Lines saying which `correct rope` settings differ between the campaign's runs (e.g. a campaign resumed after a
+    default changed: its finished runs keep the old setting, its new ones take the new); none when all agree."""
+    keys = sorted({k for st in settings_of.values() for k in st})
+    lines = []
+    for k in keys:
+        values = {}
+        for run, st in settings_of.items():
+            values.setdefault(json.dumps(st.get(k)), []).append(run)
+        if len(values) > 1:
+            lines.append(f"**The runs differ in `{k}`**: " + "; ".join(f"{val}: {', '.join(runs)}"
+                                                                       for val, runs in values.items()))
+    return lines + ([""] if lines else [])
+
+
 def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> tuple[str, dict, dict]:
     """The campaign's table, its summary per arm, and every run's trials (error, accepted, predicted error), so
     that two campaigns can be compared trial for trial without the run folders."""
-    cells, summary, trials_of = {}, {p: [] for p in params}, {}
+    cells, summary, trials_of, settings_of = {}, {p: [] for p in params}, {}, {}
     meta = json.loads((out / "campaign.json").read_text()) if (out / "campaign.json").exists() else {}
     for v in variants:
         for s in seeds:
@@ -59,6 +74,7 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
             if not f.exists():
                 continue
             r = json.loads(f.read_text())
+            settings_of[f"{v}-s{s}"] = {k: val for k, val in r.get("settings", {}).items() if k != "seed"}
             for p in params:
                 run = r["runs"].get(p)
                 if run is None:
@@ -69,7 +85,8 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
                 trials_of.setdefault(f"{v}-s{s}", {})[p] = [
                     {"error": t["error"], "accepted": t["accepted"], "predicted_error": t.get("predicted_error")}
                     for t in run["trials"]]
-    lines = ["| rope | seed | " + " | ".join(params) + " | wall (min) |", "|---|---|" + "---|" * (len(params) + 1)]
+    lines = mixed_settings(settings_of)
+    lines += ["| rope | seed | " + " | ".join(params) + " | wall (min) |", "|---|---|" + "---|" * (len(params) + 1)]
     for v in variants:
         for s in seeds:
             if not any((v, s, p) in cells for p in params):

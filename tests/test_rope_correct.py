@@ -558,7 +558,8 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
 
 
 def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
-    """--table-only over finished runs: the counts follow the runs' trials, and campaign.json keeps those trials."""
+    """--table-only over finished runs: the counts follow the runs' trials, campaign.json keeps those trials, and
+    the table says which settings differ between its runs."""
     import json
     import subprocess
     import sys
@@ -571,7 +572,9 @@ def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
         run = {"success": reached is not None, "trials_to_tolerance": reached, "best_error": min(errs),
                "trials": [{"error": e, "accepted": True, "predicted_error": e / 2} for e in errs]}
         (tmp_path / f"{v}-s{s}").mkdir()
-        (tmp_path / f"{v}-s{s}" / "correct.json").write_text(json.dumps({"max_trials": 10, "runs": {"fitted": run}}))
+        settings = {"seed": s, "method": "gn", "start_pair": "none" if v == "stiff" else "first"}
+        (tmp_path / f"{v}-s{s}" / "correct.json").write_text(json.dumps({"max_trials": 10, "runs": {"fitted": run},
+                                                                          "settings": settings}))
     r = subprocess.run([sys.executable, str(examples / "correct_campaign.py"), "--out", str(tmp_path), "--variants",
                         "stiff", "soft", "--seeds", "0", "1", "--params", "fitted", "--table-only"],
                        capture_output=True, text=True)
@@ -582,7 +585,11 @@ def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
     assert summary["per_rope"] == {"stiff": 7.0, "soft": 2.0}
     assert [t["error"] for t in meta["trials"]["stiff-s1"]["fitted"]] == errors[("stiff", 1)]
     assert meta["trials"]["soft-s0"]["fitted"][1] == {"error": 0.05, "accepted": True, "predicted_error": 0.025}
-    assert "| stiff | 1 | - (0.100) |" in (tmp_path / "campaign.md").read_text()
+    text = (tmp_path / "campaign.md").read_text()
+    assert "| stiff | 1 | - (0.100) |" in text
+    # runs made under different settings (a campaign resumed after a default changed) are said to differ, and how
+    assert '**The runs differ in `start_pair`**: "none": stiff-s0, stiff-s1; "first": soft-s0' in text
+    assert "differ in `seed`" not in text and "differ in `method`" not in text
 
 
 def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):

@@ -162,17 +162,19 @@ def test_duplicated_frames_are_refused(tmp_path, rates):
 
 
 def test_columns_written_x_then_y_are_refused_naming_the_layout(tmp_path, rates):
-    """x0..x8, y0..y8 instead of x0, y0, x1, y1, ...: read as pairs the chain's length jumps from frame to frame (it
-    used to fail later as 'fewer than 3 distinct tail markers', true but not the cause)."""
+    """x0..x8, y0..y8 instead of x0, y0, x1, y1, ...: the "markers" read as pairs do not lie one behind another along
+    the body; the refusal names the layout the file must have (it used to say only 'fewer than 3 distinct tail
+    markers', true but not the cause)."""
     for r in rates:
         px = r.markers * 950.0
-        path = tmp_path / _file_name("markers", r.label)
+        folder = tmp_path / f"{r.label:.2f}"
+        folder.mkdir()
+        path = folder / _file_name("markers", r.label)
         np.savetxt(path, np.concatenate([px[..., 0], px[..., 1]], axis=1), delimiter=",")
         with pytest.raises(InputError) as e:
-            sd.read_pixel_markers(path)
-        assert e.value.source == str(path) and e.value.field == "columns" and "x0..x8, y0..y8" in e.value.problem
-    for r in rates:  # the shipped layout is read as before
-        assert sd._body_length_spread(r.markers) < sd.BODY_LENGTH_SPREAD
+            sd.load_dir(folder)
+        assert e.value.source == path.name and e.value.field == "tail markers", e.value
+        assert "x0, y0, x1, y1, ..., x8, y8" in e.value.problem
 
 
 # --- 4. tracking dropouts ----------------------------------------------------------------------------

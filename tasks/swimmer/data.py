@@ -38,9 +38,6 @@ MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
 MAX_REPEATED_FRAMES = 0.2  # share of frames equal to the previous one; tracked video never repeats exactly
-# frame-to-frame spread of the marker chain's length (std / mean): 0.012-0.027 in the shipped clips, 0.07-0.24 when an
-# x0..x8, y0..y8 file is read as x0, y0, x1, y1, ...
-BODY_LENGTH_SPREAD = 0.04
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.5, 1.0)  # outside: flagged (a frame rate off by 2x lands at 0.375 or 1.5)
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
@@ -99,7 +96,6 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     markers = data.reshape(-1, N_MARKERS, 2)
     _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_repeated_frames(path, markers)
-    _check_layout(path, data)
     _check_head(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
     return markers * (HEAD_MARKER_DISTANCE / head_px)
@@ -128,22 +124,6 @@ def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
         raise InputError(str(path), "rows", f"{int(repeated.sum())} of {len(markers)} frames ({100 * share:.0f} %) "
                          "repeat the previous frame exactly: duplicated frames; remove the copies and give the "
                          "clip's true frame rate with --fps")
-
-
-def _body_length_spread(markers: np.ndarray) -> float:
-    length = np.linalg.norm(np.diff(markers, axis=1), axis=2).sum(axis=1)
-    return float(length.std() / length.mean())
-
-
-def _check_layout(path: Path, data: np.ndarray) -> None:
-    """The fish's marker chain keeps its length from frame to frame. Columns written x0..x8 then y0..y8 read as
-    x0, y0, x1, y1, ... give a chain whose length jumps; read the other way they give a steady one."""
-    as_pairs = _body_length_spread(data.reshape(-1, N_MARKERS, 2))
-    as_blocks = _body_length_spread(np.stack([data[:, :N_MARKERS], data[:, N_MARKERS:]], axis=-1))
-    if as_pairs > BODY_LENGTH_SPREAD and as_blocks < 0.5 * as_pairs:
-        raise InputError(str(path), "columns", f"the marker chain's length varies by {100 * as_pairs:.0f} % from "
-                         f"frame to frame read as x0, y0, x1, y1, ... and by {100 * as_blocks:.0f} % read as x0..x8, "
-                         "y0..y8: write each row as x0, y0, x1, y1, ..., x8, y8 (pixels, head marker first)")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
@@ -327,7 +307,11 @@ def analyse(rate: Rate) -> Rate:
     local = head_frame(rate.markers)
     keep = tail_markers(local)
     if len(keep) < 3:
-        raise InputError(rate.source or rate.name, "tail markers", "fewer than 3 distinct tail markers")
+        # also what a file written x0..x8, y0..y8 gives: its "markers" do not lie one behind another
+        raise InputError(rate.source or rate.name, "tail markers",
+                         f"only {len(keep)} of the tail markers 2-8 lie one behind another along the body (3 needed): "
+                         "markers lost onto one point, or columns not written x0, y0, x1, y1, ..., x8, y8 (head "
+                         "markers 0 and 1 first, tail last)")
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     rate.speed = measured_speed(rate.markers, rate.fps)
     head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])

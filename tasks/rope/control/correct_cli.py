@@ -438,7 +438,7 @@ def _restore_settings(args) -> None:
                                                                 f"this run asks for {given!r}; resume with the same "
                                                                 "options (or leave them out)")
         setattr(args, key, value)
-    if "start_pair" not in saved:  # saved before --start-pair existed: those runs had no start pair
+    if saved.get("start_pair") is None:  # saved before --start-pair existed: those runs had no start pair
         if args.start_pair not in (None, "none"):
             raise InputError("--start-pair", "start_pair", f"the interrupted correction ran without a start pair, "
                                                            f"this run asks for {args.start_pair!r}; leave it out")

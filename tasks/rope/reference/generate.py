@@ -243,7 +243,7 @@ SAME_RECORDING_TOLERANCE = 1e-6  # m: far below any tracker's precision, far abo
 def same_recording(a: RopeReference, b: RopeReference) -> bool:
     """Whether two references hold one recording: the same samples missing and every marker within 1 um, after the
     loader has moved each horizontal origin to its hand (so a copy moved in x, y is the same recording, whatever its
-    clock or file name)."""
+    clock or file name). Not found: a copy rounded to float32 and moved tens of metres (it differs by a few um)."""
     if a.markers.shape != b.markers.shape:
         return False
     miss_a = np.zeros(a.markers.shape[:2], bool) if a.missing is None else np.asarray(a.missing, bool)
