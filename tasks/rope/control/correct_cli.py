@@ -133,15 +133,16 @@ def start_pair_for(start_pair: str | None, method: str) -> str:
 
 
 def _start_recording(args, real, start_path, out, progress):
-    """The real rope under the start command, recorded before the trials: on newton the start throw's built-in
-    reference (what the fitted parameters were fitted to), on another engine or the coarse stand-in one run of it,
-    kept in OUT/start so a resumed run reads it back."""
+    """The real rope under the start command, recorded before the trials, and where it came from: on newton the start
+    throw's built-in reference (what the fitted parameters were fitted to), on another engine or the coarse stand-in
+    one run of it, kept in OUT/start so a resumed run reads it back."""
     if args.real == "fine" and args.engine == "newton":
-        return _builtin_reference(args.start, args.variant, progress)
+        return _builtin_reference(args.start, args.variant, progress), "built-in reference"
     from wrenorm.tasks.rope.control.correct import StoredTrials
 
     progress(f"recording the start throw {args.start} before the trials")
-    return StoredTrials(real.real, out / "start")(start_path)
+    source = f"one {args.engine if args.real == 'fine' else 'coarse'} run before the trials"
+    return StoredTrials(real.real, out / "start")(start_path), source
 
 
 def run(args) -> int:
@@ -249,13 +250,11 @@ def run(args) -> int:
 
     recorded, start_record = [], None
     if args.start_pair != "none":
-        start_ref = _start_recording(args, real, start_path, out, progress)
+        start_ref, source = _start_recording(args, real, start_path, out, progress)
         start_state = crit.from_reference(start_ref)
         recorded = [(np.zeros(space.dim), start_state)]
         start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
-                        "error": float(goal.terms(start_state)["total"][0]),
-                        "source": "built-in reference" if args.real == "fine" and args.engine == "newton"
-                        else f"one {args.engine if args.real == 'fine' else 'coarse'} run before the trials"}
+                        "error": float(goal.terms(start_state)["total"][0]), "source": source}
         if not start_state.hit[0]:
             progress(f"  the rope under the start command {args.start} never hits itself: no start pair")
     u0 = np.zeros(space.dim)

@@ -246,11 +246,11 @@ def same_recording(a: RopeReference, b: RopeReference) -> bool:
     clock or file name). Not found: a copy rounded to float32 and moved tens of metres (it differs by a few um)."""
     if a.markers.shape != b.markers.shape:
         return False
-    miss_a = np.zeros(a.markers.shape[:2], bool) if a.missing is None else np.asarray(a.missing, bool)
-    miss_b = np.zeros(b.markers.shape[:2], bool) if b.missing is None else np.asarray(b.missing, bool)
-    if not np.array_equal(miss_a, miss_b):
+    missing = [np.zeros(r.markers.shape[:2], bool) if r.missing is None else np.asarray(r.missing, bool)
+               for r in (a, b)]
+    if not np.array_equal(*missing):
         return False
-    seen = ~miss_a
+    seen = ~missing[0]
     diff = np.abs(np.asarray(a.markers, np.float64)[seen] - np.asarray(b.markers, np.float64)[seen])
     return bool(np.all(diff <= SAME_RECORDING_TOLERANCE))
 
