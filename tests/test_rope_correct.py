@@ -694,3 +694,85 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--start-pair", "first"])
     with pytest.raises(InputError, match="without a start pair"):
         correct_cli._restore_settings(args)
+
+
+class ChainEngine:
+    """A third 'fine' engine for the CLI: the coarse chain with shifted parameters (so fitting can tell it from the
+    measured values); under the hand paths in NO_HIT the hand carries it rigidly, a throw that never hits itself."""
+
+    NO_HIT = ("flick_wide",)
+    runs_by_path: list = []
+
+    def __init__(self, variant, segments, duration, device):
+        ref = load_reference(builtin_reference_path("flick", "default"))
+        problem = RopeProblem([ref], segments=10, dt=0.005)
+        self.chain = CoarseRope(problem, shifted(problem))
+        self.runs, self.wall_s = 0, 0.0
+
+    def __call__(self, path):
+        from dataclasses import replace as dc_replace
+
+        self.runs += 1
+        name = next((n for n, p in PATHS.items() if np.array_equal(p.control_points, path.control_points)
+                     and np.array_equal(p.durations, path.durations)), "trial")
+        ChainEngine.runs_by_path.append(name)
+        ref = self.chain(path)
+        if name in self.NO_HIT:
+            # the rope carried rigidly by the hand: held end on the hand, never touching itself
+            ref = dc_replace(ref, markers=ref.markers[:1] + (ref.hand - ref.hand[:1])[:, None, :])
+        return ref
+
+
+def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, monkeypatch, capsys):
+    """--params fitted on an engine other than newton fits the chain to that rope's own fit throws, each run once
+    before the trials (OUT/fit-throws), leaving out the goal's throw (never run for the fit) and a throw that never
+    hits itself, both named; the start pair reuses the start throw's fit recording. --fit-throws newton keeps the
+    newton rope's built-in throws; a run saved before the option resumes with them. No fittable throw: exit 2."""
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope.control import correct as rope_correct
+    from wrenorm.tasks.rope.control import correct_cli
+
+    monkeypatch.setitem(rope_correct.REAL_ROPES, "chain", ChainEngine)
+    ChainEngine.runs_by_path = []
+    cmd = ["correct", "rope", "--engine", "chain", "--goal", "flick_fast", "--params", "fitted", "--segments", "10",
+           "--fit-generations", "4", "--generations", "8", "--popsize", "16", "--max-trials", "2", "--no-record",
+           "--quiet"]
+    out = tmp_path / "own"
+    assert main(cmd + ["--out", str(out)]) == 0
+    done = json.loads((out / "correct.json").read_text())
+    fit = done["model"]["fit"]
+    assert fit["throws"] == ["flick"] and fit["throws_from"] == "real"
+    assert fit["left_out"] == {"flick_fast": "the goal's own throw",
+                               "flick_wide": "the chain rope never hits itself under it"}
+    assert fit["loss_fitted"] < fit["loss_measured"]
+    assert sorted(ChainEngine.runs_by_path[:3]) == ["flick", "flick_fast", "flick_wide"]  # 2 fit throws + the goal
+    assert ChainEngine.runs_by_path.count("flick") == 1 and ChainEngine.runs_by_path.count("flick_fast") == 1
+    assert len(list((out / "fit-throws").glob("trial-*.npz"))) == 2 and not (out / "start").exists()
+    assert done["start"]["recorded_pair"]["source"] == "the fit throw recorded before the trials"
+    assert done["settings"]["fit_throws"] == "real"
+
+    newton = tmp_path / "newton"
+    assert main(cmd + ["--fit-throws", "newton", "--out", str(newton)]) == 0
+    fit_n = json.loads((newton / "correct.json").read_text())["model"]["fit"]
+    assert fit_n["throws"] == ["flick", "flick_fast", "flick_wide"] and fit_n["left_out"] == {}
+    assert fit_n["values"] != fit["values"]
+
+    # a run saved before --fit-throws existed was fitted to newton's throws: it resumes so, and refuses "real"
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    saved = json.loads((out / correct_cli.SETTINGS_FILE).read_text())
+    del saved["fit_throws"]
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(saved))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert args.fit_throws == "newton"
+    with pytest.raises(InputError, match="fitted to the newton rope's throws"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--fit-throws", "real"]))
+
+    monkeypatch.setattr(ChainEngine, "NO_HIT", ("flick", "flick_wide"))
+    capsys.readouterr()
+    assert main(cmd + ["--out", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert "--fit-throws" in err and "none of the fit throws" in err and "never hits itself" in err

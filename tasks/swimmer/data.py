@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.tasks.swimmer.options import FPS  # the fishsim format's frame rate, the --fps default
 
-FPS = 60.0  # the fishsim format's frame rate (options.FPS, the --fps default)
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
 N_MARKERS = 9
 MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest rates

@@ -10,7 +10,7 @@ DEFAULT_DT = 0.008  # s; ROS2 there is within ~1 mm/s of 0.5 ms steps (tests/tes
 TAIL_BODIES = 6  # the robot's five plates and the fin (tasks/swimmer/body.py LINKS)
 DEFAULT_TRAIN = [1.00, 1.75]  # the published fit's training rates
 VISCOSITY = 0.0013  # Pa s, the published model's water
-FPS = 60.0  # frames/s of the fishsim marker files (data.FPS; repeated so that this module stays cheap to import)
+FPS = 60.0  # frames/s of the fishsim marker files (data.py takes it from here)
 # feature sets (features.FEATURES); the speed is always first, the headline
 FEATURE_SETS = {
     "speed": ("speed",),

@@ -838,20 +838,23 @@ def parameters_from_file(path, problem) -> np.ndarray:
 
 
 def fit_parameters(variant: str, segments: int, dt: float, seed: int, generations: int, device: str = "cpu",
-                   progress=None) -> tuple[np.ndarray, dict]:
-    """Renormalised parameters: a short CMA-ES fit of RopeProblem to the variant's built-in fit
-    paths (the fine rope's reference throws, cached; these are experiments, reported as such)."""
+                   progress=None, throws: dict | None = None) -> tuple[np.ndarray, dict]:
+    """Renormalised parameters: a short CMA-ES fit of RopeProblem to the rope's reference throws, `throws` (name ->
+    RopeReference; recorded on the real rope) or, left out, the newton rope's built-in fit throws (cached)."""
     from wrenorm.search import cmaes
     from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.generate import builtin_references
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS
 
-    refs = builtin_references("fit", variant, progress=progress)
-    problem = RopeProblem(refs, segments=segments, dt=dt, device=device, names=list(FIT_PATHS))
+    if throws is None:
+        throws = dict(zip(FIT_PATHS, builtin_references("fit", variant, progress=progress)))
+    refs, names = list(throws.values()), list(throws)
+    problem = RopeProblem(refs, segments=segments, dt=dt, device=device, names=names)
     t = time.perf_counter()
     res = cmaes(problem, seed=seed, generations=generations, quiet=True)
     losses = problem.errors(np.stack([problem.space.measured, res.best_values]), problem.train).mean(1)
-    info = {"source": f"CMA-ES fit to {', '.join(FIT_PATHS)} ({variant} rope)", "generations": len(res.history),
+    info = {"source": f"CMA-ES fit to {', '.join(names)} ({variant} rope)", "throws": names,
+            "generations": len(res.history),
             "evaluations": res.evaluations, "loss_measured": float(losses[0]), "loss_fitted": float(losses[1]),
             "wall_s": time.perf_counter() - t, "reference_throws": len(refs),
             "values": problem.space.as_dict(res.best_values)}

@@ -108,6 +108,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
     p.add_argument("--fine-segments", type=int, default=64, help="segments of the fine newton rope")
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
+    p.add_argument("--fit-throws", choices=("real", "newton"), default=None,
+                   help="(fitted, renormalised-from-fitted) the reference throws the chain is fitted to before the "
+                        "trials: the real rope's own (real, the default: newton's built-in throws, or on another "
+                        "engine one run of each before the trials, kept in OUT/fit-throws), leaving out the goal's "
+                        "throw and any throw that never hits itself; or the newton rope's built-in throws whatever "
+                        "the engine (newton: a model of another simulator's rope, as the runs before this option)")
 
 
 def _builtin_reference(name: str, variant: str, progress):
@@ -121,6 +127,46 @@ def _builtin_reference(name: str, variant: str, progress):
     return generate_reference(name, p, variant=variant)
 
 
+def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict]:
+    """The reference throws the chain is fitted to before the trials (name -> RopeReference) and those left out with
+    the reason. --fit-throws real: the real rope's own, i.e. newton's built-in throws or, on another engine, one run of
+    each before the trials (kept in OUT/fit-throws, read back on resume); the goal's throw is left out (a fit to the
+    rope under the goal command would hand the loop the answer), and so is a throw that never hits itself (it has no
+    critical state to fit). --fit-throws newton: newton's built-in throws whatever the engine."""
+    from wrenorm.tasks.rope import observable as crit
+    from wrenorm.tasks.rope.control.correct import StoredTrials, real_rope_class
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION, builtin_references
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS, get_hand_path
+
+    if args.fit_throws == "newton" or args.real != "fine":
+        return dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress))), {}
+    paths = {name: get_hand_path(name, "--fit-throws") for name in FIT_PATHS}
+    dropped = {name: "the goal's own throw" for name, path in paths.items()
+               if np.array_equal(path.control_points, goal_path.control_points)
+               and np.array_equal(path.durations, goal_path.durations)}
+    if args.engine == "newton":
+        recorded = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
+    else:
+        rope = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
+                                                         args.device), out / "fit-throws")
+        names = [name for name in FIT_PATHS if name not in dropped]
+        progress(f"recording the fit throws {', '.join(names)} on the {args.engine} rope before the trials")
+        recorded = {name: rope(paths[name]) for name in names}
+    throws = {}
+    for name, ref in recorded.items():
+        if name in dropped:
+            continue
+        if crit.from_reference(ref).hit[0]:
+            throws[name] = ref
+        else:
+            dropped[name] = f"the {args.engine} rope never hits itself under it"
+    if not throws:
+        raise InputError("--fit-throws", "fit_throws", f"none of the fit throws {', '.join(FIT_PATHS)} can be fitted "
+                         f"on the {args.variant} rope ({'; '.join(f'{n}: {w}' for n, w in dropped.items())}); "
+                         "use --params measured or a result.json")
+    return throws, dropped
+
+
 def start_pair_for(start_pair: str | None, method: str) -> str:
     """--start-pair as run: left out, "first" with Gauss-Newton steps (measured in the README) and "none" with the
     other methods, which would ignore it; named with another method, refused."""
@@ -132,12 +178,14 @@ def start_pair_for(start_pair: str | None, method: str) -> str:
     return start_pair
 
 
-def _start_recording(args, real, start_path, out, progress):
+def _start_recording(args, real, start_path, out, progress, fit_throws=None):
     """The real rope under the start command, recorded before the trials, and where it came from: on newton the start
-    throw's built-in reference (what the fitted parameters were fitted to), on another engine or the coarse stand-in
-    one run of it, kept in OUT/start so a resumed run reads it back."""
+    throw's built-in reference (what the fitted parameters were fitted to), on another engine the fit throw of the
+    same command where one was recorded, else one run of it, kept in OUT/start so a resumed run reads it back."""
     if args.real == "fine" and args.engine == "newton":
         return _builtin_reference(args.start, args.variant, progress), "built-in reference"
+    if args.real == "fine" and args.fit_throws == "real" and args.start in (fit_throws or {}):
+        return fit_throws[args.start], "the fit throw recorded before the trials"
     from wrenorm.tasks.rope.control.correct import StoredTrials
 
     progress(f"recording the start throw {args.start} before the trials")
@@ -206,6 +254,7 @@ def run(args) -> int:
                          f"must be in [1, 1000], got {args.refit_generations}")
     check_first_step(args.first_step, args.method == "gn", args.linearise_at)
     args.start_pair = start_pair_for(args.start_pair, args.method)
+    args.fit_throws = args.fit_throws or "real"
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
@@ -229,11 +278,14 @@ def run(args) -> int:
     else:
         goal_ref = _builtin_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
-    fitted, fit_info = None, None
+    fitted, fit_info, fit_throws = None, None, {}
     if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
-        progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's fit throws")
+        fit_throws, dropped = _fit_throws(args, goal_path, out, progress)
+        progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's throws "
+                 f"{', '.join(fit_throws)}" + "".join(f"; {n} left out: {why}" for n, why in dropped.items()))
         fitted, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
-                                          args.device, progress)
+                                          args.device, progress, throws=fit_throws)
+        fit_info |= {"throws_from": args.fit_throws, "left_out": dropped}
     if args.real == "fine":
         horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
         real = real_rope_class(args.engine)(args.variant, args.fine_segments, horizon, args.device)
@@ -250,7 +302,7 @@ def run(args) -> int:
 
     recorded, start_record = [], None
     if args.start_pair != "none":
-        start_ref, source = _start_recording(args, real, start_path, out, progress)
+        start_ref, source = _start_recording(args, real, start_path, out, progress, fit_throws)
         start_state = crit.from_reference(start_ref)
         recorded = [(np.zeros(space.dim), start_state)]
         start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
@@ -327,7 +379,7 @@ def run(args) -> int:
                      "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
-                     "min_radius": args.min_radius,
+                     "min_radius": args.min_radius, "fit_throws": args.fit_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
@@ -442,6 +494,12 @@ def _restore_settings(args) -> None:
             raise InputError("--start-pair", "start_pair", f"the interrupted correction ran without a start pair, "
                                                            f"this run asks for {args.start_pair!r}; leave it out")
         args.start_pair = "none"
+    if saved.get("fit_throws") is None:  # saved before --fit-throws existed: fitted to newton's built-in throws
+        if args.fit_throws not in (None, "newton"):
+            raise InputError("--fit-throws", "fit_throws", "the interrupted correction was fitted to the newton "
+                                                           f"rope's throws, this run asks for {args.fit_throws!r}; "
+                                                           "leave it out")
+        args.fit_throws = "newton"
 
 
 def _default(name: str, method: str) -> float:
