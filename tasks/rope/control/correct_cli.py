@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
     p.add_argument("--variant", default="default",
                    help="real rope material (reference/materials.py): default, or one of the seven campaign ropes "
-                        "stiff|soft|heavy|light|long|damped|heavy_end")
+                        "stiff|soft|heavy|light|long|damped|heavy_end, or the flying knot's extremes thick|thread")
     p.add_argument("--real", choices=["fine", "newton", "coarse"], default="fine",
                    help="the real system: the fine rope of --engine, or a coarse chain with the FITTED parameters "
                         "(a quick stand-in whose answer is known); 'newton' is accepted for 'fine'")

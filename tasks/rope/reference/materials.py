@@ -4,7 +4,8 @@ rope's material and the named variants the correction campaign runs on.
 The seven ropes span what is physically different, as the flying knot's seven real ropes did (7-25 mm
 thick, 0.013-0.5 kg/m): stiffness (stiff, soft), mass and thickness (heavy, light), length (long), internal
 damping (damped) and the mass distribution (heavy_end, a 50 g weight at the free end); `default` is the
-built-in references' rope.
+built-in references' rope. `thick` (25 mm, 0.5 kg/m) and `thread` (4 mm, 0.013 kg/m) are the flying knot's extremes,
+beyond the seven's span.
 """
 from __future__ import annotations
 
@@ -43,6 +44,9 @@ VARIANTS: dict[str, RopeMaterial] = {
     "long": RopeMaterial(length=1.4, mass=0.2 * 1.4 / 1.1),
     "damped": RopeMaterial(bend_damping_time=2e-2),
     "heavy_end": RopeMaterial(tip_mass=0.05),
+    # the flying knot's extremes, outside the seven (never part of a campaign or of any choice of the loop)
+    "thick": RopeMaterial(mass=0.55, radius=0.0125, bend_stiffness=3e-2, twist_stiffness=2.3e-2),
+    "thread": RopeMaterial(mass=0.0143, radius=0.002, bend_stiffness=1e-4, twist_stiffness=7.7e-5),
 }
 
 
