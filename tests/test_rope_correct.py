@@ -726,8 +726,11 @@ class ChainEngine:
 def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, monkeypatch, capsys):
     """--params fitted on an engine other than newton fits the chain to that rope's own fit throws, each run once
     before the trials (OUT/fit-throws), leaving out the goal's throw (never run for the fit) and a throw that never
-    hits itself, both named; the start pair reuses the start throw's fit recording. --fit-throws newton keeps the
-    newton rope's built-in throws; a run saved before the option resumes with them. No fittable throw: exit 2."""
+    hits itself, both named; the start pair reuses the start throw's fit recording, and a resumed run reads them
+    back. On newton the goal's throw is left out too. --fit-throws newton keeps the newton rope's built-in throws; a
+    run saved before the option resumes with them. No fittable throw, or "real" with the coarse stand-in: exit 2."""
+    import argparse
+
     from wrenorm.cli import main
     from wrenorm.tasks.rope.control import correct as rope_correct
     from wrenorm.tasks.rope.control import correct_cli
@@ -749,7 +752,22 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
     assert ChainEngine.runs_by_path.count("flick") == 1 and ChainEngine.runs_by_path.count("flick_fast") == 1
     assert len(list((out / "fit-throws").glob("trial-*.npz"))) == 2 and not (out / "start").exists()
     assert done["start"]["recorded_pair"]["source"] == "the fit throw recorded before the trials"
-    assert done["settings"]["fit_throws"] == "real"
+    assert done["settings"]["fit_throws"] == "real" and fit["engine"] == "chain"
+
+    (out / "correct.json").unlink()  # a resumed run reads its fit throws, goal and trials back: nothing runs again
+    ChainEngine.runs_by_path = []
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(out)]) == 0
+    again = json.loads((out / "correct.json").read_text())
+    assert ChainEngine.runs_by_path == [] and again["model"]["fit"]["values"] == fit["values"]
+    assert [t["error"] for t in again["runs"]["fitted"]["trials"]] == [
+        t["error"] for t in done["runs"]["fitted"]["trials"]]
+
+    # on newton too the goal's throw is left out of the fit; the coarse stand-in has no throws of its own
+    ns = argparse.Namespace(fit_throws="real", real="fine", engine="newton", variant="default")
+    throws, dropped, _ = correct_cli._fit_throws(ns, PATHS["flick_wide"], tmp_path, lambda m: None)
+    assert list(throws) == ["flick", "flick_fast"] and dropped == {"flick_wide": "the goal's own throw"}
+    assert main(CORRECT_QUICK + ["--fit-throws", "real", "--out", str(tmp_path / "coarse")]) == 2
+    assert "no throws of its own" in capsys.readouterr().err
 
     newton = tmp_path / "newton"
     assert main(cmd + ["--fit-throws", "newton", "--out", str(newton)]) == 0
@@ -758,8 +776,6 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
     assert fit_n["values"] != fit["values"]
 
     # a run saved before --fit-throws existed was fitted to newton's throws: it resumes so, and refuses "real"
-    import argparse
-
     parser = argparse.ArgumentParser()
     correct_cli.add_arguments(parser)
     saved = json.loads((out / correct_cli.SETTINGS_FILE).read_text())

@@ -70,8 +70,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the command moved by the offset of trial 1's match the other way (space-mapping)")
     p.add_argument("--start-pair", choices=("none", "first", "every"), default=None,
                    help="(gn steps) the real rope's critical state under the start command, recorded before the "
-                        "trials (newton: the start throw's built-in reference, which the fitted parameters were fitted "
-                        "to; another engine: one run of it before the trials, as for the goal), as one more secant "
+                        "trials (newton: the start throw's built-in reference; another engine: its fit throw where "
+                        "one was recorded, else one run of it before the trials, as for the goal), as one more secant "
                         "pair correcting the chain's sensitivity, not counted as a trial: until the trials give a pair "
                         "of their own (first, the default with --method gn), at every step (every), or not (none, the "
                         "default with plan and qp)")
@@ -127,19 +127,21 @@ def _builtin_reference(name: str, variant: str, progress):
     return generate_reference(name, p, variant=variant)
 
 
-def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict]:
-    """The reference throws the chain is fitted to before the trials (name -> RopeReference) and those left out with
-    the reason. --fit-throws real: the real rope's own, i.e. newton's built-in throws or, on another engine, one run of
-    each before the trials (kept in OUT/fit-throws, read back on resume); the goal's throw is left out (a fit to the
-    rope under the goal command would hand the loop the answer), and so is a throw that never hits itself (it has no
-    critical state to fit). --fit-throws newton: newton's built-in throws whatever the engine."""
+def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict, dict]:
+    """The reference throws the chain is fitted to before the trials (name -> RopeReference), those left out with
+    the reason, and every throw recorded (the start pair reuses the start throw's). --fit-throws real: the real
+    rope's own, i.e. newton's built-in (64-segment) throws or, on another engine, one run of each before the trials
+    (kept in OUT/fit-throws, read back on resume); the goal's throw is left out (a fit to the rope under the goal
+    command would hand the loop the answer), and so is a throw that never hits itself (it has no critical state to
+    fit). --fit-throws newton: newton's built-in throws whatever the engine."""
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.control.correct import StoredTrials, real_rope_class
     from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION, builtin_references
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, get_hand_path
 
     if args.fit_throws == "newton" or args.real != "fine":
-        return dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress))), {}
+        refs = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
+        return refs, {}, refs
     paths = {name: get_hand_path(name, "--fit-throws") for name in FIT_PATHS}
     dropped = {name: "the goal's own throw" for name, path in paths.items()
                if np.array_equal(path.control_points, goal_path.control_points)
@@ -163,8 +165,8 @@ def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict]:
     if not throws:
         raise InputError("--fit-throws", "fit_throws", f"none of the fit throws {', '.join(FIT_PATHS)} can be fitted "
                          f"on the {args.variant} rope ({'; '.join(f'{n}: {w}' for n, w in dropped.items())}); "
-                         "use --params measured or a result.json")
-    return throws, dropped
+                         "use --params measured, renormalised or a result.json, or --fit-throws newton (with --force)")
+    return throws, dropped, recorded
 
 
 def start_pair_for(start_pair: str | None, method: str) -> str:
@@ -178,14 +180,14 @@ def start_pair_for(start_pair: str | None, method: str) -> str:
     return start_pair
 
 
-def _start_recording(args, real, start_path, out, progress, fit_throws=None):
+def _start_recording(args, real, start_path, out, progress, fit_recorded=None):
     """The real rope under the start command, recorded before the trials, and where it came from: on newton the start
     throw's built-in reference (what the fitted parameters were fitted to), on another engine the fit throw of the
     same command where one was recorded, else one run of it, kept in OUT/start so a resumed run reads it back."""
     if args.real == "fine" and args.engine == "newton":
         return _builtin_reference(args.start, args.variant, progress), "built-in reference"
-    if args.real == "fine" and args.fit_throws == "real" and args.start in (fit_throws or {}):
-        return fit_throws[args.start], "the fit throw recorded before the trials"
+    if args.real == "fine" and args.fit_throws == "real" and args.start in (fit_recorded or {}):
+        return fit_recorded[args.start], "the fit throw recorded before the trials"
     from wrenorm.tasks.rope.control.correct import StoredTrials
 
     progress(f"recording the start throw {args.start} before the trials")
@@ -254,11 +256,14 @@ def run(args) -> int:
                          f"must be in [1, 1000], got {args.refit_generations}")
     check_first_step(args.first_step, args.method == "gn", args.linearise_at)
     args.start_pair = start_pair_for(args.start_pair, args.method)
-    args.fit_throws = args.fit_throws or "real"
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
     if args.real == "newton":
         args.real = "fine"
+    if args.real == "coarse" and args.fit_throws == "real":
+        raise InputError("--fit-throws", "fit_throws", "the coarse stand-in is the chain fitted to newton's built-in "
+                                                       "throws; it has no throws of its own (leave the option out)")
+    args.fit_throws = args.fit_throws or ("real" if args.real == "fine" else "newton")
     real_rope_class(args.engine)
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     space = CommandSpace(start_path)
@@ -278,14 +283,15 @@ def run(args) -> int:
     else:
         goal_ref = _builtin_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
-    fitted, fit_info, fit_throws = None, None, {}
+    fitted, fit_info, fit_recorded = None, None, {}
     if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
-        fit_throws, dropped = _fit_throws(args, goal_path, out, progress)
+        fit_throws, dropped, fit_recorded = _fit_throws(args, goal_path, out, progress)
         progress(f"renormalising: CMA-ES fit of the {args.segments}-link chain to the {args.variant} rope's throws "
                  f"{', '.join(fit_throws)}" + "".join(f"; {n} left out: {why}" for n, why in dropped.items()))
         fitted, fit_info = fit_parameters(args.variant, args.segments, args.dt, args.seed, args.fit_generations,
                                           args.device, progress, throws=fit_throws)
-        fit_info |= {"throws_from": args.fit_throws, "left_out": dropped}
+        fit_info |= {"throws_from": args.fit_throws, "left_out": dropped,
+                     "engine": args.engine if args.fit_throws == "real" else "newton"}
     if args.real == "fine":
         horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
         real = real_rope_class(args.engine)(args.variant, args.fine_segments, horizon, args.device)
@@ -302,7 +308,7 @@ def run(args) -> int:
 
     recorded, start_record = [], None
     if args.start_pair != "none":
-        start_ref, source = _start_recording(args, real, start_path, out, progress, fit_throws)
+        start_ref, source = _start_recording(args, real, start_path, out, progress, fit_recorded)
         start_state = crit.from_reference(start_ref)
         recorded = [(np.zeros(space.dim), start_state)]
         start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
