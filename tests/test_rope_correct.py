@@ -534,6 +534,13 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
     np.savez(measured_only / "rope-sensitivity.npz", J=np.zeros((129, 13)), u=np.zeros(13), step=0.3)
     (measured_only / "settings.json").write_text("{}")
     (measured_only / "correct.json").write_text('{"runs": {"measured": {}}}')
+    own_throws = tmp_path / "mujoco-fitted"  # a chain fitted to another engine's throws: a refit here would not be it
+    own_throws.mkdir()
+    np.savez(own_throws / "rope-sensitivity.npz", J=np.zeros((129, 13)), u=np.zeros(13), step=0.3)
+    (own_throws / "settings.json").write_text(json.dumps({"goal": "flick_high", "variant": "default", "segments": 10,
+                                                          "dt": 0.005, "start": "flick", "engine": "mujoco",
+                                                          "fit_throws": "real"}))
+    (own_throws / "correct.json").write_text('{"runs": {"fitted": {}}}')
     bad = {"correct.json: no fitted run": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only],
            "workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
            "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
@@ -549,7 +556,9 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                         measured_only, "--segments", "2"],
            "chain 64: give the chain's links first, 3-63": [diagnostics / "rope_sensitivity_prior.py", "chain", "64",
                                                             "--out", tmp_path / "o"],
-           "chain needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "chain", "20", "--variant", "heavy"]}
+           "chain needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "chain", "20", "--variant", "heavy"],
+           "fitted to other throws than newton's": [diagnostics / "rope_sensitivity_prior.py", "compare", own_throws,
+                                                     "--segments", "20"]}
     for expected, argv in bad.items():
         r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr

@@ -44,6 +44,17 @@ def _fail(message: str) -> None:
     sys.exit(2)
 
 
+def _refit_matches_the_run(settings: dict, where: Path) -> None:
+    """The refits here fit newton's three built-in throws, as the run's chain was unless it was fitted to another
+    engine's throws or its goal was one of them (correct rope --fit-throws real leaves the goal's out)."""
+    from wrenorm.tasks.rope.reference.paths import FIT_PATHS
+
+    if settings.get("fit_throws", "newton") == "real" and (settings.get("engine", "newton") != "newton"
+                                                            or settings.get("goal") in FIT_PATHS):
+        _fail(f"{where}: the run's chain was fitted to other throws than newton's {', '.join(FIT_PATHS)} "
+              f"(engine {settings.get('engine')}, goal {settings.get('goal')}); this diagnostic refits to those")
+
+
 def _option(argv: list[str], flag: str) -> str | None:
     """The value after `flag` in `correct rope`'s options, or None."""
     return argv[argv.index(flag) + 1] if flag in argv[:-1] else None
@@ -118,6 +129,7 @@ def chain(segments: int, argv: list[str]) -> int:
             if model.label == "measured":
                 values = other_problem.space.measured
             else:
+                _refit_matches_the_run(settings, out / "settings.json")
                 values, _ = fit_parameters(settings["variant"], segments, settings["dt"], settings["seed"],
                                            settings["fit_generations"], settings["device"])
             models[model.label] = CoarseModel(other_problem, values, model.space, f"{model.label}, {segments} links")
@@ -208,6 +220,7 @@ def compare(folder: Path, segments: int | None = None, best: bool = False) -> in
     if segments == settings["segments"]:  # the run's own chain
         fitted = np.array([result["runs"]["fitted"]["parameters"][name] for name in problem.space.names])
     else:  # the same fit as the run's, at the other resolution
+        _refit_matches_the_run(settings, folder / "settings.json")
         fitted, _ = fit_parameters(settings["variant"], segments, settings["dt"], settings["seed"],
                                    settings["fit_generations"], settings["device"])
     w = secant.residual_weights(goal)
