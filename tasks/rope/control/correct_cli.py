@@ -139,25 +139,25 @@ def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict, dict]:
     from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION, builtin_references
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, get_hand_path
 
-    if args.fit_throws == "newton" or args.real != "fine":
-        refs = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
-        return refs, {}, refs
+    own = args.fit_throws == "real" and args.real == "fine"
+    if not own or args.engine == "newton":
+        newton = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
+        if not own:
+            return newton, {}, newton
     paths = {name: get_hand_path(name, "--fit-throws") for name in FIT_PATHS}
     dropped = {name: "the goal's own throw" for name, path in paths.items()
                if np.array_equal(path.control_points, goal_path.control_points)
                and np.array_equal(path.durations, goal_path.durations)}
+    names = [name for name in FIT_PATHS if name not in dropped]
     if args.engine == "newton":
-        recorded = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
+        recorded = {name: newton[name] for name in names}
     else:
         rope = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
                                                          args.device), out / "fit-throws")
-        names = [name for name in FIT_PATHS if name not in dropped]
         progress(f"recording the fit throws {', '.join(names)} on the {args.engine} rope before the trials")
         recorded = {name: rope(paths[name]) for name in names}
     throws = {}
     for name, ref in recorded.items():
-        if name in dropped:
-            continue
         if crit.from_reference(ref).hit[0]:
             throws[name] = ref
         else:
@@ -466,6 +466,11 @@ SETTINGS_FILE = "settings.json"
 _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
 
 
+# options added after runs were saved: what a run saved without them did, and how to say it
+_AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
+                             "fit_throws": ("newton", "was fitted to the newton rope's throws")}
+
+
 def _restore_settings(args) -> None:
     """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left at its
     default takes the saved value; one given with another value than the run had is refused, naming it."""
@@ -495,17 +500,13 @@ def _restore_settings(args) -> None:
                                                                 f"this run asks for {given!r}; resume with the same "
                                                                 "options (or leave them out)")
         setattr(args, key, value)
-    if saved.get("start_pair") is None:  # saved before --start-pair existed: those runs had no start pair
-        if args.start_pair not in (None, "none"):
-            raise InputError("--start-pair", "start_pair", f"the interrupted correction ran without a start pair, "
-                                                           f"this run asks for {args.start_pair!r}; leave it out")
-        args.start_pair = "none"
-    if saved.get("fit_throws") is None:  # saved before --fit-throws existed: fitted to newton's built-in throws
-        if args.fit_throws not in (None, "newton"):
-            raise InputError("--fit-throws", "fit_throws", "the interrupted correction was fitted to the newton "
-                                                           f"rope's throws, this run asks for {args.fit_throws!r}; "
-                                                           "leave it out")
-        args.fit_throws = "newton"
+    for key, (as_run, how) in _AS_RUN_BEFORE_THE_OPTION.items():
+        if saved.get(key) is None:  # saved before the option existed: the run had the old behaviour
+            given = getattr(args, key)
+            if given not in (None, as_run):
+                raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
+                                                                    f"for {given!r}; leave it out")
+            setattr(args, key, as_run)
 
 
 def _default(name: str, method: str) -> float:
