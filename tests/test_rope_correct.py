@@ -1,5 +1,6 @@
 """Command correction and sensitivity on the coarse rope (fast: the coarse chain plays the real rope)."""
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -250,6 +251,19 @@ def test_gn_correction_records_what_each_step_learned(problem):
     assert np.all(plain["trials"][0].u == 0.0) and plain["trial0_plan"] is None and not plain["secant"]
     assert all(t.sensitivity["secant_pairs"] == 0 and t.sensitivity["relative_correction"] == 0.0
                for t in plain["trials"][:-1] if t.hit)
+    # fixed parameters step a fixed radius by default; the adaptive region moves between its bounds
+    assert res["gauss_newton"]["trust_region"]["rule"] == "fixed"
+    assert all(t.trust["verdict"] == "fixed" and t.trust["radius_after"] == secant.GN_RADIUS for t in tr[1:])
+    assert all(np.abs(tr[k].u - min(tr[:k], key=lambda t: t.total).u).max() <= secant.GN_RADIUS + 1e-9
+               for k in range(1, len(tr)))
+    adaptive = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                       max_trials=4, tolerance=1e-6, method="gn", trust_region="adaptive", min_radius=0.5,
+                       max_radius=1.5, **FAST_PLAN)
+    region = adaptive["gauss_newton"]["trust_region"]
+    assert region["rule"] == "adaptive" and (region["min_radius"], region["max_radius"]) == (0.5, 1.5)
+    assert all(t.trust["verdict"] in ("grow", "keep", "shrink") and 0.5 <= t.trust["radius_after"] <= 1.5
+               for t in adaptive["trials"][1:])
+    assert [t.trust["rho"] for t in tr[1:2]] == [t.trust["rho"] for t in adaptive["trials"][1:2]]  # same trial 2
 
 
 def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
@@ -388,10 +402,26 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert main(["correct", "rope", "--out", str(tmp_path / "o4"), "--start-pair", "first", "--method", "plan"]) == 2
     assert "--start-pair" in capsys.readouterr().err and not (tmp_path / "o4").exists()
     assert main(["correct", "rope", "--out", str(tmp_path / "o5"), "--start-pair", "always"]) == 2
+    assert "--start-pair" in capsys.readouterr().err
     with pytest.raises(InputError, match="needs --method gn"):
         correct(None, None, None, np.zeros(13), method="plan", recorded=[(np.zeros(13), None)])
     with pytest.raises(InputError, match="recorded_until"):
         correct(None, None, None, np.zeros(13), recorded_until="sometimes")
+    for kw, what in (({"method": "qp", "trust_region": "fixed"}, "no trust region"),
+                     ({"trust_region": "fixed", "min_radius": 0.5}, "is fixed at 1"),
+                     ({"trust_region": "adaptive", "max_radius": 0.5}, "between the smallest 0.25 and the largest 0.5"),
+                     ({"trust_region": "sometimes"}, "'fixed' or 'adaptive'")):
+        space = CommandSpace(PATHS["flick"])
+        with pytest.raises(InputError, match=what):
+            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
+    for bad, word in ((["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
+                      (["--max-radius", "7"], "(0, 6]"), (["--min-radius", "0.5"], "no run here has one"),
+                      (["--trust-region", "fixed", "--params", "renormalised", "--min-radius", "0.5"], "no run here"),
+                      (["--trust-region", "adaptive", "--method", "plan", "--params", "measured"], "--method plan"),
+                      (["--trust-region", "sometimes"], "invalid choice")):
+        assert main(["correct", "rope", "--out", str(tmp_path / "o6")] + bad) == 2
+        err = capsys.readouterr().err
+        assert word in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "o6").exists(), err
 
 
 CORRECT_QUICK = ["correct", "rope", "--real", "coarse", "--segments", "10", "--fit-generations", "4",
@@ -695,7 +725,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     parser = argparse.ArgumentParser()
     correct_cli.add_arguments(parser)
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
-           if k not in correct_cli._NOT_SAVED and k != "start_pair"}
+           if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
@@ -703,6 +733,16 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--start-pair", "first"])
     with pytest.raises(InputError, match="without a start pair"):
         correct_cli._restore_settings(args)
+    # so does one saved before --trust-region: every run adapted its radius then, and resumes that way
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert args.trust_region == "adaptive" and correct_cli._trust_rule(args, "fitted") == "adaptive"
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--trust-region", "fixed"])
+    with pytest.raises(InputError, match="adapted its trust radius"):
+        correct_cli._restore_settings(args)
+    new = vars(parser.parse_args([]))  # a run saved today keeps its own
+    assert new["trust_region"] == "by-arm" and correct_cli._trust_rule(argparse.Namespace(**new), "fitted") == "fixed"
+    assert correct_cli._trust_rule(argparse.Namespace(**new), "renormalised") == "adaptive"
 
 
 class ChainEngine:

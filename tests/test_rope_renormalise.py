@@ -123,6 +123,9 @@ def test_trust_region_rule(case):
     assert out["verdict"] == verdict and np.isclose(tr.radius, after) and np.isclose(out["radius_after"], after)
     assert out["radius_before"] == radius
     assert rn.TrustRegion(1.0, 6.0).min_radius == rn.MIN_RADIUS
+    fixed = rn.TrustRegion(radius, radius, radius, rule="fixed")  # the same trial leaves a fixed radius alone
+    kept = fixed.update(best, pred, meas, step)
+    assert kept["verdict"] == "fixed" and fixed.radius == radius and kept["rho"] == out["rho"]
 
 
 FAST = {"popsize": 16, "generations": 15}

@@ -9,8 +9,10 @@ F = dZ/du (weighted units of tasks/rope/observable.py):
 
 (scipy lsq_linear on the stacked system), then shortened until the hand's speed and
 acceleration limits hold. A trial that does not improve the best error is rejected: the next
-step starts again from the best command with half the radius (a real trial is the expensive
-thing, so the loop never walks on from a worse command). lam = reg * mean(diag F^T F).
+step starts again from the best command (a real trial is the expensive thing, so the loop never
+walks on from a worse command), within the same radius where the trust region is fixed (the
+rejected trial's secant pair has already corrected the step) and half of it where it adapts
+(trust_region_for). lam = reg * mean(diag F^T F).
 
 Why finite differences and not Warp's tape for F: Z is sampled at an EVENT (the first frame a
 gap turns negative). Its derivative needs the implicit term dt*/du = -(dg/du)/(dg/dt) and is
@@ -249,6 +251,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             progress=None, on_trial=None, refit_offset: bool = True, prior_scale: float | None = None,
             decay: float | None = None, anchored: bool = False, refit_generations: int | None = None,
             min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
+            max_radius: float | None = None, trust_region: str | None = None,
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first") -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
@@ -279,7 +282,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       on the refitted model (with refit_offset plus its remaining offset at the best trial and a Broyden
       term per other trial).
     A trial that does not improve the best error is rejected: the next command is planned again
-    around the best one with half the trust radius (a real trial is the expensive thing).
+    around the best one (a real trial is the expensive thing), in half the radius for plan and qp and where
+    the trust region adapts. trust_region (gn and renormalise; trust_region_for): "fixed" keeps `radius` at
+    every step, "adaptive" follows renormalise.TrustRegion between min_radius and max_radius; left out, fixed
+    for gn and adaptive for renormalise.
     on_trial(trial) is called as each trial's record is complete (before the next plan)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
@@ -303,19 +309,25 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     problems = space.violations(u0)
     if problems:
         raise InputError("command", "start", "; ".join(problems))
+    trust = None
+    if method in ("gn", "renormalise"):
+        trust = trust_region_for(method, steps, trust_region, radius, min_radius, max_radius, space.bound)
+    elif trust_region is not None or max_radius is not None:
+        raise InputError("--trust-region/--max-radius", "trust_region", f"the {method} loop has no trust region of "
+                                                                        "these (--method gn or renormalised runs)")
     if method == "gn" or (method == "renormalise" and steps == "gn"):
         renorm = None
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
         return _correct_secant(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance, radius,
-                               reg, seed, popsize, generations, min_radius, progress, on_trial, renorm,
+                               reg, seed, popsize, generations, trust, progress, on_trial, renorm,
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
-                                      prior_scale, decay, anchored, refit_generations, min_radius, progress,
+                                      prior_scale, decay, anchored, refit_generations, trust, progress,
                                       on_trial, prior_centre)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
@@ -437,6 +449,34 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
+def trust_region_for(method: str, steps: str, rule: str | None, radius: float | None, min_radius: float | None,
+                     max_radius: float | None, bound: float):
+    """The trust region of the gn and renormalise loops. rule "fixed": every step may go `radius` (GN_RADIUS) from the
+    best command, whatever the last prediction did (the fixed-parameter runs' default: README, "A fixed step instead of
+    the adaptive trust region"); "adaptive": renormalise.TrustRegion's rule between min_radius (MIN_RADIUS) and
+    max_radius (twice the command box's bound), the renormalised runs' default. Left out (None): by the method."""
+    from wrenorm.tasks.rope.control import renormalise as rn
+
+    rule = rule or ("fixed" if method == "gn" else "adaptive")
+    if rule not in ("fixed", "adaptive"):
+        raise InputError("--trust-region", "trust_region", f"{rule!r} is not 'fixed' or 'adaptive'")
+    first = radius if radius is not None else (gauss_newton.GN_RADIUS if method == "gn" or steps == "gn"
+                                               else DEFAULT_PLAN_RADIUS)
+    if rule == "fixed":
+        if min_radius is not None or max_radius is not None:
+            raise InputError("--min-radius/--max-radius", "trust_region", "bound the adaptive trust region; this run's "
+                                                                          f"is fixed at {first:g} (--trust-region "
+                                                                          "adaptive to use them)")
+        return rn.TrustRegion(first, first, first, rule="fixed")
+    smallest = rn.MIN_RADIUS if min_radius is None else float(min_radius)
+    largest = 2.0 * bound if max_radius is None else float(max_radius)
+    if not smallest <= first <= largest:
+        raise InputError("--min-radius/--max-radius", "trust_region", f"the initial radius {first:g} must lie between "
+                                                                      f"the smallest {smallest:g} and the largest "
+                                                                      f"{largest:g}")
+    return rn.TrustRegion(first, largest, smallest)
+
+
 def check_first_step(first_step: str, gn_steps: bool, linearise_at: str) -> None:
     """Space mapping's step is taken from the match of trial 1, so it needs Gauss-Newton steps and the match."""
     if first_step == "space-mapping" and not (gn_steps and linearise_at == "matched"):
@@ -471,11 +511,10 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                            tolerance: float, radius: float | None, reg: float | None, seed: int,
                            popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
                            prior_scale: float | None, decay: float | None, anchored: bool,
-                           refit_generations: int | None, min_radius: float | None, progress, on_trial,
+                           refit_generations: int | None, trust, progress, on_trial,
                            prior_centre: np.ndarray | None = None) -> dict:
     """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
-    from wrenorm.tasks.rope.control import renormalise as rn
 
     space, pspace = model.space, model.problem.space
     settings = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
@@ -483,8 +522,6 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
-    trust = rn.TrustRegion(DEFAULT_PLAN_RADIUS if radius is None else radius, 2.0 * space.bound,
-                           rn.MIN_RADIUS if min_radius is None else float(min_radius))
     p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
     offset, last_plan = rope_plan.Offset.zero(space.dim, goal.dim, u0), [u.copy()]
     trials: list[Trial] = []
@@ -534,7 +571,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
         "renormalise": {"prior_centre": pspace.as_dict(prior_centre), "prior_scale": prior_scale, "decay": decay,
                         "refit_offset": bool(refit_offset), "anchored": bool(anchored), "trust_region": {
                             "good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW, "shrink": trust.SHRINK,
-                            "min_radius": trust.min_radius}},
+                            "min_radius": trust.min_radius, "max_radius": trust.max_radius,
+                            "rule": trust.rule}},
         "trials": trials,
     }
 
@@ -609,7 +647,7 @@ def _refit_settings(model, prior_centre, prior_scale, decay, refit_generations) 
 
 def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_trials: int,
                     tolerance: float, radius: float | None, reg: float | None, seed: int, popsize: int | None,
-                    generations: int | None, min_radius: float | None, progress, on_trial,
+                    generations: int | None, trust, progress, on_trial,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first") -> dict:
@@ -625,7 +663,6 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     long stretch: it helps the first step, and once the trials give local pairs it blurs them; README, "The start
     throw as one more secant pair"), with "every" at every step."""
     from wrenorm.tasks.rope.control import plan as rope_plan
-    from wrenorm.tasks.rope.control import renormalise as rn
 
     recorded = [(np.asarray(u, dtype=np.float64), st) for u, st in (recorded or []) if st.hit[0]]
 
@@ -633,8 +670,6 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS, "reg": rope_plan.DEFAULT_REG}
     reg = gauss_newton.GN_REG if reg is None else float(reg)
-    trust = rn.TrustRegion(gauss_newton.GN_RADIUS if radius is None else radius, 2.0 * space.bound,
-                           rn.MIN_RADIUS if min_radius is None else float(min_radius))
     w = gauss_newton.residual_weights(goal)
     u, scale_used, planning = u0.copy(), None, None
     if plan_first:
@@ -719,7 +754,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "correction": "ridge over all trials" if secant else "none",
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
-                                          "shrink": trust.SHRINK, "min_radius": trust.min_radius}},
+                                          "shrink": trust.SHRINK, "min_radius": trust.min_radius,
+                                          "max_radius": trust.max_radius, "rule": trust.rule}},
         "trials": trials,
     }
     if renorm is not None:

@@ -102,7 +102,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(renormalised) weight of a trial per trial of age in the refit, in (0, 1]; default "
                         "renormalise.DECAY")
     p.add_argument("--min-radius", type=float, default=None,
-                   help="(renormalised) smallest trust radius (units of u); default renormalise.MIN_RADIUS")
+                   help="(adaptive trust region) smallest trust radius (units of u); default renormalise.MIN_RADIUS")
+    p.add_argument("--trust-region", choices=("fixed", "adaptive", "by-arm"), default="by-arm",
+                   help="(gn, renormalised) fixed: every step may go --radius from the best command; adaptive: the "
+                        "radius shrinks after a poor prediction and grows after a good one, between --min-radius and "
+                        "--max-radius; by-arm (default): fixed for fixed parameters, adaptive for renormalised ones")
+    p.add_argument("--max-radius", type=float, default=None,
+                   help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
+                        "bound")
     p.add_argument("--refit-generations", type=int, default=None,
                    help="(renormalised) CMA-ES generations of each refit; default renormalise.REFIT_GENERATIONS")
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
@@ -202,7 +209,7 @@ def run(args) -> int:
     from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
-    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.control.command import DEFAULT_BOUND, CommandSpace
     from wrenorm.tasks.rope.control.correct import (
         CoarseModel,
         CoarseRope,
@@ -214,6 +221,7 @@ def run(args) -> int:
         real_rope_class,
         trial_row,
         trial_rows,
+        trust_region_for,
     )
     from wrenorm.tasks.rope.problem import RopeProblem
     from wrenorm.tasks.rope.reference.materials import get_variant
@@ -251,6 +259,23 @@ def run(args) -> int:
         raise InputError("--decay", "decay", f"must be in (0, 1], got {args.decay:g}")
     if args.min_radius is not None and not 0 < args.min_radius <= 6:
         raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
+    if args.max_radius is not None and not 0 < args.max_radius <= 6:
+        raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
+    if (args.trust_region != "by-arm" or args.max_radius is not None) and args.method != "gn" and not all(
+            p.startswith("renormalised") for p in args.params):
+        raise InputError("--trust-region/--max-radius", "trust_region", f"--method {args.method} with fixed "
+                                                                        "parameters has no trust region of these")
+    if (args.min_radius is not None or args.max_radius is not None) and not any(
+            _trust_rule(args, label) == "adaptive" for label in args.params):
+        raise InputError("--min-radius/--max-radius", "trust_region", "bound the adaptive trust region, and no run "
+                                                                      "here has one (--trust-region adaptive)")
+    for label in args.params:  # the radii's own bounds, checked before any real run
+        if args.method == "gn" or label.startswith("renormalised"):
+            adaptive = _trust_rule(args, label) == "adaptive"
+            trust_region_for("renormalise" if label.startswith("renormalised") else "gn",
+                             "plan" if args.method == "plan" else "gn", _trust_rule(args, label), args.radius,
+                             args.min_radius if adaptive else None, args.max_radius if adaptive else None,
+                             DEFAULT_BOUND)
     if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
@@ -347,6 +372,7 @@ def run(args) -> int:
         else:
             values = parameters_from_file(label, problem)
         model = CoarseModel(problem, values, space, label)
+        trust = _trust_rule(args, label) if method in ("gn", "renormalise") else None
         progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
                  f"{args.variant} rope)")
         res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
@@ -354,7 +380,9 @@ def run(args) -> int:
                       method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
-                      refit_generations=args.refit_generations, min_radius=args.min_radius,
+                      refit_generations=args.refit_generations, trust_region=trust,
+                      min_radius=args.min_radius if trust == "adaptive" else None,
+                      max_radius=args.max_radius if trust == "adaptive" else None,
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
                       recorded_until="every" if args.start_pair == "every" else "first")
@@ -385,7 +413,8 @@ def run(args) -> int:
                      "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
-                     "min_radius": args.min_radius, "fit_throws": args.fit_throws,
+                     "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
+                     "fit_throws": args.fit_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
@@ -453,7 +482,11 @@ def report_markdown(result: dict) -> str:
              "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
                  f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
     for label, r in result["runs"].items():
-        lines += [f"## {label} ({r['method']}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
+        region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
+        how = r["method"] if "rule" not in region else (
+            f"{r['method']}, trust radius fixed at {region['max_radius']:g}" if region["rule"] == "fixed" else
+            f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}")
+        lines += [f"## {label} ({how}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
                   "|" + "---|" * len(TRIAL_COLUMNS)]
         lines += ["| " + " | ".join(row) + " |" for row in trial_cells(result, label)]
         lines.append("")
@@ -468,7 +501,8 @@ _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system
 
 # options added after runs were saved: what a run saved without them did, and how to say it
 _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
-                             "fit_throws": ("newton", "was fitted to the newton rope's throws")}
+                             "fit_throws": ("newton", "was fitted to the newton rope's throws"),
+                             "trust_region": ("adaptive", "adapted its trust radius in every run")}
 
 
 def _restore_settings(args) -> None:
@@ -503,10 +537,18 @@ def _restore_settings(args) -> None:
     for key, (as_run, how) in _AS_RUN_BEFORE_THE_OPTION.items():
         if saved.get(key) is None:  # saved before the option existed: the run had the old behaviour
             given = getattr(args, key)
-            if given not in (None, as_run):
+            if given not in (None, as_run, defaults[key]):
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
+
+
+def _trust_rule(args, label: str) -> str:
+    """The trust region of the run with parameters `label`: --trust-region, where by-arm means fixed for fixed
+    parameters and adaptive for renormalised ones."""
+    if args.trust_region != "by-arm":
+        return args.trust_region
+    return "adaptive" if label.startswith("renormalised") else "fixed"
 
 
 def _default(name: str, method: str) -> float:

@@ -204,11 +204,13 @@ class TrustRegion:
     rho < BAD: the model was wrong at this distance, the radius becomes SHRINK x the step just taken;
     rho > GOOD and the step used (nearly) the whole radius: the radius grows GROW x (up to max_radius);
     otherwise it stays. A plan that predicted no improvement gives rho = nan and counts as bad.
+    rule "fixed": the radius stays whatever rho says (rho is still recorded).
     """
 
     radius: float
     max_radius: float
     min_radius: float = MIN_RADIUS
+    rule: str = "adaptive"
     GOOD = 0.75
     BAD = 0.25
     GROW = 2.0
@@ -219,7 +221,9 @@ class TrustRegion:
         before = self.radius
         gain_pred = best_before - predicted
         rho = (best_before - measured) / gain_pred if gain_pred > 1e-12 else float("nan")
-        if not np.isfinite(rho) or rho < self.BAD:
+        if self.rule == "fixed":
+            verdict = "fixed"
+        elif not np.isfinite(rho) or rho < self.BAD:
             self.radius = max(self.SHRINK * min(step, self.radius), self.min_radius)
             verdict = "shrink"
         elif rho > self.GOOD and step >= self.AT_EDGE * self.radius:

@@ -9,8 +9,9 @@ trust-region Gauss-Newton step from the best trial on the real residual,
 
     du = argmin |W (S du) + e_best|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
 
-and the trust region follows how well the linear model predicted the last trial (renormalise.TrustRegion,
-rho on the correction's own error).
+with the radius fixed (fixed parameters, by default: README, "A fixed step instead of the adaptive trust region")
+or following how well the linear model predicted the last trial (renormalise.TrustRegion, rho on the correction's
+own error; the renormalised runs).
 
 Why linear, and why the chain's sensitivity is measured once: at 10 links the chain's critical state as a
 function of the command is rough (the first contact jumps between segment pairs), so a plan on the chain's own
