@@ -408,6 +408,7 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     with pytest.raises(InputError, match="recorded_until"):
         correct(None, None, None, np.zeros(13), recorded_until="sometimes")
     for kw, what in (({"method": "qp", "trust_region": "fixed"}, "no trust region"),
+                     ({"method": "plan", "min_radius": 0.5}, "no trust region"),
                      ({"trust_region": "fixed", "min_radius": 0.5}, "is fixed at 1"),
                      ({"trust_region": "adaptive", "max_radius": 0.5}, "between the smallest 0.25 and the largest 0.5"),
                      ({"trust_region": "sometimes"}, "'fixed' or 'adaptive'")):
@@ -740,9 +741,30 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--trust-region", "fixed"])
     with pytest.raises(InputError, match="adapted its trust radius"):
         correct_cli._restore_settings(args)
-    new = vars(parser.parse_args([]))  # a run saved today keeps its own
-    assert new["trust_region"] == "by-arm" and correct_cli._trust_rule(argparse.Namespace(**new), "fitted") == "fixed"
-    assert correct_cli._trust_rule(argparse.Namespace(**new), "renormalised") == "adaptive"
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--max-radius", "2"])
+    with pytest.raises(InputError, match="had no --max-radius"):
+        correct_cli._restore_settings(args)
+    # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
+    # its --min-radius, where no arm used it, is dropped rather than refused
+    for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):
+        (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old | {"method": "plan", "params": params,
+                                                                             "min_radius": 0.5}))
+        args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+        correct_cli._restore_settings(args)
+        assert args.trust_region == "by-arm" and args.method == "plan" and args.min_radius == kept
+    # a run saved today resumes with its own, and is refused another
+    today = vars(parser.parse_args(["--trust-region", "adaptive", "--max-radius", "2"]))
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(
+        {k: v for k, v in today.items() if k not in correct_cli._NOT_SAVED}))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert args.trust_region == "adaptive" and args.max_radius == 2.0
+    with pytest.raises(InputError, match="ran with 'adaptive'"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--trust-region",
+                                                         "fixed"]))
+    new = argparse.Namespace(**vars(parser.parse_args([])))  # left out: fixed for fixed parameters
+    assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"
+    assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
 
 
 class ChainEngine:

@@ -123,9 +123,12 @@ def test_trust_region_rule(case):
     assert out["verdict"] == verdict and np.isclose(tr.radius, after) and np.isclose(out["radius_after"], after)
     assert out["radius_before"] == radius
     assert rn.TrustRegion(1.0, 6.0).min_radius == rn.MIN_RADIUS
-    fixed = rn.TrustRegion(radius, radius, radius, rule="fixed")  # the same trial leaves a fixed radius alone
-    kept = fixed.update(best, pred, meas, step)
+    fixed = rn.TrustRegion(radius, max_radius=6.0, min_radius=0.1, rule="fixed")  # the same trial, the same bounds:
+    kept = fixed.update(best, pred, meas, step)  # a fixed region keeps its radius (rho still recorded)
     assert kept["verdict"] == "fixed" and fixed.radius == radius and kept["rho"] == out["rho"]
+    fixed.look_closer(0.5 * radius)  # a plan that looked closer does not shrink it either; an adaptive one keeps that
+    tr.look_closer(0.5 * after)
+    assert fixed.radius == radius and tr.radius == 0.5 * after
 
 
 FAST = {"popsize": 16, "generations": 15}

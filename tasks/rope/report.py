@@ -128,13 +128,13 @@ def sensitivity_sections(result: dict) -> list[tuple[str, str]]:
 def correction_sections(result: dict) -> list[tuple[str, str]]:
     """`correct rope`: the goal, each run's verdict, and per trial what was tried and predicted, what the rope did and
     how the model and the trust region reacted (the rows of report.md)."""
-    from wrenorm.tasks.rope.control.correct_cli import TRIAL_COLUMNS, run_verdict, trial_cells
+    from wrenorm.tasks.rope.control.correct_cli import TRIAL_COLUMNS, run_method, run_verdict, trial_cells
 
     runs = result.get("runs") or {}
     summary = []
     for label, r in runs.items():
         state = flag("reached", "ok") if r.get("success") else flag("not reached", "bad")
-        summary.append([label, r.get("method", ""), state, r.get("trials_to_tolerance") or "",
+        summary.append([label, run_method(r) if "method" in r else "", state, r.get("trials_to_tolerance") or "",
                         num(r.get("best_error"), 4), r.get("trials_used", "")])
     goal = result.get("goal") or {}
     intro = (f"<p>Real system: {result.get('real_system', '')}; coarse chain {result['model']['segments']} links; "
@@ -147,5 +147,6 @@ def correction_sections(result: dict) -> list[tuple[str, str]]:
         out.append((f"{label}: {run_verdict(r)}", table(TRIAL_COLUMNS, trial_cells(result, label))
                     + "<p class='muted'>predicted: what the plan expected of this trial; model alone: the chain's "
                       "own prediction without the offset learned from earlier trials; rho: real over predicted "
-                      "gain, which sets the next trust radius. Full states: real-trials/*-trial-NN.json.</p>"))
+                      "gain, which sets the next trust radius where the trust region adapts (a fixed one keeps its "
+                      "radius). Full states: real-trials/*-trial-NN.json.</p>"))
     return out

@@ -312,9 +312,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     trust = None
     if method in ("gn", "renormalise"):
         trust = trust_region_for(method, steps, trust_region, radius, min_radius, max_radius, space.bound)
-    elif trust_region is not None or max_radius is not None:
-        raise InputError("--trust-region/--max-radius", "trust_region", f"the {method} loop has no trust region of "
-                                                                        "these (--method gn or renormalised runs)")
+    elif trust_region is not None or max_radius is not None or min_radius is not None:
+        raise InputError("--trust-region/--min-radius/--max-radius", "trust_region", f"the {method} loop has no "
+                                                                                     "trust region of these (--method "
+                                                                                     "gn or renormalised runs)")
     if method == "gn" or (method == "renormalise" and steps == "gn"):
         renorm = None
         if method == "renormalise":
@@ -468,12 +469,14 @@ def trust_region_for(method: str, steps: str, rule: str | None, radius: float | 
                                                                           f"is fixed at {first:g} (--trust-region "
                                                                           "adaptive to use them)")
         return rn.TrustRegion(first, first, first, rule="fixed")
-    smallest = rn.MIN_RADIUS if min_radius is None else float(min_radius)
-    largest = 2.0 * bound if max_radius is None else float(max_radius)
+    # left out, a bound gives way to the initial radius (as before the bounds were options: --radius 0.2 adapts down
+    # to 0.2); given, it must hold it
+    smallest = min(rn.MIN_RADIUS, first) if min_radius is None else float(min_radius)
+    largest = max(2.0 * bound, first) if max_radius is None else float(max_radius)
     if not smallest <= first <= largest:
-        raise InputError("--min-radius/--max-radius", "trust_region", f"the initial radius {first:g} must lie between "
-                                                                      f"the smallest {smallest:g} and the largest "
-                                                                      f"{largest:g}")
+        raise InputError("--radius/--min-radius/--max-radius", "trust_region", f"the initial radius {first:g} must lie "
+                                                                               f"between the smallest {smallest:g} "
+                                                                               f"and the largest {largest:g}")
     return rn.TrustRegion(first, largest, smallest)
 
 
@@ -547,9 +550,9 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
         offset = rope_plan.Offset.zero(space.dim, goal.dim, best.u)
         if refit_offset and best.hit:
             offset = _offset_from_trials(model, trials, best, freeze_place)
-        p, u, scale_used, trust.radius = _plan_or_look_closer(model, goal, best.u, trust.radius, offset,
-                                                              seed + 10 * k, last_plan, plan_opts)
-        plan_radius = trust.radius  # the radius the next trial was planned in, for its record
+        p, u, scale_used, plan_radius = _plan_or_look_closer(model, goal, best.u, trust.radius, offset,
+                                                             seed + 10 * k, last_plan, plan_opts)
+        trust.look_closer(plan_radius)  # plan_radius: the radius the next trial was planned in, for its record
         last_plan = [u.copy()]
         trial.sensitivity = {"plan_evaluations": p["evaluations"], "plan_wall_s": p["wall_s"],
                              "plan_radius": plan_radius, "offset_at_trial": best.index + 1 if refit_offset else None,
@@ -693,9 +696,10 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             model = _refit_to_trials(model, hits, goal, trial, renorm, best.index, seed + 100 * k, progress)
         if not best.hit:
             # no critical state to step from: the chain plans alone around the best command
-            p, u, scale_used, trust.radius = _plan_or_look_closer(
+            p, u, scale_used, plan_radius = _plan_or_look_closer(
                 model, goal, best.u, trust.radius, rope_plan.Offset.zero(space.dim, goal.dim, best.u),
                 seed + 10 * k, [], plan_opts)
+            trust.look_closer(plan_radius)
             pred_state = model.states(u[None])
             trial.sensitivity = {"plan_evaluations": p["evaluations"], "why": "no critical state to step from"}
         else:
@@ -733,7 +737,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             trial.sensitivity = sens.record() | {"step": step}
         predicted = float(goal.terms(pred_state)["total"][0])
-        plan_radius = trust.radius
+        if best.hit:
+            plan_radius = trust.radius
         trial.sensitivity["plan_radius"] = plan_radius
         if on_trial:
             on_trial(trial)

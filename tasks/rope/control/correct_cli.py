@@ -261,7 +261,7 @@ def run(args) -> int:
         raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
     if args.max_radius is not None and not 0 < args.max_radius <= 6:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
-    if (args.trust_region != "by-arm" or args.max_radius is not None) and args.method != "gn" and not all(
+    if (args.trust_region != "by-arm" or args.max_radius is not None) and args.method != "gn" and not any(
             p.startswith("renormalised") for p in args.params):
         raise InputError("--trust-region/--max-radius", "trust_region", f"--method {args.method} with fixed "
                                                                         "parameters has no trust region of these")
@@ -475,6 +475,16 @@ def trial_cells(result: dict, label: str) -> list[list[str]]:
     return rows
 
 
+def run_method(r: dict) -> str:
+    """The run's method and trust region, as it ran (a run saved before the rule was recorded: the method alone)."""
+    region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
+    if "rule" not in region:
+        return r["method"]
+    if region["rule"] == "fixed":
+        return f"{r['method']}, trust radius fixed at {region['max_radius']:g}"
+    return f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}"
+
+
 def report_markdown(result: dict) -> str:
     """Per run, per trial: what was tried, what the model predicted, what the rope did, and how the model and
     the trust region reacted; a reader sees why the run converged or did not."""
@@ -482,11 +492,7 @@ def report_markdown(result: dict) -> str:
              "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
                  f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
     for label, r in result["runs"].items():
-        region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
-        how = r["method"] if "rule" not in region else (
-            f"{r['method']}, trust radius fixed at {region['max_radius']:g}" if region["rule"] == "fixed" else
-            f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}")
-        lines += [f"## {label} ({how}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
+        lines += [f"## {label} ({run_method(r)}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
                   "|" + "---|" * len(TRIAL_COLUMNS)]
         lines += ["| " + " | ".join(row) + " |" for row in trial_cells(result, label)]
         lines.append("")
@@ -502,7 +508,10 @@ _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system
 # options added after runs were saved: what a run saved without them did, and how to say it
 _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "fit_throws": ("newton", "was fitted to the newton rope's throws"),
-                             "trust_region": ("adaptive", "adapted its trust radius in every run")}
+                             "max_radius": (None, "had no --max-radius"),
+                             # gn steps adapted in every arm; plan and qp had none in fixed arms, as by-arm now
+                             "trust_region": (lambda saved: "adaptive" if saved.get("method", "gn") == "gn"
+                                              else "by-arm", "adapted its trust radius in every run that had one")}
 
 
 def _restore_settings(args) -> None:
@@ -536,11 +545,14 @@ def _restore_settings(args) -> None:
         setattr(args, key, value)
     for key, (as_run, how) in _AS_RUN_BEFORE_THE_OPTION.items():
         if saved.get(key) is None:  # saved before the option existed: the run had the old behaviour
+            as_run = as_run(saved) if callable(as_run) else as_run
             given = getattr(args, key)
             if given not in (None, as_run, defaults[key]):
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
+    if "trust_region" not in saved and not any(_trust_rule(args, label) == "adaptive" for label in args.params):
+        args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
 
 
 def _trust_rule(args, label: str) -> str:

@@ -217,6 +217,12 @@ class TrustRegion:
     SHRINK = 0.5
     AT_EDGE = 0.9  # a step of >= 90 % of the radius used the region
 
+    def look_closer(self, radius: float) -> None:
+        """A plan that found nothing better in the region looked again in a smaller one (correct.py); an adaptive
+        region keeps that radius, a fixed one does not."""
+        if self.rule != "fixed":
+            self.radius = radius
+
     def update(self, best_before: float, predicted: float, measured: float, step: float) -> dict:
         before = self.radius
         gain_pred = best_before - predicted
