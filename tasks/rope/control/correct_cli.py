@@ -261,21 +261,17 @@ def run(args) -> int:
         raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
     if args.max_radius is not None and not 0 < args.max_radius <= 6:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
-    if (args.trust_region != "by-arm" or args.max_radius is not None) and args.method != "gn" and not any(
-            p.startswith("renormalised") for p in args.params):
-        raise InputError("--trust-region/--max-radius", "trust_region", f"--method {args.method} with fixed "
-                                                                        "parameters has no trust region of these")
-    if (args.min_radius is not None or args.max_radius is not None) and not any(
-            _trust_rule(args, label) == "adaptive" for label in args.params):
+    arms = {label: _trust_options(args, label) for label in args.params}
+    if args.trust_region != "by-arm" and not any(arms.values()):
+        raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
+                                                           "trust region of these")
+    if (args.min_radius is not None or args.max_radius is not None) and not _adapts(arms):
         raise InputError("--min-radius/--max-radius", "trust_region", "bound the adaptive trust region, and no run "
                                                                       "here has one (--trust-region adaptive)")
-    for label in args.params:  # the radii's own bounds, checked before any real run
-        if args.method == "gn" or label.startswith("renormalised"):
-            adaptive = _trust_rule(args, label) == "adaptive"
-            trust_region_for("renormalise" if label.startswith("renormalised") else "gn",
-                             "plan" if args.method == "plan" else "gn", _trust_rule(args, label), args.radius,
-                             args.min_radius if adaptive else None, args.max_radius if adaptive else None,
-                             DEFAULT_BOUND)
+    for label, options in arms.items():  # the radii's own bounds, checked before any real run
+        if options:
+            trust_region_for(*_arm_method(args, label), options["trust_region"], args.radius, options["min_radius"],
+                             options["max_radius"], DEFAULT_BOUND)
     if args.refit_generations is not None and not 1 <= args.refit_generations <= 1000:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
@@ -351,8 +347,7 @@ def run(args) -> int:
 
     runs = {}
     for label in args.params:
-        method = "renormalise" if label.startswith("renormalised") else args.method
-        steps = "plan" if args.method == "plan" else "gn"
+        method, steps = _arm_method(args, label)
         name = label if label in RUN_LABELS else Path(label).stem
 
         bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
@@ -372,7 +367,6 @@ def run(args) -> int:
         else:
             values = parameters_from_file(label, problem)
         model = CoarseModel(problem, values, space, label)
-        trust = _trust_rule(args, label) if method in ("gn", "renormalise") else None
         progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
                  f"{args.variant} rope)")
         res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
@@ -380,9 +374,7 @@ def run(args) -> int:
                       method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
                       generations=args.generations, freeze_place=not args.model_place, progress=progress,
                       on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
-                      refit_generations=args.refit_generations, trust_region=trust,
-                      min_radius=args.min_radius if trust == "adaptive" else None,
-                      max_radius=args.max_radius if trust == "adaptive" else None,
+                      refit_generations=args.refit_generations, **_trust_options(args, label),
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
                       recorded_until="every" if args.start_pair == "every" else "first")
@@ -551,7 +543,7 @@ def _restore_settings(args) -> None:
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
-    if "trust_region" not in saved and not any(_trust_rule(args, label) == "adaptive" for label in args.params):
+    if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
 
 
@@ -561,6 +553,28 @@ def _trust_rule(args, label: str) -> str:
     if args.trust_region != "by-arm":
         return args.trust_region
     return "adaptive" if label.startswith("renormalised") else "fixed"
+
+
+def _arm_method(args, label: str) -> tuple[str, str]:
+    """correct()'s method and steps for the run with parameters `label`: renormalised runs refit (planning or
+    stepping as --method says), the others take --method."""
+    return ("renormalise" if label.startswith("renormalised") else args.method), (
+        "plan" if args.method == "plan" else "gn")
+
+
+def _trust_options(args, label: str) -> dict:
+    """correct()'s trust-region options for the run with parameters `label`: none for the plan and qp loops of
+    fixed parameters (they have none), the radius bounds only where it adapts."""
+    if _arm_method(args, label)[0] not in ("gn", "renormalise"):
+        return {}
+    rule = _trust_rule(args, label)
+    adaptive = rule == "adaptive"
+    return {"trust_region": rule, "min_radius": args.min_radius if adaptive else None,
+            "max_radius": args.max_radius if adaptive else None}
+
+
+def _adapts(arms: dict) -> bool:
+    return any(options.get("trust_region") == "adaptive" for options in arms.values())
 
 
 def _default(name: str, method: str) -> float:
