@@ -63,6 +63,36 @@ def test_qp_step_respects_trust_region_and_solves_linear_case():
     assert np.abs(du).max() <= 0.5 + 1e-9
 
 
+def test_gn_step_row_weights_scale_the_least_squares_rows():
+    """A velocity weight of 0 is the step on the other rows alone (the velocity rows deleted from the problem), and
+    a weight w the step on those rows scaled by w; the weights touch the velocity block only."""
+    space = CommandSpace(PATHS["flick"])
+    goal = crit.Target.from_reference(load_reference(builtin_reference_path("flick_fast", "default")))
+    rng = np.random.default_rng(3)
+    w = secant.residual_weights(goal)
+    S = rng.normal(size=(goal.dim, space.dim)) / w[:, None]  # every weighted row of one size
+    vel = goal.blocks["velocity"]
+    # the velocity rows ask for one step, the others for another
+    du_vel, du_other = rng.uniform(-0.3, 0.3, space.dim), rng.uniform(-0.3, 0.3, space.dim)
+    e = -(w[:, None] * S) @ du_other
+    e[vel] = -((w[:, None] * S) @ du_vel)[vel]
+    rows = secant.step_row_weights(goal, 0.0)
+    assert np.all(rows[vel] == 0.0) and np.sum(rows == 1.0) == goal.dim - (vel.stop - vel.start)
+    keep = np.ones(goal.dim, bool)
+    keep[vel] = False
+    u0 = np.zeros(space.dim)
+    without = secant.gn_step(S[keep], w[keep], e[keep], u0, space, 0.7)[0]
+    assert np.allclose(secant.gn_step(S, w, e, u0, space, 0.7, rows=rows)[0], without, atol=1e-8)
+    half = secant.step_row_weights(goal, 0.5)
+    Sw, ew = S.copy(), e.copy()
+    Sw[vel] *= 0.5
+    ew[vel] *= 0.5
+    assert np.allclose(secant.gn_step(S, w, e, u0, space, 0.7, rows=half)[0], secant.gn_step(Sw, w, ew, u0, space,
+                                                                                              0.7)[0], atol=1e-8)
+    assert np.allclose(without, du_other, atol=0.02)
+    assert np.abs(secant.gn_step(S, w, e, u0, space, 0.7)[0] - du_other).max() > 0.1  # weighed fully, they pull apart
+
+
 # ------------------------------------------------------------------------------ correction
 FAST_PLAN = {"popsize": 16, "generations": 15}
 
@@ -264,6 +294,13 @@ def test_gn_correction_records_what_each_step_learned(problem):
     assert all(t.trust["verdict"] in ("grow", "keep", "shrink") and 0.5 <= t.trust["radius_after"] <= 1.5
                for t in adaptive["trials"][1:])
     assert [t.trust["rho"] for t in tr[1:2]] == [t.trust["rho"] for t in adaptive["trials"][1:2]]  # same trial 2
+    # fixed parameters weigh the steps' velocity rows secant.VELOCITY_WEIGHT by default; a given weight is used
+    assert res["gauss_newton"]["velocity_weight"] == secant.VELOCITY_WEIGHT == 0.5
+    alike = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                    max_trials=2, tolerance=1e-6, method="gn", velocity_weight=1.0, **FAST_PLAN)
+    assert alike["gauss_newton"]["velocity_weight"] == 1.0
+    assert np.array_equal(alike["trials"][0].u, tr[0].u)  # trial 1 is the chain's plan, no step
+    assert not np.allclose(alike["trials"][1].u, tr[1].u)  # trial 2 is the first step, and the weight moves it
 
 
 def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
@@ -415,7 +452,16 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match=what):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
-    for bad, word in ((["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
+    for kw in ({"method": "plan", "velocity_weight": 0.5}, {"velocity_weight": -1.0},
+               {"velocity_weight": float("nan")}, {"velocity_weight": "0.5"}):
+        space = CommandSpace(PATHS["flick"])
+        with pytest.raises(InputError, match="velocity_weight"):
+            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
+    for bad, word in ((["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
+                      (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
+                      (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
+                      (["--velocity-weight", "0.5", "--method", "plan", "--params", "measured"], "--method plan"),
+                      (["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
                       (["--max-radius", "7"], "(0, 6]"), (["--min-radius", "0.5"], "no run here has one"),
                       (["--trust-region", "fixed", "--params", "renormalised", "--min-radius", "0.5"], "no run here"),
                       (["--trust-region", "adaptive", "--method", "plan", "--params", "measured"], "--method plan"),
@@ -575,6 +621,9 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
     bad = {"correct.json: no fitted run": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only],
            "workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
            "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
+           "no-run/correct.json: not a finished `correct rope` run, nor a folder": [
+               diagnostics / "step_prediction.py", tmp_path / "no-run"],
+           "correct.json: runs: no run 'fitted'; it has measured": [diagnostics / "step_prediction.py", measured_only],
            "no-run/correct.json: not a finished correction": [diagnostics / "critical_velocity.py",
                                                                tmp_path / "no-run", "fitted"],
            "rope-sensitivity.npz: not the output of `run`": [diagnostics / "rope_sensitivity_prior.py", "compare",
@@ -595,6 +644,55 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
         assert r.returncode == 2, r.stderr
         last = r.stderr.strip().splitlines()[-1]  # argparse prints its usage first; the error names the field
         assert expected in last, r.stderr
+
+
+def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_path):
+    """The step-prediction diagnosis on a run whose every prediction came true scores each block's correlation 1;
+    shuffling the predictions across trials breaks it; runs it cannot score are refused in one line."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from wrenorm.tasks.rope.control.correct import state_record
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "diagnostics" / "step_prediction.py"
+    goal = crit.Target.from_reference(load_reference(builtin_reference_path("flick_high", "default")))
+    rng = np.random.default_rng(5)
+    g, trials, best = goal.state, [], np.inf
+    for k, scale in enumerate(np.geomspace(1.0, 0.05, 14)):
+        place = np.clip(g.s + scale * rng.normal(0, 0.05, 2), 0, 1)
+        st = crit.CriticalStates(g.pos + scale * rng.normal(0, 0.04, g.pos.shape),
+                                 g.vel + scale * rng.normal(0, 1.0, g.vel.shape),
+                                 g.time * (1 + scale * rng.normal(0, 0.05)), place, np.ones(1, bool), np.zeros(1))
+        terms = {key: float(v[0]) for key, v in goal.terms(st).items()}
+        trials.append({"trial": k + 1, "error": terms["total"], "accepted": terms["total"] < best,
+                       "self_collision": True, "terms": terms, "measured_state": state_record(st),
+                       "predicted_state": state_record(st)})
+        best = min(best, terms["total"])
+
+    def scored(folder, run=None, settings=None, trials=trials):
+        folder.mkdir()
+        (folder / "correct.json").write_text(json.dumps({
+            "variant": "default", "goal": {"path": "flick_high"}, "settings": settings or {"engine": "newton",
+                                                                                        "real": "fine"},
+            "runs": {"fitted": (run or {"method": "gn", "steps": "gn"}) | {"trials": trials}}}))
+        return subprocess.run([sys.executable, str(script), str(folder)], capture_output=True, text=True)
+
+    r = scored(tmp_path / "true")
+    assert r.returncode == 0, r.stderr
+    cells = [line.split("|")[3].strip() for line in r.stdout.splitlines() if line.startswith("| best error")]
+    assert len(cells) == 8 and sum(c == "1.00" for c in cells) >= 6 and set(cells) <= {"1.00", "nan"}, r.stdout
+    shuffled = [t | {"predicted_state": trials[(i + 5) % len(trials)]["predicted_state"]}
+                for i, t in enumerate(trials)]
+    r = scored(tmp_path / "shuffled", trials=shuffled)
+    assert r.returncode == 0 and not set(line.split("|")[3].strip() for line in r.stdout.splitlines()
+                                         if line.startswith("| best error")) <= {"1.00", "nan"}, r.stdout
+    wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
+    for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
+                               ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),
+                               ("other-goal", {"trials": wrong_goal}, "is not its state's error to this goal")):
+        r = scored(tmp_path / name, **kw)
+        assert r.returncode == 2 and expected in r.stderr.strip().splitlines()[-1], r.stderr
 
 
 def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
@@ -726,7 +824,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     parser = argparse.ArgumentParser()
     correct_cli.add_arguments(parser)
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
-           if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius")}
+           if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
+                                                             "velocity_weight")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
@@ -744,6 +843,16 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--max-radius", "2"])
     with pytest.raises(InputError, match="had no --max-radius"):
         correct_cli._restore_settings(args)
+    # and before --velocity-weight: its steps weighed the velocity rows as the others
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0}
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "0.5"])
+    with pytest.raises(InputError, match="weighed the velocity rows"):
+        correct_cli._restore_settings(args)
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
+    correct_cli._restore_settings(args)
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0}
     # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
     # its --min-radius, where no arm used it, is dropped rather than refused
     for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):
@@ -752,6 +861,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         args = parser.parse_args(["--resume", "--out", str(tmp_path)])
         correct_cli._restore_settings(args)
         assert args.trust_region == "by-arm" and args.method == "plan" and args.min_radius == kept
+        assert args.velocity_weight == "by-arm" and correct_cli._step_options(args, "measured") == {}
     # a run saved today resumes with its own, and is refused another
     today = vars(parser.parse_args(["--trust-region", "adaptive", "--max-radius", "2"]))
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(
@@ -762,9 +872,27 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     with pytest.raises(InputError, match="ran with 'adaptive'"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--trust-region",
                                                          "fixed"]))
+    assert args.velocity_weight == "by-arm"  # by-arm saved today stays by-arm, not the old runs' 1
+    today = vars(parser.parse_args(["--velocity-weight", "0.5"]))
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(
+        {k: v for k, v in today.items() if k not in correct_cli._NOT_SAVED}))
+    for given in ([], ["--velocity-weight", ".5"]):
+        args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
+        correct_cli._restore_settings(args)
+        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5}
+    with pytest.raises(InputError, match="ran with 0.5"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
+                                                         "1"]))
+    # a weight is refused only where no arm steps by Gauss-Newton: renormalised arms of --method qp do, of plan not
+    correct_cli._check_velocity_weight(parser.parse_args(["--velocity-weight", "1", "--method", "qp", "--params",
+                                                          "measured", "renormalised"]))
+    with pytest.raises(InputError, match="no run here takes one"):
+        correct_cli._check_velocity_weight(parser.parse_args(["--velocity-weight", "1", "--method", "plan",
+                                                              "--params", "measured", "renormalised"]))
     new = argparse.Namespace(**vars(parser.parse_args([])))  # left out: fixed for fixed parameters
     assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
+    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None}  # correct() picks it by the method
 
 
 class ChainEngine:

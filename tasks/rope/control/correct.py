@@ -253,7 +253,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
             max_radius: float | None = None, trust_region: str | None = None,
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
-            recorded_until: str = "first") -> dict:
+            recorded_until: str = "first", velocity_weight: float | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -264,6 +264,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       recorded: [(u, CriticalStates)] the real rope's critical states under commands recorded before the trials
       (the start throw): each that hit is one more secant pair for the Gauss-Newton steps (not a trial);
       recorded_until "first": only until the trials give a pair of their own, "every": at every step.
+      velocity_weight: the steps' weight on the velocity rows of the residual (the step only; acceptance and the
+      reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -316,7 +318,17 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--trust-region/--min-radius/--max-radius", "trust_region", f"the {method} loop has no "
                                                                                      "trust region of these (--method "
                                                                                      "gn or renormalised runs)")
-    if method == "gn" or (method == "renormalise" and steps == "gn"):
+    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
+    if velocity_weight is not None:
+        if not gn_steps:
+            raise InputError("--velocity-weight", "velocity_weight", f"weighs Gauss-Newton steps; the {method} loop "
+                                                                     f"(steps {steps}) has none")
+        if not (isinstance(velocity_weight, (int, float)) and np.isfinite(velocity_weight) and velocity_weight >= 0):
+            raise InputError("--velocity-weight", "velocity_weight", f"{velocity_weight!r} is not a finite number "
+                                                                     ">= 0")
+    if gn_steps:
+        if velocity_weight is None:
+            velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
         renorm = None
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
@@ -324,7 +336,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                reg, seed, popsize, generations, trust, progress, on_trial, renorm,
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
-                               recorded_until=recorded_until)
+                               recorded_until=recorded_until, velocity_weight=float(velocity_weight))
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -653,7 +665,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     generations: int | None, trust, progress, on_trial,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
-                    recorded_until: str = "first") -> dict:
+                    recorded_until: str = "first", velocity_weight: float = 1.0) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -674,6 +686,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS, "reg": rope_plan.DEFAULT_REG}
     reg = gauss_newton.GN_REG if reg is None else float(reg)
     w = gauss_newton.residual_weights(goal)
+    rows = gauss_newton.step_row_weights(goal, velocity_weight)
     u, scale_used, planning = u0.copy(), None, None
     if plan_first:
         _, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
@@ -733,7 +746,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
                 u, scale_used = gauss_newton.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space,
-                                                     trust.radius, reg)
+                                                     trust.radius, reg, rows)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             trial.sensitivity = sens.record() | {"step": step}
         predicted = float(goal.terms(pred_state)["total"][0])
@@ -755,7 +768,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
-        "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg,
+        "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "correction": "ridge over all trials" if secant else "none",
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,

@@ -107,6 +107,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn, renormalised) fixed: every step may go --radius from the best command; adaptive: the "
                         "radius shrinks after a poor prediction and grows after a good one, between --min-radius and "
                         "--max-radius; by-arm (default): fixed for fixed parameters, adaptive for renormalised ones")
+    p.add_argument("--velocity-weight", type=velocity_weight_arg, default="by-arm",
+                   help="(gn steps) weight of the velocity rows in each Gauss-Newton step's least-squares problem "
+                        "(the step only: trials are accepted and reported on the observable's error), a number >= 0; "
+                        "by-arm (default): secant.VELOCITY_WEIGHT (0.5) for fixed parameters, 1 for renormalised ones")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -261,6 +265,7 @@ def run(args) -> int:
         raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
     if args.max_radius is not None and not 0 < args.max_radius <= 6:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
+    _check_velocity_weight(args)
     arms = {label: _trust_options(args, label) for label in args.params}
     if args.trust_region != "by-arm" and not any(arms.values()):
         raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
@@ -377,7 +382,8 @@ def run(args) -> int:
                       refit_generations=args.refit_generations, **_trust_options(args, label),
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
-                      recorded_until="every" if args.start_pair == "every" else "first")
+                      recorded_until="every" if args.start_pair == "every" else "first",
+                      **_step_options(args, label))
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -406,7 +412,7 @@ def run(args) -> int:
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
-                     "fit_throws": args.fit_throws,
+                     "velocity_weight": args.velocity_weight, "fit_throws": args.fit_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
@@ -472,9 +478,11 @@ def run_method(r: dict) -> str:
     region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
     if "rule" not in region:
         return r["method"]
+    weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
+    rows = "" if weight == 1.0 else f", velocity rows weighted {weight:g}"
     if region["rule"] == "fixed":
-        return f"{r['method']}, trust radius fixed at {region['max_radius']:g}"
-    return f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}"
+        return f"{r['method']}, trust radius fixed at {region['max_radius']:g}{rows}"
+    return f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}{rows}"
 
 
 def report_markdown(result: dict) -> str:
@@ -503,7 +511,10 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "max_radius": (None, "had no --max-radius"),
                              # gn steps adapted in every arm; plan and qp had none in fixed arms, as by-arm now
                              "trust_region": (lambda saved: "adaptive" if saved.get("method", "gn") == "gn"
-                                              else "by-arm", "adapted its trust radius in every run that had one")}
+                                              else "by-arm", "adapted its trust radius in every run that had one"),
+                             # gn steps weighed every row alike; plan and qp runs have no such step to weigh
+                             "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
+                                                 "weighed the velocity rows of its steps as the others")}
 
 
 def _restore_settings(args) -> None:
@@ -571,6 +582,41 @@ def _trust_options(args, label: str) -> dict:
     adaptive = rule == "adaptive"
     return {"trust_region": rule, "min_radius": args.min_radius if adaptive else None,
             "max_radius": args.max_radius if adaptive else None}
+
+
+def velocity_weight_arg(text) -> float | str:
+    """--velocity-weight: by-arm, or a finite number >= 0 (as a float, so a resumed run compares numbers)."""
+    if text == "by-arm":
+        return text
+    try:
+        weight = float(text)
+    except (TypeError, ValueError):
+        weight = float("nan")
+    if not (np.isfinite(weight) and weight >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a finite number >= 0 nor by-arm")
+    return weight
+
+
+def _velocity_weight(args) -> float | None:
+    """--velocity-weight as a number; None for by-arm (correct() picks it by the arm's method)."""
+    return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
+
+
+def _check_velocity_weight(args) -> None:
+    """A number is given only where an arm steps by Gauss-Newton (checked before any real run)."""
+    if args.velocity_weight == "by-arm":
+        return
+    if not any(_step_options(args, label) for label in args.params):
+        raise InputError("--velocity-weight", "velocity_weight", f"weighs Gauss-Newton steps, and no run here takes "
+                                                                 f"one (--method {args.method})")
+
+
+def _step_options(args, label: str) -> dict:
+    """correct()'s Gauss-Newton step options for the run with parameters `label`: none where it plans instead."""
+    method, steps = _arm_method(args, label)
+    if not (method == "gn" or (method == "renormalise" and steps == "gn")):
+        return {}
+    return {"velocity_weight": _velocity_weight(args)}
 
 
 def _adapts(arms: dict) -> bool:

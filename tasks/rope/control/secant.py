@@ -7,11 +7,14 @@ real critical state between each trial and the best one), all pairs together by 
 prior, each pair one directional derivative, the prior weighing RIDGE of one. The next command is the
 trust-region Gauss-Newton step from the best trial on the real residual,
 
-    du = argmin |W (S du) + e_best|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
+    du = argmin |R (W (S du) + e_best)|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
 
 with the radius fixed (fixed parameters, by default: README, "A fixed step instead of the adaptive trust region")
 or following how well the linear model predicted the last trial (renormalise.TrustRegion, rho on the correction's
-own error; the renormalised runs).
+own error; the renormalised runs). R weighs the velocity rows VELOCITY_WEIGHT in the fixed-parameter steps (1 in the
+renormalised ones): the trials showed the velocity at the contact to be the block the corrected sensitivity predicts
+worst, while its residual is as large as the positions', so a step that weighs it fully aims much of its length at
+changes it cannot predict. lam follows the weighted rows (qp_step).
 
 Why linear, and why the chain's sensitivity is measured once: at 10 links the chain's critical state as a
 function of the command is rough (the first contact jumps between segment pairs), so a plan on the chain's own
@@ -53,6 +56,8 @@ MATCH_REG = 1e-2  # per unit of u squared, against the squared weighted residual
 MATCH_SIGMA = 0.3  # the trial's command where the chain cannot tell commands apart; CMA-ES step, generations and
 MATCH_GENERATIONS = 40  # population of the match (40 x 48 chains, about 0.2 s here)
 MATCH_POPSIZE = 48
+VELOCITY_WEIGHT = 0.5  # the fixed-parameter steps' weight on the velocity rows: the block they predict worst (README,
+# "Which part of the critical state the steps can predict"); renormalised steps keep 1
 
 
 def residual_weights(goal: crit.Target) -> np.ndarray:
@@ -185,9 +190,20 @@ def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, r
     return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
 
 
+def step_row_weights(goal: crit.Target, velocity_weight: float) -> np.ndarray:
+    """(m,) the Gauss-Newton step's weight per row of the residual: velocity_weight on the velocity block, 1 elsewhere.
+    The step only: the error that accepts a trial and the one reported stay the observable's."""
+    rows = np.ones(goal.dim)
+    rows[goal.blocks["velocity"]] = velocity_weight
+    return rows
+
+
 def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
-            reg: float = GN_REG) -> tuple[np.ndarray, float]:
-    """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale."""
+            reg: float = GN_REG, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale; `rows`
+    (step_row_weights) scales each row of the least-squares problem."""
+    if rows is not None:
+        w, e_best = rows * w, rows * e_best
     du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg)
     return space.limit_step(u_best, du)
 

@@ -1,0 +1,132 @@
+"""How well each Gauss-Newton step was predicted, block by block: for every step of finished `correct rope` runs (a
+trial after the first that hit, as did the best trial before it), the change of each weighted error term (shape,
+velocity, time, place) that the step predicted against the change the real rope showed. A block whose changes are
+not predicted (correlation near 0) is one the steps chase blindly (README, "Which part of the critical state the
+steps can predict"). The steps of all runs named are pooled; each run's arm must step by Gauss-Newton (`--method gn`,
+or a renormalised arm of it), whose prediction is the linear model's, not the plan loops' model plus offset.
+
+    python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
+
+Reads correct.json and the goal only (newton's built-in throw, or the run's own OUT/goal on another engine); no
+simulation. The goal is checked against the errors stored with the trials.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
+
+TERMS = ("shape", "velocity", "time", "place")
+STAGES = (("best error above 0.1", lambda b: b > 0.1), ("best error at or below 0.1", lambda b: b <= 0.1))
+
+
+def _fail(message: str) -> None:
+    print(f"step_prediction: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def run_folders(paths) -> list[Path]:
+    """The run folders named, or inside the campaign folders named (one level down); each once."""
+    out = []
+    for p in map(Path, paths):
+        if (p / "correct.json").exists():
+            out.append(p)
+        elif p.is_dir() and any(p.glob("*/correct.json")):
+            out += sorted(q.parent for q in p.glob("*/correct.json"))
+        else:
+            _fail(f"{p}/correct.json: not a finished `correct rope` run, nor a folder of them")
+    return list(dict.fromkeys(q.resolve() for q in out))
+
+
+def goal_of(folder: Path, r: dict) -> crit.Target:
+    """The run's goal: newton's built-in throw, or another engine's goal throw kept in OUT/goal."""
+    settings = r.get("settings", {})
+    if settings.get("real", "fine") != "fine":
+        _fail(f"{folder}/correct.json: settings.real: {settings.get('real')!r}, a coarse stand-in's goal is not kept "
+              "with the run")
+    engine = settings.get("engine", "newton")
+    if engine == "newton":
+        f = builtin_reference_path(r["goal"]["path"], r["variant"])
+    else:
+        stored = sorted((folder / "goal").glob("trial-*.npz"))
+        if len(stored) != 1:
+            _fail(f"{folder}/goal: expected the {engine} goal throw kept with the run, found {len(stored)} files")
+        f = stored[0]
+    try:
+        return crit.Target.from_reference(load_reference(f))
+    except (OSError, ValueError, KeyError) as e:
+        _fail(f"{f}: the goal throw cannot be read ({e})")
+
+
+def _state(record: dict) -> crit.CriticalStates:
+    return crit.CriticalStates(np.asarray(record["positions"], np.float64)[None],
+                               np.asarray(record["velocities"], np.float64)[None], np.array([record["time"]]),
+                               np.asarray(record["contact_arclength"], np.float64)[None], np.ones(1, bool),
+                               np.zeros(1))
+
+
+def step_rows(folder: Path, arm: str) -> list[dict]:
+    """One row per predicted step: the best error before it, the predicted and the actual change of each weighted
+    term."""
+    try:
+        r = json.loads((folder / "correct.json").read_text())
+    except (OSError, ValueError) as e:
+        _fail(f"{folder}/correct.json: not a finished `correct rope` run ({e})")
+    if arm not in r.get("runs", {}):
+        _fail(f"{folder}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {})) or 'none'}")
+    run = r["runs"][arm]
+    if run.get("steps") != "gn":
+        _fail(f"{folder}/correct.json: runs.{arm}: method {run.get('method')!r} does not step by Gauss-Newton")
+    goal = goal_of(folder, r)
+    rows, best = [], None
+    for t in run["trials"]:
+        if t["self_collision"] and not np.isclose(float(goal.terms(_state(t["measured_state"]))["total"][0]),
+                                                  t["error"], rtol=1e-4, atol=1e-6):
+            _fail(f"{folder}/correct.json: runs.{arm}: trial {t['trial']}'s stored error {t['error']:.4f} is not its "
+                  "state's error to this goal (another goal throw than the run's?)")
+        if (best is not None and best["self_collision"] and t["self_collision"]
+                and (t.get("predicted_state") or {}).get("self_collision")):
+            predicted = goal.terms(_state(t["predicted_state"]))
+            rows.append({"best": best["error"], "accepted": bool(t["accepted"])}
+                        | {f"{k}_actual": goal.weights[k] * (t["terms"][k] - best["terms"][k]) for k in TERMS}
+                        | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
+                           for k in TERMS})
+        if t["accepted"]:
+            best = t
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| steps | block | correlation, predicted vs actual change | median predicted change | median actual "
+             "change |", "|---|---|---|---|---|"]
+    for label, keep in STAGES:
+        sub = [x for x in rows if keep(x["best"])]
+        for k in TERMS:
+            a = np.array([x[f"{k}_actual"] for x in sub])
+            p = np.array([x[f"{k}_predicted"] for x in sub])
+            corr = float(np.corrcoef(a, p)[0, 1]) if len(sub) > 2 and a.std() > 0 and p.std() > 0 else float("nan")
+            lines.append(f"| {label}: {len(sub)} | {k} | {corr:.2f} | {np.median(p) if len(p) else np.nan:+.4f} | "
+                         f"{np.median(a) if len(a) else np.nan:+.4f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", help="run folders of `correct rope`, or campaign folders holding them")
+    ap.add_argument("--arm", default="fitted", help="which run of each folder (measured, fitted, renormalised, ...)")
+    args = ap.parse_args(argv)
+    rows = [x for folder in run_folders(args.runs) for x in step_rows(folder, args.arm)]
+    if not rows:
+        _fail("no step to score: every run ended at trial 1 or never hit after it")
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
