@@ -299,10 +299,11 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
-    check_first_step(first_step, method == "gn" or (method == "renormalise" and steps == "gn"), linearise_at)
+    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
+    check_first_step(first_step, gn_steps, linearise_at)
     if recorded_until not in ("first", "every"):
         raise InputError("--start-pair", "recorded_until", f"{recorded_until!r} is not 'first' or 'every'")
-    if recorded and not (method == "gn" or (method == "renormalise" and steps == "gn")):
+    if recorded and not gn_steps:
         raise InputError("--start-pair", "recorded", "a recorded pair corrects the Gauss-Newton steps' sensitivity: "
                                                      "it needs --method gn (the plan and qp loops would ignore it)")
     if max_trials < 1:
@@ -318,7 +319,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--trust-region/--min-radius/--max-radius", "trust_region", f"the {method} loop has no "
                                                                                      "trust region of these (--method "
                                                                                      "gn or renormalised runs)")
-    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
     if velocity_weight is not None:
         if not gn_steps:
             raise InputError("--velocity-weight", "velocity_weight", f"weighs Gauss-Newton steps; the {method} loop "
