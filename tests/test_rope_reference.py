@@ -101,6 +101,7 @@ def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
     (lambda d: d.update(markers=d["markers"][:, :, :2].copy()), "markers"),
     (lambda d: d.update(markers=d["markers"][:-1].copy()), "markers"),
     (lambda d: d.update(radius=2.0), "radius"),
+    (lambda d: d.update(radius=1e-226), "radius"),  # its square underflows: found by test_fuzz_one_field
     (lambda d: d.update(mass=-1.0), "mass"),
     (lambda d: d.update(marker_arclength=d["marker_arclength"][::-1].copy()), "marker_arclength"),
     (lambda d: d.update(hand=d["hand"] + 0.5), "markers"),  # marker 0 is not at the hand

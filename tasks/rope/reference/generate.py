@@ -34,6 +34,7 @@ DEFAULT_DURATION = 1.5  # s: every built-in path collides by ~1.05 s
 # kg/m^3: ropes are 1000-1500 (nylon, polyester) and up to ~2400 with a dense core (the built-in rope); the band is
 # wide on purpose, a unit slip (grams, millimetres) moves the density by 1e3 or more
 DENSITY_RANGE = (50.0, 20000.0)
+MIN_RADIUS = 1e-6  # m
 GRAVITY_MIN_RESULTANT = 0.3  # the rope's mean direction must be at least this consistent to be judged
 GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
 GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
@@ -129,8 +130,10 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if mass <= 0:
         raise InputError(src, "mass", "must be > 0")
     radius = _scalar(src, "radius", data["radius"], 0.0, length, "m")
-    if not 0.0 < radius < 0.25 * length:
-        raise InputError(src, "radius", f"{radius:g} m must be > 0 and well below the length {length:g} m")
+    # a thread is tenths of a millimetre thick; below a micrometre the radius is a unit slip (and radius**2 underflows)
+    if not MIN_RADIUS <= radius < 0.25 * length:
+        raise InputError(src, "radius", f"{radius:g} m must be at least {MIN_RADIUS:g} m and well below the length "
+                                        f"{length:g} m")
     # Units: the density the three scalars imply. A mass in grams (or a radius in millimetres) passes each range
     # check alone but puts the rope 1000x outside what any rope is made of.
     density = mass / (length * np.pi * radius**2)
