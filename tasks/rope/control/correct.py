@@ -299,7 +299,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
-    gn_steps = method == "gn" or (method == "renormalise" and steps == "gn")
+    gn_steps = takes_gn_steps(method, steps)
     check_first_step(first_step, gn_steps, linearise_at)
     if recorded_until not in ("first", "every"):
         raise InputError("--start-pair", "recorded_until", f"{recorded_until!r} is not 'first' or 'every'")
@@ -462,6 +462,11 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
+def takes_gn_steps(method: str, steps: str) -> bool:
+    """Whether correct()'s loop for `method` (and `steps`, for renormalise) steps by Gauss-Newton (secant.py)."""
+    return method == "gn" or (method == "renormalise" and steps == "gn")
+
+
 def trust_region_for(method: str, steps: str, rule: str | None, radius: float | None, min_radius: float | None,
                      max_radius: float | None, bound: float):
     """The trust region of the gn and renormalise loops. rule "fixed": every step may go `radius` (GN_RADIUS) from the
@@ -473,7 +478,7 @@ def trust_region_for(method: str, steps: str, rule: str | None, radius: float | 
     rule = rule or ("fixed" if method == "gn" else "adaptive")
     if rule not in ("fixed", "adaptive"):
         raise InputError("--trust-region", "trust_region", f"{rule!r} is not 'fixed' or 'adaptive'")
-    first = radius if radius is not None else (gauss_newton.GN_RADIUS if method == "gn" or steps == "gn"
+    first = radius if radius is not None else (gauss_newton.GN_RADIUS if takes_gn_steps(method, steps)
                                                else DEFAULT_PLAN_RADIUS)
     if rule == "fixed":
         if min_radius is not None or max_radius is not None:

@@ -478,11 +478,10 @@ def run_method(r: dict) -> str:
     region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
     if "rule" not in region:
         return r["method"]
+    radius = (f"fixed at {region['max_radius']:g}" if region["rule"] == "fixed"
+              else f"{region['min_radius']:g}-{region['max_radius']:g}")
     weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
-    rows = "" if weight == 1.0 else f", velocity rows weighted {weight:g}"
-    if region["rule"] == "fixed":
-        return f"{r['method']}, trust radius fixed at {region['max_radius']:g}{rows}"
-    return f"{r['method']}, trust radius {region['min_radius']:g}-{region['max_radius']:g}{rows}"
+    return f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
 
 
 def report_markdown(result: dict) -> str:
@@ -613,8 +612,9 @@ def _check_velocity_weight(args) -> None:
 
 def _step_options(args, label: str) -> dict:
     """correct()'s Gauss-Newton step options for the run with parameters `label`: none where it plans instead."""
-    method, steps = _arm_method(args, label)
-    if not (method == "gn" or (method == "renormalise" and steps == "gn")):
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+
+    if not takes_gn_steps(*_arm_method(args, label)):
         return {}
     return {"velocity_weight": _velocity_weight(args)}
 
