@@ -1,5 +1,6 @@
 """Command correction and sensitivity on the coarse rope (fast: the coarse chain plays the real rope)."""
 import json
+import shlex
 from types import SimpleNamespace
 
 import numpy as np
@@ -529,6 +530,13 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, par
     values = lambda rows: [t["refit"] and t["refit"]["values"] for t in rows]  # noqa: E731
     assert values(again["runs"][params]["trials"]) == values(trials)
     assert again["max_trials"] == 4
+    # the resumed run records the command that repeats it from scratch, not `--resume --out` without --resume
+    line = shlex.split(again["command_line"])
+    assert line[:3] == ["python", "-m", "wrenorm"] and "--resume" not in line and "--max-trials" in line, line
+    line[line.index("--out") + 1] = str(tmp_path / "again")
+    assert main(line[3:]) == 0
+    fresh = json.loads((tmp_path / "again" / "correct.json").read_text())
+    assert [t["error"] for t in fresh["runs"][params]["trials"]] == [t["error"] for t in trials]
 
 
 def test_correct_resume_without_saved_settings_exits_2(tmp_path, capsys):
@@ -847,6 +855,12 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0}
+    args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
+    line = shlex.split(correct_cli.reproduce_command(args))
+    for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
+                        ("--segments", "12")):
+        assert line[line.index(flag) + 1] == value, line
+    assert vars(parser.parse_args(line[5:])) | {"resume": True} == vars(args) | {"out": tmp_path / "x"}
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "0.5"])
     with pytest.raises(InputError, match="weighed the velocity rows"):
         correct_cli._restore_settings(args)

@@ -420,7 +420,7 @@ def run(args) -> int:
         "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored,
         "real_wall_s": real.wall_s,
         "wall_seconds": time.perf_counter() - t_all, "versions": versions(), "device": args.device,
-        "command_line": command_line(args),
+        "command_line": reproduce_command(args) if args.resume else command_line(args),
     }
     write_json(out / "correct.json", result)
     write_atomic(out / "report.md", report_markdown(result))
@@ -555,6 +555,34 @@ def _restore_settings(args) -> None:
             setattr(args, key, as_run)
     if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
+
+
+def reproduce_command(args) -> str:
+    """The command that repeats a resumed run from scratch. `--resume --out X` as typed names none of the run's
+    settings, and the same line without --resume would run today's defaults, so the line is rebuilt from the
+    restored settings: every option whose value differs from its default, including those an old run had from
+    before the option existed (e.g. `--velocity-weight 1.0`)."""
+    import shlex
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    argv = ["correct", "rope"]
+    for action in parser._actions:
+        if not action.option_strings or action.dest in ("help", "resume", "force"):
+            continue
+        value = getattr(args, action.dest, action.default)
+        if value == action.default or value is None:
+            continue
+        flag = next(o for o in action.option_strings if o.startswith("--"))
+        if isinstance(action, argparse.BooleanOptionalAction):
+            argv.append(flag if value else action.option_strings[1])
+        elif action.nargs == 0:  # store_true
+            argv.append(flag)
+        elif isinstance(value, (list, tuple)):
+            argv += [flag, *map(str, value)]
+        else:
+            argv += [flag, str(value)]
+    return "python -m wrenorm " + shlex.join(argv)
 
 
 def _trust_rule(args, label: str) -> str:
