@@ -577,6 +577,24 @@ def test_a_blown_up_real_trial_costs_that_trial_not_the_run(problem, tmp_path):
     assert goal.terms(st)["total"][0] >= 1.0  # a miss costs, and is finite
 
 
+def test_newton_at_another_resolution_records_its_own_goal_and_start_throw(tmp_path):
+    """The built-in references are newton's 64-segment rod. A run whose real rope is newton at another resolution
+    steers that rope to ITS goal state (recorded before the trials, as on another engine), not to the 64-segment
+    rod's: at 16 segments the goal's first contact comes ~0.2 s later."""
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope.control.correct_cli import _builtin_reference
+
+    out = tmp_path / "n16"
+    assert main(["correct", "rope", "--fine-segments", "16", "--params", "measured", "--max-trials", "1",
+                 "--generations", "3", "--popsize", "8", "--no-record", "--quiet", "--out", str(out)]) == 0
+    done = json.loads((out / "correct.json").read_text())
+    assert done["goal"]["from"].startswith("recorded on the real rope") and any((out / "goal").glob("trial-*.npz"))
+    assert done["start"]["recorded_pair"]["source"].startswith("one newton run")
+    builtin = crit.from_reference(_builtin_reference("flick_high", "default", print)).time[0]
+    assert abs(done["goal"]["critical_time"] - builtin) > 0.1, (done["goal"]["critical_time"], builtin)
+    assert "16 segments" in done["real_system"]
+
+
 def test_mujoco_cable_plays_the_real_rope_and_agrees_with_its_reference_generator():
     from wrenorm.tasks.rope.control.correct import MujocoRope, real_rope_class
     from wrenorm.tasks.rope.reference.generate import generate_reference
@@ -626,6 +644,17 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                           "dt": 0.005, "start": "flick", "engine": "mujoco",
                                                           "fit_throws": "real"}))
     (own_throws / "correct.json").write_text('{"runs": {"fitted": {}}}')
+    mujoco_run = tmp_path / "mujoco-run"  # the stall diagnosis replays runs on newton's rope only
+    mujoco_run.mkdir()
+    (mujoco_run / "correct.json").write_text(json.dumps({"runs": {"fitted": {}}, "settings": {"engine": "mujoco"},
+                                                         "goal": {"path": "flick_high"}, "real_system": "mujoco"}))
+    fine32 = tmp_path / "newton-32"  # its goal was recorded on its own 32-segment rope, not the built-in one
+    fine32.mkdir()
+    np.savez(fine32 / "rope-sensitivity.npz", J=np.zeros((129, 13)), u=np.zeros(13), step=0.3)
+    (fine32 / "settings.json").write_text(json.dumps({"goal": "flick_high", "variant": "default", "segments": 10,
+                                                      "engine": "newton", "fine_segments": 32,
+                                                      "builtin_throws": False}))
+    (fine32 / "correct.json").write_text('{"runs": {"fitted": {}}}')
     bad = {"correct.json: no fitted run": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only],
            "workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
            "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
@@ -646,7 +675,12 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                             "--out", tmp_path / "o"],
            "chain needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "chain", "20", "--variant", "heavy"],
            "fitted to other throws than newton's": [diagnostics / "rope_sensitivity_prior.py", "compare", own_throws,
-                                                     "--segments", "20"]}
+                                                     "--segments", "20"],
+           "own 32-segment newton rope": [diagnostics / "rope_sensitivity_prior.py", "compare", fine32],
+           "replays the run on newton's built-in 64-segment rope": [diagnostics / "correct_stall.py", mujoco_run],
+           "newton rope of the built-in references (64 segments)": [
+               diagnostics / "rope_sensitivity_prior.py", "run", "--linearise-at", "trial", "--out", tmp_path / "o",
+               "--fine-segments", "32"]}
     for expected, argv in bad.items():
         r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr
@@ -838,6 +872,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
+    assert args.builtin_throws  # a newton run saved before the setting used the built-in throws, as it resumes
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--start-pair", "first"])
     with pytest.raises(InputError, match="without a start pair"):
         correct_cli._restore_settings(args)
@@ -860,7 +895,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
                         ("--segments", "12")):
         assert line[line.index(flag) + 1] == value, line
-    assert vars(parser.parse_args(line[5:])) | {"resume": True} == vars(args) | {"out": tmp_path / "x"}
+    restored = {k: v for k, v in vars(args).items() if k != "builtin_throws"}  # a fresh run derives it again
+    assert vars(parser.parse_args(line[5:])) | {"resume": True} == restored | {"out": tmp_path / "x"}
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "0.5"])
     with pytest.raises(InputError, match="weighed the velocity rows"):
         correct_cli._restore_settings(args)
@@ -976,7 +1012,7 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
         t["error"] for t in done["runs"]["fitted"]["trials"]]
 
     # on newton too the goal's throw is left out of the fit; the coarse stand-in has no throws of its own
-    ns = argparse.Namespace(fit_throws="real", real="fine", engine="newton", variant="default")
+    ns = argparse.Namespace(fit_throws="real", real="fine", engine="newton", variant="default", builtin_throws=True)
     throws, dropped, _ = correct_cli._fit_throws(ns, PATHS["flick_wide"], tmp_path, lambda m: None)
     assert list(throws) == ["flick", "flick_fast"] and dropped == {"flick_wide": "the goal's own throw"}
     assert main(CORRECT_QUICK + ["--fit-throws", "real", "--out", str(tmp_path / "coarse")]) == 2

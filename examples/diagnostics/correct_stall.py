@@ -37,6 +37,11 @@ def main(run: str, arm: str) -> None:
         _fail(f"{run}/correct.json: not a finished `correct rope` run ({e})")
     if arm not in r.get("runs", {}):
         _fail(f"{run}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {}))}")
+    settings = r.get("settings", {})
+    if (settings.get("engine", "newton"), settings.get("real", "fine"),
+            r["goal"].get("from", "built-in reference")) != ("newton", "fine", "built-in reference"):
+        _fail(f"{run}/correct.json: this diagnostic replays the run on newton's built-in 64-segment rope; this run's "
+              f"real rope was {r.get('real_system', 'another')!r}")
     gref = load_reference(builtin_reference_path(r["goal"]["path"], r["variant"]))
     goal = crit.Target.from_reference(gref)
     space = CommandSpace(get_hand_path(r["start"]["path"]))

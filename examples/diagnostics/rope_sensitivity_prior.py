@@ -45,14 +45,16 @@ def _fail(message: str) -> None:
 
 
 def _refit_matches_the_run(settings: dict, where: Path) -> None:
-    """The refits here fit newton's three built-in throws, as the run's chain was unless it was fitted to another
-    engine's throws or its goal was one of them (correct rope --fit-throws real leaves the goal's out)."""
+    """The refits here fit newton's three built-in throws, as the run's chain was unless it was fitted to the throws of
+    another rope (another engine, or newton at another resolution) or its goal was one of them (correct rope
+    --fit-throws real leaves the goal's out)."""
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS
 
-    if settings.get("fit_throws", "newton") == "real" and (settings.get("engine", "newton") != "newton"
-                                                            or settings.get("goal") in FIT_PATHS):
-        _fail(f"{where}: the run's chain was fitted to other throws than newton's {', '.join(FIT_PATHS)} "
-              f"(engine {settings.get('engine')}, goal {settings.get('goal')}); this diagnostic refits to those")
+    builtin = settings.get("builtin_throws", settings.get("engine", "newton") == "newton")
+    if settings.get("fit_throws", "newton") == "real" and (not builtin or settings.get("goal") in FIT_PATHS):
+        _fail(f"{where}: the run's chain was fitted to other throws than newton's built-in {', '.join(FIT_PATHS)} "
+              f"(engine {settings.get('engine')}, {settings.get('fine_segments')} segments, goal "
+              f"{settings.get('goal')}); this diagnostic refits to those")
 
 
 def _option(argv: list[str], flag: str) -> str | None:
@@ -70,11 +72,13 @@ def _fixed_parameters_only(argv: list[str], command: str, why: str = "") -> None
 def run(argv: list[str]) -> int:
     from wrenorm.cli import main
     from wrenorm.tasks.rope.control.correct import NewtonRope
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
     if (_option(argv, "--out") is None or _option(argv, "--linearise-at") != "trial"
-            or _option(argv, "--engine") not in (None, "newton")):
+            or _option(argv, "--engine") not in (None, "newton")
+            or _option(argv, "--fine-segments") not in (None, str(DEFAULT_SEGMENTS))):
         _fail("run needs --out OUT and --linearise-at trial (the rope's sensitivity is measured at trial 1's "
-              "command), on the newton rope")
+              f"command), on the newton rope of the built-in references ({DEFAULT_SEGMENTS} segments)")
     _fixed_parameters_only(argv, "run", ": a renormalised arm re-measures its sensitivity after every trial, 26 fine "
                                         "runs each")
     out = Path(_option(argv, "--out"))
@@ -212,6 +216,9 @@ def compare(folder: Path, segments: int | None = None, best: bool = False) -> in
         _fail(f"{folder / FILE}: not the output of `run` ({type(e).__name__})")
     if "fitted" not in result["runs"]:
         _fail(f"{folder / 'correct.json'}: no fitted run (run with --params fitted)")
+    if settings.get("engine", "newton") == "newton" and not settings.get("builtin_throws", True):
+        _fail(f"{folder / 'settings.json'}: the run's goal was recorded on its own {settings.get('fine_segments')}-"
+              "segment newton rope, not the built-in one that this comparison reads")
     goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
     goal = crit.Target.from_reference(goal_ref)
     segments = settings["segments"] if segments is None else segments

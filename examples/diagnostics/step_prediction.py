@@ -45,13 +45,14 @@ def run_folders(paths) -> list[Path]:
 
 
 def goal_of(folder: Path, r: dict) -> crit.Target:
-    """The run's goal: newton's built-in throw, or another engine's goal throw kept in OUT/goal."""
+    """The run's goal: newton's built-in throw, or the goal throw kept in OUT/goal (another engine, or newton at
+    another resolution than the built-in references')."""
     settings = r.get("settings", {})
     if settings.get("real", "fine") != "fine":
         _fail(f"{folder}/correct.json: settings.real: {settings.get('real')!r}, a coarse stand-in's goal is not kept "
               "with the run")
     engine = settings.get("engine", "newton")
-    if engine == "newton":
+    if engine == "newton" and r["goal"].get("from", "built-in reference") == "built-in reference":
         f = builtin_reference_path(r["goal"]["path"], r["variant"])
     else:
         stored = sorted((folder / "goal").glob("trial-*.npz"))

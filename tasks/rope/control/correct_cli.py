@@ -18,6 +18,7 @@ SYSTEM = "rope"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
     from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
@@ -117,7 +118,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refit-generations", type=int, default=None,
                    help="(renormalised) CMA-ES generations of each refit; default renormalise.REFIT_GENERATIONS")
     p.add_argument("--dt", type=float, default=0.005, help="coarse time step (s)")
-    p.add_argument("--fine-segments", type=int, default=64, help="segments of the fine newton rope")
+    p.add_argument("--fine-segments", type=int, default=DEFAULT_SEGMENTS,
+                   help="segments of the fine rope; on newton another value than the built-in references' "
+                        f"{DEFAULT_SEGMENTS} records the goal, start and fit throws on that rope before the trials")
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
     p.add_argument("--fit-throws", choices=("real", "newton"), default=None,
                    help="(fitted, renormalised-from-fitted) the reference throws the chain is fitted to before the "
@@ -138,6 +141,12 @@ def _builtin_reference(name: str, variant: str, progress):
     return generate_reference(name, p, variant=variant)
 
 
+def _goal_source(args) -> str:
+    if args.real != "fine":
+        return "the coarse stand-in under the goal path"
+    return "built-in reference" if args.builtin_throws else "recorded on the real rope before the trials (OUT/goal)"
+
+
 def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict, dict]:
     """The reference throws the chain is fitted to before the trials (name -> RopeReference), those left out with
     the reason, and every throw recorded (the start pair reuses the start throw's). --fit-throws real: the real
@@ -151,7 +160,7 @@ def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict, dict]:
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, get_hand_path
 
     own = args.fit_throws == "real" and args.real == "fine"
-    if not own or args.engine == "newton":
+    if not own or args.builtin_throws:
         newton = dict(zip(FIT_PATHS, builtin_references("fit", args.variant, progress=progress)))
         if not own:
             return newton, {}, newton
@@ -160,12 +169,13 @@ def _fit_throws(args, goal_path, out, progress) -> tuple[dict, dict, dict]:
                if np.array_equal(path.control_points, goal_path.control_points)
                and np.array_equal(path.durations, goal_path.durations)}
     names = [name for name in FIT_PATHS if name not in dropped]
-    if args.engine == "newton":
+    if args.builtin_throws:
         recorded = {name: newton[name] for name in names}
     else:
         rope = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
                                                          args.device), out / "fit-throws")
-        progress(f"recording the fit throws {', '.join(names)} on the {args.engine} rope before the trials")
+        progress(f"recording the fit throws {', '.join(names)} on the {args.engine} rope ({args.fine_segments} "
+                 "segments) before the trials")
         recorded = {name: rope(paths[name]) for name in names}
     throws = {}
     for name, ref in recorded.items():
@@ -195,7 +205,7 @@ def _start_recording(args, real, start_path, out, progress, fit_recorded=None):
     """The real rope under the start command, recorded before the trials, and where it came from: on newton the start
     throw's built-in reference (what the fitted parameters were fitted to), on another engine the fit throw of the
     same command where one was recorded, else one run of it, kept in OUT/start so a resumed run reads it back."""
-    if args.real == "fine" and args.engine == "newton":
+    if args.real == "fine" and args.builtin_throws:
         return _builtin_reference(args.start, args.variant, progress), "built-in reference"
     if args.real == "fine" and args.fit_throws == "real" and args.start in (fit_recorded or {}):
         return fit_recorded[args.start], "the fit throw recorded before the trials"
@@ -228,6 +238,7 @@ def run(args) -> int:
         trust_region_for,
     )
     from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
     from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import get_hand_path
 
@@ -296,14 +307,15 @@ def run(args) -> int:
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
     if not args.resume:
+        args.builtin_throws = args.engine == "newton" and args.fine_segments == DEFAULT_SEGMENTS
         write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
-    if args.real == "fine" and args.engine != "newton":
-        # another engine's rope reaches its own goal state: the goal throw on that engine (kept with the trials)
+    if args.real == "fine" and not args.builtin_throws:
+        # a rope without built-in references reaches its own goal state: the goal throw on it (kept with the trials)
         from wrenorm.tasks.rope.reference.generate import DEFAULT_DURATION
 
-        progress(f"the goal: {args.variant} rope under {args.goal} on {args.engine}")
+        progress(f"the goal: {args.variant} rope under {args.goal} on {args.engine} ({args.fine_segments} segments)")
         goal_ref = StoredTrials(real_rope_class(args.engine)(args.variant, args.fine_segments, DEFAULT_DURATION,
                                                              args.device), out / "goal")(goal_path)
     else:
@@ -390,8 +402,8 @@ def run(args) -> int:
 
     result = {
         "schema": "wrenorm.correct/1", "system": SYSTEM, "variant": args.variant, "real_system": real_doc,
-        "goal": {"path": args.goal, "critical_time": float(goal.state.time[0]), "contact_arclength":
-                 goal.state.s[0].tolist(), "command_u_of_goal_path": u_goal},
+        "goal": {"path": args.goal, "from": _goal_source(args), "critical_time": float(goal.state.time[0]),
+                 "contact_arclength": goal.state.s[0].tolist(), "command_u_of_goal_path": u_goal},
         "start": {"path": args.start, "perturb": args.perturb, "command_u": u0.tolist(),
                   "recorded_pair": start_record},
         "command": {"names": space.names, "scales": space.scales.tolist(), "bound": space.bound,
@@ -553,6 +565,9 @@ def _restore_settings(args) -> None:
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
+    # newton's built-in throws stood for the real rope in every newton run saved before this setting, whatever its
+    # --fine-segments; such a run resumes with them
+    args.builtin_throws = bool(saved.get("builtin_throws", args.engine == "newton"))
     if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
 

@@ -31,6 +31,7 @@ REQUIRED = ("time", "markers", "hand", "length", "mass", "radius")
 OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s")
 FRAME_RATE = 250.0  # Hz: 4 ms frames resolve a tip moving at ~10 m/s to 4 cm
 DEFAULT_DURATION = 1.5  # s: every built-in path collides by ~1.05 s
+DEFAULT_SEGMENTS = 64  # rod segments of the fine rope, and of every built-in reference
 # kg/m^3: ropes are 1000-1500 (nylon, polyester) and up to ~2400 with a dense core (the built-in rope); the band is
 # wide on purpose, a unit slip (grams, millimetres) moves the density by 1e3 or more
 DENSITY_RANGE = (50.0, 20000.0)
@@ -373,7 +374,7 @@ def perturbed_path(path_name: str, seed: int, sigma: float = 0.75):
     raise InputError("--perturb", "perturb", f"no feasible command near {path_name!r} in 200 draws (seed {seed})")
 
 
-def generate_reference(path_name, out=None, segments: int = 64, variant: str = "default",
+def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, variant: str = "default",
                        duration: float = DEFAULT_DURATION, markers: int | None = None,
                        frame_rate: float | None = None, substeps_per_frame: int = 8, iterations: int = 10,
                        device: str = "cpu", progress=None, engine: str = "newton", perturb: int | None = None,
