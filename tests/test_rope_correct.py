@@ -439,6 +439,9 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert "space mapping's step needs" in capsys.readouterr().err and not (tmp_path / "o3").exists()
     assert main(["correct", "rope", "--out", str(tmp_path / "o4"), "--start-pair", "first", "--method", "plan"]) == 2
     assert "--start-pair" in capsys.readouterr().err and not (tmp_path / "o4").exists()
+    # newton's built-in throws cannot stand for another engine's rope
+    assert main(["correct", "rope", "--out", str(tmp_path / "o4"), "--engine", "mujoco", "--builtin-throws"]) == 2
+    assert "builtin_throws" in capsys.readouterr().err and not (tmp_path / "o4").exists()
     assert main(["correct", "rope", "--out", str(tmp_path / "o5"), "--start-pair", "always"]) == 2
     assert "--start-pair" in capsys.readouterr().err
     with pytest.raises(InputError, match="needs --method gn"):
@@ -581,6 +584,10 @@ def test_newton_at_another_resolution_records_its_own_goal_and_start_throw(tmp_p
     """The built-in references are newton's 64-segment rod. A run whose real rope is newton at another resolution
     steers that rope to ITS goal state (recorded before the trials, as on another engine), not to the 64-segment
     rod's: at 16 segments the goal's first contact comes ~0.2 s later."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
     from wrenorm.cli import main
     from wrenorm.tasks.rope.control.correct_cli import _builtin_reference
 
@@ -592,7 +599,21 @@ def test_newton_at_another_resolution_records_its_own_goal_and_start_throw(tmp_p
     assert done["start"]["recorded_pair"]["source"].startswith("one newton run")
     builtin = crit.from_reference(_builtin_reference("flick_high", "default", print)).time[0]
     assert abs(done["goal"]["critical_time"] - builtin) > 0.1, (done["goal"]["critical_time"], builtin)
-    assert "16 segments" in done["real_system"]
+    assert "16 segments" in done["real_system"] and done["settings"]["fine_segments"] == 16
+    assert json.loads((out / "settings.json").read_text())["builtin_throws"] is False
+    # resumed, it reads its goal, start throw and trial back (no fine run) and repeats itself
+    (out / "correct.json").unlink()
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(out)]) == 0
+    again = json.loads((out / "correct.json").read_text())
+    assert again["real_runs"] == 0 and again["goal"] == done["goal"]
+    assert [t["error"] for t in again["runs"]["measured"]["trials"]] == [
+        t["error"] for t in done["runs"]["measured"]["trials"]]
+    line = shlex.split(again["command_line"])
+    assert line[line.index("--fine-segments") + 1] == "16" and "--builtin-throws" not in line, line
+    # the stall diagnosis replays on the built-in 64-segment rope: it refuses this run in one line
+    stall = Path(__file__).parents[1] / "examples" / "diagnostics" / "correct_stall.py"
+    r = subprocess.run([sys.executable, str(stall), str(out), "measured"], capture_output=True, text=True)
+    assert r.returncode == 2 and "built-in 64-segment rope" in r.stderr.strip().splitlines()[-1], r.stderr
 
 
 def test_mujoco_cable_plays_the_real_rope_and_agrees_with_its_reference_generator():
@@ -873,6 +894,15 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
     assert args.builtin_throws  # a newton run saved before the setting used the built-in throws, as it resumes
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old | {"fine_segments": 32, "device": "cuda:0"}))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--device", "cuda"])  # "cuda:0" saved is "cuda"
+    correct_cli._restore_settings(args)
+    assert args.builtin_throws and args.fine_segments == 32 and args.device == "cuda"
+    args.device = "cuda:0"  # as run() resolves it
+    line = shlex.split(correct_cli.reproduce_command(args))  # at 32 segments it took the built-in throws: said so
+    assert "--builtin-throws" in line and line[line.index("--device") + 1] == "cuda", line
+    assert parser.parse_args(line[5:]).builtin_throws is True
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--start-pair", "first"])
     with pytest.raises(InputError, match="without a start pair"):
         correct_cli._restore_settings(args)
@@ -895,8 +925,9 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
                         ("--segments", "12")):
         assert line[line.index(flag) + 1] == value, line
-    restored = {k: v for k, v in vars(args).items() if k != "builtin_throws"}  # a fresh run derives it again
-    assert vars(parser.parse_args(line[5:])) | {"resume": True} == restored | {"out": tmp_path / "x"}
+    assert "--builtin-throws" not in line  # at 64 segments the built-in throws are what a fresh run takes anyway
+    derived = lambda ns: {k: v for k, v in vars(ns).items() if k != "builtin_throws"}  # noqa: E731 (run() derives it)
+    assert derived(parser.parse_args(line[5:])) | {"resume": True} == derived(args) | {"out": tmp_path / "x"}
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "0.5"])
     with pytest.raises(InputError, match="weighed the velocity rows"):
         correct_cli._restore_settings(args)

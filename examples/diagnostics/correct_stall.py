@@ -38,8 +38,12 @@ def main(run: str, arm: str) -> None:
     if arm not in r.get("runs", {}):
         _fail(f"{run}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {}))}")
     settings = r.get("settings", {})
-    if (settings.get("engine", "newton"), settings.get("real", "fine"),
-            r["goal"].get("from", "built-in reference")) != ("newton", "fine", "built-in reference"):
+    try:  # the fine rope's resolution is in settings.json (and in correct.json's settings from stop 34 on)
+        fine = json.load(open(f"{run}/settings.json")).get("fine_segments", 64)
+    except (OSError, ValueError):
+        fine = settings.get("fine_segments", 64)
+    if (settings.get("engine", "newton"), settings.get("real", "fine"), r["goal"].get("from", "built-in reference"),
+            fine) != ("newton", "fine", "built-in reference", 64):
         _fail(f"{run}/correct.json: this diagnostic replays the run on newton's built-in 64-segment rope; this run's "
               f"real rope was {r.get('real_system', 'another')!r}")
     gref = load_reference(builtin_reference_path(r["goal"]["path"], r["variant"]))

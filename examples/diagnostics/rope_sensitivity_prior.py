@@ -58,8 +58,13 @@ def _refit_matches_the_run(settings: dict, where: Path) -> None:
 
 
 def _option(argv: list[str], flag: str) -> str | None:
-    """The value after `flag` in `correct rope`'s options, or None."""
-    return argv[argv.index(flag) + 1] if flag in argv[:-1] else None
+    """The value after `flag` (or in `flag=value`) in `correct rope`'s options, or None."""
+    for i, a in enumerate(argv):
+        if a.startswith(flag + "="):
+            return a.split("=", 1)[1]
+        if a == flag and i + 1 < len(argv):
+            return argv[i + 1]
+    return None
 
 
 def _fixed_parameters_only(argv: list[str], command: str, why: str = "") -> None:
@@ -90,6 +95,8 @@ def run(argv: list[str]) -> int:
         # the loop's own fine rope is not reachable from here: an equal one (variant, segments, the CLI's horizon)
         t = time.perf_counter()
         settings = json.loads((out / "settings.json").read_text())
+        if not settings.get("builtin_throws", True) or settings.get("fine_segments", 64) != 64:
+            _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' 64-segment one")
         if "rope" not in ropes:
             goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
             horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)

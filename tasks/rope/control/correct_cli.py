@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
 SYSTEM = "rope"
 
@@ -18,7 +19,6 @@ SYSTEM = "rope"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
     from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
-    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
@@ -121,6 +121,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fine-segments", type=int, default=DEFAULT_SEGMENTS,
                    help="segments of the fine rope; on newton another value than the built-in references' "
                         f"{DEFAULT_SEGMENTS} records the goal, start and fit throws on that rope before the trials")
+    # what newton runs at another --fine-segments did before they recorded their own throws (the built-in
+    # 64-segment rod's goal and throws, trials at N): kept so that such a run's command line repeats it
+    p.add_argument("--builtin-throws", action=argparse.BooleanOptionalAction, default=None, help=argparse.SUPPRESS)
     p.add_argument("--fit-generations", type=int, default=30, help="CMA-ES generations of the renormalising fit")
     p.add_argument("--fit-throws", choices=("real", "newton"), default=None,
                    help="(fitted, renormalised-from-fitted) the reference throws the chain is fitted to before the "
@@ -139,6 +142,10 @@ def _builtin_reference(name: str, variant: str, progress):
         return load_reference(p)
     progress(f"generating the {variant} rope's {name} throw into {p}")
     return generate_reference(name, p, variant=variant)
+
+
+def _builtin_throws_are_the_real_ropes(args) -> bool:
+    return args.engine == "newton" and args.fine_segments == DEFAULT_SEGMENTS
 
 
 def _goal_source(args) -> str:
@@ -238,7 +245,6 @@ def run(args) -> int:
         trust_region_for,
     )
     from wrenorm.tasks.rope.problem import RopeProblem
-    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
     from wrenorm.tasks.rope.reference.materials import get_variant
     from wrenorm.tasks.rope.reference.paths import get_hand_path
 
@@ -302,12 +308,15 @@ def run(args) -> int:
                                                        "throws; it has no throws of its own (leave the option out)")
     args.fit_throws = args.fit_throws or ("real" if args.real == "fine" else "newton")
     real_rope_class(args.engine)
+    if args.builtin_throws is None:
+        args.builtin_throws = _builtin_throws_are_the_real_ropes(args)
+    elif args.builtin_throws and args.engine != "newton":
+        raise InputError("--builtin-throws", "builtin_throws", f"the built-in throws are newton's, not {args.engine}'s")
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     space = CommandSpace(start_path)
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
     if not args.resume:
-        args.builtin_throws = args.engine == "newton" and args.fine_segments == DEFAULT_SEGMENTS
         write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
     t_all = time.perf_counter()
 
@@ -425,6 +434,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "fit_throws": args.fit_throws,
+                     "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
@@ -525,7 +535,10 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                                               else "by-arm", "adapted its trust radius in every run that had one"),
                              # gn steps weighed every row alike; plan and qp runs have no such step to weigh
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
-                                                 "weighed the velocity rows of its steps as the others")}
+                                                 "weighed the velocity rows of its steps as the others"),
+                             # every newton run took the built-in throws, whatever its --fine-segments
+                             "builtin_throws": (lambda saved: saved.get("engine", "newton") == "newton",
+                                                "took its goal and throws from newton's built-in references")}
 
 
 def _restore_settings(args) -> None:
@@ -551,6 +564,8 @@ def _restore_settings(args) -> None:
     for key, value in saved.items():
         if key in _NOT_SAVED or key not in defaults:
             continue
+        if key == "device" and isinstance(value, str) and value.startswith("cuda"):
+            value = "cuda"  # saved as the run resolved it ("cuda:0"); the option's choice is "cuda"
         given = getattr(args, key, None)
         if given != defaults[key] and json.loads(json.dumps(given, default=str)) != value:
             raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction ran with {value!r}, "
@@ -565,9 +580,6 @@ def _restore_settings(args) -> None:
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
-    # newton's built-in throws stood for the real rope in every newton run saved before this setting, whatever its
-    # --fine-segments; such a run resumes with them
-    args.builtin_throws = bool(saved.get("builtin_throws", args.engine == "newton"))
     if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
 
@@ -586,6 +598,10 @@ def reproduce_command(args) -> str:
         if not action.option_strings or action.dest in ("help", "resume", "force"):
             continue
         value = getattr(args, action.dest, action.default)
+        if action.dest == "device":
+            value = "cuda" if str(value).startswith("cuda") else value  # the run's "cuda:0"
+        if action.dest == "builtin_throws" and value == _builtin_throws_are_the_real_ropes(args):
+            continue  # what a fresh run derives from --engine and --fine-segments
         if value == action.default or value is None:
             continue
         flag = next(o for o in action.option_strings if o.startswith("--"))
