@@ -17,6 +17,7 @@ import numpy as np
 from wrenorm.tasks.rope import observable as crit
 from wrenorm.tasks.rope.control.command import CommandSpace
 from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, StoredTrials
+from wrenorm.tasks.rope.control.correct_cli import builtin_is_the_real_rope, builtin_throws_of
 from wrenorm.tasks.rope.control.plan import Offset, predicted_states, state_vector
 from wrenorm.tasks.rope.problem import RopeProblem, resample
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
@@ -39,11 +40,11 @@ def main(run: str, arm: str) -> None:
         _fail(f"{run}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {}))}")
     settings = r.get("settings", {})
     try:  # the fine rope's resolution is in settings.json (and in correct.json's settings from stop 34 on)
-        fine = json.load(open(f"{run}/settings.json")).get("fine_segments", 64)
+        settings = settings | json.load(open(f"{run}/settings.json"))
     except (OSError, ValueError):
-        fine = settings.get("fine_segments", 64)
-    if (settings.get("engine", "newton"), settings.get("real", "fine"), r["goal"].get("from", "built-in reference"),
-            fine) != ("newton", "fine", "built-in reference", 64):
+        pass
+    if not (settings.get("real", "fine") == "fine" and builtin_throws_of(settings)
+            and builtin_is_the_real_rope(settings)):
         _fail(f"{run}/correct.json: this diagnostic replays the run on newton's built-in 64-segment rope; this run's "
               f"real rope was {r.get('real_system', 'another')!r}")
     gref = load_reference(builtin_reference_path(r["goal"]["path"], r["variant"]))

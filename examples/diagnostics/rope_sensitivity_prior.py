@@ -34,6 +34,7 @@ import numpy as np
 from wrenorm.jacobian import jacobian
 from wrenorm.tasks.rope import observable as crit
 from wrenorm.tasks.rope.control import secant
+from wrenorm.tasks.rope.control.correct_cli import builtin_is_the_real_rope, builtin_throws_of
 from wrenorm.tasks.rope.control.plan import state_vector
 
 FILE = "rope-sensitivity.npz"
@@ -50,8 +51,8 @@ def _refit_matches_the_run(settings: dict, where: Path) -> None:
     --fit-throws real leaves the goal's out)."""
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS
 
-    builtin = settings.get("builtin_throws", settings.get("engine", "newton") == "newton")
-    if settings.get("fit_throws", "newton") == "real" and (not builtin or settings.get("goal") in FIT_PATHS):
+    if settings.get("fit_throws", "newton") == "real" and (not builtin_throws_of(settings)
+                                                            or settings.get("goal") in FIT_PATHS):
         _fail(f"{where}: the run's chain was fitted to other throws than newton's built-in {', '.join(FIT_PATHS)} "
               f"(engine {settings.get('engine')}, {settings.get('fine_segments')} segments, goal "
               f"{settings.get('goal')}); this diagnostic refits to those")
@@ -95,7 +96,7 @@ def run(argv: list[str]) -> int:
         # the loop's own fine rope is not reachable from here: an equal one (variant, segments, the CLI's horizon)
         t = time.perf_counter()
         settings = json.loads((out / "settings.json").read_text())
-        if not settings.get("builtin_throws", True) or settings.get("fine_segments", 64) != 64:
+        if not (builtin_throws_of(settings) and builtin_is_the_real_rope(settings)):
             _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' 64-segment one")
         if "rope" not in ropes:
             goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
@@ -223,7 +224,7 @@ def compare(folder: Path, segments: int | None = None, best: bool = False) -> in
         _fail(f"{folder / FILE}: not the output of `run` ({type(e).__name__})")
     if "fitted" not in result["runs"]:
         _fail(f"{folder / 'correct.json'}: no fitted run (run with --params fitted)")
-    if settings.get("engine", "newton") == "newton" and not settings.get("builtin_throws", True):
+    if settings.get("engine", "newton") == "newton" and not builtin_throws_of(settings):
         _fail(f"{folder / 'settings.json'}: the run's goal was recorded on its own {settings.get('fine_segments')}-"
               "segment newton rope, not the built-in one that this comparison reads")
     goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))

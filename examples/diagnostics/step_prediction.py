@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control.correct_cli import builtin_throws_of
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
 
 TERMS = ("shape", "velocity", "time", "place")
@@ -52,7 +53,7 @@ def goal_of(folder: Path, r: dict) -> crit.Target:
         _fail(f"{folder}/correct.json: settings.real: {settings.get('real')!r}, a coarse stand-in's goal is not kept "
               "with the run")
     engine = settings.get("engine", "newton")
-    if engine == "newton" and r["goal"].get("from", "built-in reference") == "built-in reference":
+    if builtin_throws_of(settings):
         f = builtin_reference_path(r["goal"]["path"], r["variant"])
     else:
         stored = sorted((folder / "goal").glob("trial-*.npz"))

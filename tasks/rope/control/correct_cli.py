@@ -144,8 +144,18 @@ def _builtin_reference(name: str, variant: str, progress):
     return generate_reference(name, p, variant=variant)
 
 
-def _builtin_throws_are_the_real_ropes(args) -> bool:
-    return args.engine == "newton" and args.fine_segments == DEFAULT_SEGMENTS
+def builtin_is_the_real_rope(settings: dict) -> bool:
+    """Whether newton's built-in references are the rope that a run with these settings (vars(args), or a saved
+    settings.json) steers: newton at their resolution."""
+    return (settings.get("engine", "newton") == "newton"
+            and settings.get("fine_segments", DEFAULT_SEGMENTS) == DEFAULT_SEGMENTS)
+
+
+def builtin_throws_of(saved: dict) -> bool:
+    """Whether a saved run took its goal, start and fit throws from newton's built-in references: as its settings say,
+    or, saved before they said it, whenever it ran on newton (whatever its --fine-segments)."""
+    said = saved.get("builtin_throws")
+    return bool(said) if said is not None else saved.get("engine", "newton") == "newton"
 
 
 def _goal_source(args) -> str:
@@ -309,7 +319,7 @@ def run(args) -> int:
     args.fit_throws = args.fit_throws or ("real" if args.real == "fine" else "newton")
     real_rope_class(args.engine)
     if args.builtin_throws is None:
-        args.builtin_throws = _builtin_throws_are_the_real_ropes(args)
+        args.builtin_throws = builtin_is_the_real_rope(vars(args))
     elif args.builtin_throws and args.engine != "newton":
         raise InputError("--builtin-throws", "builtin_throws", f"the built-in throws are newton's, not {args.engine}'s")
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
@@ -536,8 +546,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              # gn steps weighed every row alike; plan and qp runs have no such step to weigh
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
-                             # every newton run took the built-in throws, whatever its --fine-segments
-                             "builtin_throws": (lambda saved: saved.get("engine", "newton") == "newton",
+                             "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
 
 
@@ -600,7 +609,7 @@ def reproduce_command(args) -> str:
         value = getattr(args, action.dest, action.default)
         if action.dest == "device":
             value = "cuda" if str(value).startswith("cuda") else value  # the run's "cuda:0"
-        if action.dest == "builtin_throws" and value == _builtin_throws_are_the_real_ropes(args):
+        if action.dest == "builtin_throws" and value == builtin_is_the_real_rope(vars(args)):
             continue  # what a fresh run derives from --engine and --fine-segments
         if value == action.default or value is None:
             continue
