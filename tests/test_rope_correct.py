@@ -94,6 +94,39 @@ def test_gn_step_row_weights_scale_the_least_squares_rows():
     assert np.abs(secant.gn_step(S, w, e, u0, space, 0.7)[0] - du_other).max() > 0.1  # weighed fully, they pull apart
 
 
+def test_model_floor_is_the_least_error_the_linear_model_predicts_in_the_box():
+    """The floor: a best state the sensitivity can undo inside the box (but not inside a 1.0 trust radius) has floor
+    0 at that command; for any best state no trust-region step, nor any of 4 000 random commands around the floor
+    and the best command, is predicted better than the floor (the independent reference: brute force)."""
+    space = CommandSpace(PATHS["flick"])
+    goal = crit.Target.from_reference(load_reference(builtin_reference_path("flick_fast", "default")))
+    rng = np.random.default_rng(5)
+    w = secant.residual_weights(goal)
+    S = rng.normal(size=(goal.dim, space.dim)) * 0.02 / w[:, None]
+    u0 = np.zeros(space.dim)
+    du_true = rng.uniform(-2.5, 2.5, space.dim)
+    best = with_offset(goal.state, -S @ du_true)
+    e = goal.residual(best)[0]
+    u_floor = secant.model_floor(goal, best, S, w, e, u0, space)
+    rec = secant.floor_record(goal, best, S, u0, u_floor)
+    assert rec["error"] < 1e-3 and rec["distance"] == pytest.approx(np.abs(du_true).max(), abs=0.05)
+    assert set(rec["terms"]) == {"shape", "velocity", "time", "place"}
+    u_step = secant.gn_step(S, w, e, u0, space, 1.0)[0]
+    assert secant.predicted_errors(goal, best, S, u_step)[0] > 0.05  # the radius, not the model, holds the step
+    for _ in range(4):
+        best = with_offset(goal.state, rng.normal(size=goal.dim) * 0.03 / w)
+        e = goal.residual(best)[0]
+        steps = [secant.gn_step(S, w, e, u0, space, r)[0] for r in (0.25, 1.0, 3.0)]
+        u_floor = secant.model_floor(goal, best, S, w, e, u0, space)
+        floor = secant.predicted_errors(goal, best, S, u_floor)[0]
+        assert floor <= secant.predicted_errors(goal, best, S, np.stack(steps)).min() + 1e-9
+        near = np.concatenate([u_floor + rng.uniform(-0.3, 0.3, (2000, space.dim)),
+                               rng.uniform(-1.0, 1.0, (2000, space.dim))])
+        near = np.clip(near, space.lower, space.upper)
+        assert floor <= secant.predicted_errors(goal, best, S, near).min() + 1e-4
+        assert floor < secant.predicted_errors(goal, best, S, u0)[0]
+
+
 # ------------------------------------------------------------------------------ correction
 FAST_PLAN = {"popsize": 16, "generations": 15}
 
@@ -265,6 +298,9 @@ def test_gn_correction_records_what_each_step_learned(problem):
     tr = res["trials"]
     assert res["method"] == "gn" and len(tr) == 4
     assert all(t.trust is not None for t in tr[1:])
+    # every step records the corrected model's floor, which the step's own prediction never beats
+    assert all(t.sensitivity["model_floor"]["error"] <= tr[k + 1].predicted_total + 1e-6
+               for k, t in enumerate(tr[:-1]) if t.hit)
     pairs = [t.sensitivity["secant_pairs"] for t in tr[:-1]]
     assert pairs == sorted(pairs) and pairs[-1] == sum(t.hit for t in tr[1:-1])
     assert len({t.sensitivity["chain_rollouts"] for t in tr[:-1]}) == 1  # measured once

@@ -144,9 +144,11 @@ def correction_sections(result: dict) -> list[tuple[str, str]]:
     out = [("Correction", intro + table(["run", "method", "", "trials to tolerance", "best error", "trials used"],
                                         summary))]
     for label, r in runs.items():
-        out.append((f"{label}: {run_verdict(r)}", table(TRIAL_COLUMNS, trial_cells(result, label))
-                    + "<p class='muted'>predicted: what the plan expected of this trial; model alone: the chain's "
-                      "own prediction without the offset learned from earlier trials; rho: real over predicted "
+        out.append((f"{label}: {run_verdict(r, result['tolerance'])}", table(TRIAL_COLUMNS, trial_cells(result, label))
+                    + "<p class='muted'>predicted: what the plan expected of this trial; model floor: the least error "
+                      "the corrected model predicted any command in the box could reach when this trial was planned "
+                      "(no trust radius); model alone: the chain's own prediction without the offset learned from "
+                      "earlier trials; rho: real over predicted "
                       "gain, which sets the next trust radius where the trust region adapts (a fixed one keeps its "
                       "radius). Full states: real-trials/*-trial-NN.json.</p>"))
     return out

@@ -737,23 +737,20 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                              f"{match.distance:.2f} away ({match.chain_rollouts} chains, "
                              f"{match.wall_s:.1f} s)")
             if secant:
-                Zb = rope_plan.state_vector(best.state)[0]
-                others = [(tr.u, tr.state) for tr in trials if tr.hit and tr is not best]
-                if not others or recorded_until == "every":
-                    others += recorded
-                sens.ridge([u_k - best.u for u_k, _ in others],
-                           [rope_plan.state_vector(st_k)[0] - Zb for _, st_k in others])
-            step = "gauss-newton"
+                sens.ridge(*gauss_newton.secant_pairs(trials, best, recorded, recorded_until))
+            step, e_best = "gauss-newton", goal.residual(best.state)[0]
             if first_step == "space-mapping" and k == 0 and plan_first and renorm is None:
                 step = "space mapping"
                 u, scale_used = gauss_newton.space_mapping_step(sens.match, space)
                 if progress:
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
-                u, scale_used = gauss_newton.gn_step(sens.S, w, goal.residual(best.state)[0], best.u, space,
-                                                     trust.radius, reg, rows)
+                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
-            trial.sensitivity = sens.record() | {"step": step}
+            floor = gauss_newton.floor_record(goal, best.state, sens.S, best.u,
+                                              gauss_newton.model_floor(goal, best.state, sens.S, w, e_best, best.u,
+                                                                       space, rows, also=(u,)))
+            trial.sensitivity = sens.record() | {"step": step, "model_floor": floor}
         predicted = float(goal.terms(pred_state)["total"][0])
         if best.hit:
             plan_radius = trust.radius

@@ -469,13 +469,24 @@ def run(args) -> int:
     return 0
 
 
-TRIAL_COLUMNS = ["trial", "error", "predicted", "model alone", "accepted", "contact t / place", "plan radius",
-                 "rho -> radius", "refit loss", "parameters changed (x measured)"]
+TRIAL_COLUMNS = ["trial", "error", "predicted", "model floor", "model alone", "accepted", "contact t / place",
+                 "plan radius", "rho -> radius", "refit loss", "parameters changed (x measured)"]
 
 
-def run_verdict(r: dict) -> str:
-    return (f"reached the tolerance in {r['trials_to_tolerance']} trials" if r["success"] else
-            f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f})")
+def last_floor(r: dict) -> dict | None:
+    """The corrected model's floor at the run's last step (secant.model_floor), where its steps record one."""
+    floors = [(t.get("next_step") or {}).get("model_floor") for t in r.get("trials", [])]
+    return next((f for f in reversed(floors) if f), None)
+
+
+def run_verdict(r: dict, tolerance: float) -> str:
+    if r["success"]:
+        return f"reached the tolerance in {r['trials_to_tolerance']} trials"
+    floor = last_floor(r)
+    why = "" if floor is None else (
+        f"; at its last step the corrected model predicted no command better than {floor['error']:.4f}"
+        + (", so the model, not the trust radius, stopped it" if floor["error"] > tolerance else ""))
+    return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}{why})"
 
 
 def trial_cells(result: dict, label: str) -> list[list[str]]:
@@ -486,7 +497,7 @@ def trial_cells(result: dict, label: str) -> list[list[str]]:
 
     r = result["runs"][label]
     measured = r.get("parameters") or {}
-    rows = []
+    rows, floor = [], None
     for t in r["trials"]:
         ms = t.get("measured_state") or {}
         place = (f"{ms['time']:.3f} s / {ms['contact_arclength'][0]:.2f}-{ms['contact_arclength'][1]:.2f}"
@@ -500,8 +511,10 @@ def trial_cells(result: dict, label: str) -> list[list[str]]:
             moved = ", ".join(f"{n} {v / measured[n]:.2g}" for n, v in rf["values"].items()
                               if measured.get(n) and abs(v / measured[n] - 1) > 0.05)
         refit = "" if not rf else f"{rf['loss_before']:.3f} -> {rf['loss']:.3f}"
-        rows.append([str(t["trial"]), f"{t['error']:.4f}", f(t["predicted_error"]), f(t["model_alone_error"]),
-                     "yes" if t["accepted"] else "no", place, f"{t['trust_radius']:.2f}", rho, refit, moved])
+        rows.append([str(t["trial"]), f"{t['error']:.4f}", f(t["predicted_error"]), f(floor),
+                     f(t["model_alone_error"]), "yes" if t["accepted"] else "no", place, f"{t['trust_radius']:.2f}",
+                     rho, refit, moved])
+        floor = ((t.get("next_step") or {}).get("model_floor") or {}).get("error")  # made when the next was planned
     return rows
 
 
@@ -523,8 +536,8 @@ def report_markdown(result: dict) -> str:
              "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
                  f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
     for label, r in result["runs"].items():
-        lines += [f"## {label} ({run_method(r)}): {run_verdict(r)}", "", "| " + " | ".join(TRIAL_COLUMNS) + " |",
-                  "|" + "---|" * len(TRIAL_COLUMNS)]
+        lines += [f"## {label} ({run_method(r)}): {run_verdict(r, result['tolerance'])}", "",
+                  "| " + " | ".join(TRIAL_COLUMNS) + " |", "|" + "---|" * len(TRIAL_COLUMNS)]
         lines += ["| " + " | ".join(row) + " |" for row in trial_cells(result, label)]
         lines.append("")
     lines.append("Per-trial records with the full predicted and measured critical states: real-trials/*-trial-NN.json")

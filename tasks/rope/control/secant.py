@@ -208,6 +208,66 @@ def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray
     return space.limit_step(u_best, du)
 
 
+FLOOR_REG = 1e-9  # relative Levenberg term of the floor's least squares: numerical only
+FLOOR_FD = 1e-4  # units of u: the central difference of the floor's search (the predicted error is piecewise smooth)
+
+
+def predicted_errors(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, dU: np.ndarray) -> np.ndarray:
+    """(B,) the goal's error of the linear model's states after the steps dU (B, n) from the best trial."""
+    dU = np.atleast_2d(dU)
+    st = best_state.take(np.zeros(len(dU), dtype=int))
+    return goal.terms(with_offset(st, dU @ S.T))["total"]
+
+
+def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, w: np.ndarray,
+                e_best: np.ndarray, u_best: np.ndarray, space, rows: np.ndarray | None = None,
+                also: tuple = ()) -> np.ndarray:
+    """The command inside the command box whose error the linear model predicts least: what the corrected model
+    says any command can still reach, with neither trust radius nor hand limits (which only shorten a step). A
+    step predicted no better than this is limited by the model, not by the trust radius (README, "What the steps
+    can still reach"). Searched by L-BFGS-B (central differences, all 2n + 1 states in one call of the observable)
+    from the step's least-squares solution without radius and from `also` (the step taken); the best of them."""
+    from scipy.optimize import minimize
+
+    if rows is not None:
+        w, e_best = rows * w, rows * e_best
+    n = len(u_best)
+    lo, hi = space.lower - u_best, space.upper - u_best
+    starts = [qp_step(w[:, None] * S, e_best, u_best, space, np.inf, FLOOR_REG)] + [np.asarray(u) - u_best
+                                                                                     for u in also]
+    probe = np.concatenate([np.zeros((1, n)), FLOOR_FD * np.eye(n), -FLOOR_FD * np.eye(n)])
+
+    def error_and_gradient(du):
+        f = predicted_errors(goal, best_state, S, du[None] + probe)
+        return float(f[0]), (f[1:n + 1] - f[n + 1:]) / (2 * FLOOR_FD)
+
+    found = minimize(error_and_gradient, starts[0], jac=True, method="L-BFGS-B", bounds=list(zip(lo, hi)),
+                     options={"maxiter": 200})
+    candidates = starts + [np.clip(found.x, lo, hi)]
+    errors = predicted_errors(goal, best_state, S, np.stack(candidates))
+    return u_best + candidates[int(np.argmin(errors))]
+
+
+def floor_record(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, u_best: np.ndarray,
+                 u_floor: np.ndarray) -> dict:
+    """The floor's predicted error, its terms and how far it lies from the best command (units of u, largest
+    component)."""
+    terms = goal.terms(predicted_state(best_state, S, u_floor - u_best))
+    return {"error": float(terms["total"][0]), "terms": {k: float(v[0]) for k, v in terms.items() if k != "total"},
+            "distance": float(np.abs(u_floor - u_best).max())}
+
+
+def secant_pairs(trials: list, best, recorded: list, recorded_until: str) -> tuple[list, list]:
+    """The secant pairs the sensitivity is corrected by before a step from `best`: every other trial that hit (its
+    change of command and of critical state against the best), and the commands recorded before the trials (u,
+    state) while the trials give none (recorded_until "first") or always ("every"). `trials` hold .u, .state, .hit."""
+    others = [(tr.u, tr.state) for tr in trials if tr.hit and tr is not best]
+    if not others or recorded_until == "every":
+        others += recorded
+    Zb = state_vector(best.state)[0]
+    return [u_k - best.u for u_k, _ in others], [state_vector(st_k)[0] - Zb for _, st_k in others]
+
+
 def predicted_state(best_state: crit.CriticalStates, S: np.ndarray, du: np.ndarray) -> crit.CriticalStates:
     """The linear model's critical state after the step du from the best trial."""
     return with_offset(best_state, S @ du)
