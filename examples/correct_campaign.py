@@ -9,7 +9,8 @@ Each run goes to OUT/<variant>-s<seed>/ (a finished run is kept, an interrupted 
 --resume), its command line and wall time to OUT/campaign.json, and the table to OUT/campaign.md:
 trials to reach the tolerance, or "- (best)" where a run never reached it within its trials. The summary
 counts runs that reached it and the median trials per arm, a run that never reached counting as
-max_trials + 1.
+max_trials + 1, and how many of the misses ended with the corrected model's floor above the tolerance (at its last
+step the model predicted no command in the box reaching it; runs that record the floor).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.results import write_atomic
+from wrenorm.tasks.rope.control.correct_cli import last_floor
 
 ROPES = ["stiff", "soft", "heavy", "light", "long", "damped", "heavy_end"]
 
@@ -81,7 +83,9 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
                     continue
                 n = run["trials_to_tolerance"]
                 cells[(v, s, p)] = str(n) if run["success"] else f"- ({run['best_error']:.3f})"
-                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"]))
+                floor = None if run["success"] else last_floor(run)
+                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"],
+                                   None if floor is None else floor["error"] > r["tolerance"]))
                 trials_of.setdefault(f"{v}-s{s}", {})[p] = [
                     {"error": t["error"], "accepted": t["accepted"], "predicted_error": t.get("predicted_error")}
                     for t in run["trials"]]
@@ -95,23 +99,27 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
             lines.append(f"| {v} | {s} | " + " | ".join(cells.get((v, s, p), "") for p in params)
                          + f" | {'' if wall is None else f'{wall / 60:.1f}'} |")
     lines += ["", "| arm | runs | reached | median trials (never = max + 1) | per-rope median trials | median best "
-                  "error | per-rope median best error |", "|---|---|---|---|---|---|---|"]
+                  "error | per-rope median best error | misses with the model's floor above the tolerance |",
+              "|---|---|---|---|---|---|---|---|"]
     stats = {}
     for p in params:
         rows = summary[p]
         if not rows:
             continue
-        trials = [n for _, _, n, _ in rows]
-        ropes = [v for v in variants if any(vv == v for vv, _, _, _ in rows)]
-        per_rope = {v: float(np.median([n for vv, _, n, _ in rows if vv == v])) for v in ropes}
-        per_rope_err = {v: float(np.median([e for vv, _, _, e in rows if vv == v])) for v in ropes}
-        reached = sum(1 for _, _, n, _ in rows if n <= max_trials_default)
-        best = float(np.median([e for _, _, _, e in rows]))
+        trials = [n for _, _, n, _, _ in rows]
+        ropes = [v for v in variants if any(vv == v for vv, _, _, _, _ in rows)]
+        per_rope = {v: float(np.median([n for vv, _, n, _, _ in rows if vv == v])) for v in ropes}
+        per_rope_err = {v: float(np.median([e for vv, _, _, e, _ in rows if vv == v])) for v in ropes}
+        reached = sum(1 for _, _, n, _, _ in rows if n <= max_trials_default)
+        best = float(np.median([e for _, _, _, e, _ in rows]))
+        floors = [above for _, _, _, _, above in rows if above is not None]
         stats[p] = {"runs": len(rows), "reached": reached, "median": float(np.median(trials)), "per_rope": per_rope,
-                    "median_best_error": best, "per_rope_median_best_error": per_rope_err}
+                    "median_best_error": best, "per_rope_median_best_error": per_rope_err,
+                    "misses_with_floor": len(floors), "misses_floor_above_tolerance": sum(floors)}
         lines.append(f"| {p} | {len(rows)} | {reached} | {np.median(trials):g} | "
                      + ", ".join(f"{v} {m:g}" for v, m in per_rope.items()) + f" | {best:.3f} | "
-                     + ", ".join(f"{v} {m:.3f}" for v, m in per_rope_err.items()) + " |")
+                     + ", ".join(f"{v} {m:.3f}" for v, m in per_rope_err.items())
+                     + (f" | {sum(floors)} of {len(floors)} |" if floors else " | |"))
     return "\n".join(lines) + "\n", stats, trials_of
 
 

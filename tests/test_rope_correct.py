@@ -772,8 +772,8 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     def scored(folder, run=None, settings=None, trials=trials):
         folder.mkdir()
         (folder / "correct.json").write_text(json.dumps({
-            "variant": "default", "goal": {"path": "flick_high"}, "settings": settings or {"engine": "newton",
-                                                                                        "real": "fine"},
+            "variant": "default", "goal": {"path": "flick_high"}, "tolerance": 0.05,
+            "settings": settings or {"engine": "newton", "real": "fine"},
             "runs": {"fitted": (run or {"method": "gn", "steps": "gn"}) | {"trials": trials}}}))
         return subprocess.run([sys.executable, str(script), str(folder)], capture_output=True, text=True)
 
@@ -781,6 +781,18 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     assert r.returncode == 0, r.stderr
     cells = [line.split("|")[3].strip() for line in r.stdout.splitlines() if line.startswith("| best error")]
     assert len(cells) == 8 and sum(c == "1.00" for c in cells) >= 6 and set(cells) <= {"1.00", "nan"}, r.stdout
+    assert "No step recorded the corrected model's floor" in r.stdout
+    # each step's floor, recorded with the trial before it, set to 0.6 of the best error then: the table says 0.60
+    with_floor, best = [], np.inf
+    for t in trials:
+        best = min(best, t["error"]) if t["accepted"] else best
+        terms = {k: 0.6 * v for k, v in t["terms"].items() if k != "total"}
+        with_floor.append(t | {"next_step": {"model_floor": {"error": 0.6 * best, "terms": terms}}})
+    r = scored(tmp_path / "floor", trials=with_floor)
+    floor_rows = [line.split("|") for line in r.stdout.splitlines()[-2:]]
+    assert r.returncode == 0 and all(row[2].strip() == "0.60" for row in floor_rows), r.stdout
+    floors = [t["next_step"]["model_floor"]["error"] for t in with_floor[:-1]]  # the 13 steps' floors
+    assert sum(int(row[5].split()[0]) for row in floor_rows) == sum(f > 0.05 for f in floors), r.stdout
     shuffled = [t | {"predicted_state": trials[(i + 5) % len(trials)]["predicted_state"]}
                 for i, t in enumerate(trials)]
     r = scored(tmp_path / "shuffled", trials=shuffled)
@@ -803,27 +815,34 @@ def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
     from pathlib import Path
 
     examples = Path(__file__).resolve().parents[1] / "examples"
-    errors = {("stiff", 0): [0.3, 0.2, 0.04], ("stiff", 1): [0.3, 0.25, 0.2, 0.1], ("soft", 0): [0.3, 0.05]}
+    errors = {("stiff", 0): [0.3, 0.2, 0.04], ("stiff", 1): [0.3, 0.25, 0.2, 0.1], ("soft", 0): [0.3, 0.05],
+              ("soft", 1): [0.3, 0.2, 0.09], ("heavy", 0): [0.3, 0.2, 0.08]}
+    floors = {("soft", 1): 0.07, ("heavy", 0): 0.03}  # the model's floor at the last step of two misses
     for (v, s), errs in errors.items():
         reached = next((i + 1 for i, e in enumerate(errs) if e <= 0.05), None)
         run = {"success": reached is not None, "trials_to_tolerance": reached, "best_error": min(errs),
                "trials": [{"error": e, "accepted": True, "predicted_error": e / 2} for e in errs]}
+        if (v, s) in floors:
+            run["trials"][-2]["next_step"] = {"model_floor": {"error": floors[(v, s)]}}
         (tmp_path / f"{v}-s{s}").mkdir()
         settings = {"seed": s, "method": "gn", "start_pair": "none" if v == "stiff" else "first"}
-        (tmp_path / f"{v}-s{s}" / "correct.json").write_text(json.dumps({"max_trials": 10, "runs": {"fitted": run},
+        (tmp_path / f"{v}-s{s}" / "correct.json").write_text(json.dumps({"max_trials": 10, "tolerance": 0.05,
+                                                                          "runs": {"fitted": run},
                                                                           "settings": settings}))
     r = subprocess.run([sys.executable, str(examples / "correct_campaign.py"), "--out", str(tmp_path), "--variants",
-                        "stiff", "soft", "--seeds", "0", "1", "--params", "fitted", "--table-only"],
+                        "stiff", "soft", "heavy", "--seeds", "0", "1", "--params", "fitted", "--table-only"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     meta = json.loads((tmp_path / "campaign.json").read_text())
     summary = meta["summary"]["fitted"]
-    assert summary["runs"] == 3 and summary["reached"] == 2 and summary["median"] == 3.0  # 3, 11, 2
-    assert summary["per_rope"] == {"stiff": 7.0, "soft": 2.0}
+    assert summary["runs"] == 5 and summary["reached"] == 2 and summary["median"] == 11.0  # 3, 11, 2, 11, 11
+    assert summary["per_rope"] == {"stiff": 7.0, "soft": 6.5, "heavy": 11.0}
+    # two of the three misses recorded a floor at their last step; soft s1's lay above the tolerance, heavy s0's not
+    assert (summary["misses_with_floor"], summary["misses_floor_above_tolerance"]) == (2, 1)
     assert [t["error"] for t in meta["trials"]["stiff-s1"]["fitted"]] == errors[("stiff", 1)]
     assert meta["trials"]["soft-s0"]["fitted"][1] == {"error": 0.05, "accepted": True, "predicted_error": 0.025}
     text = (tmp_path / "campaign.md").read_text()
-    assert "| stiff | 1 | - (0.100) |" in text
+    assert "| stiff | 1 | - (0.100) |" in text and "| 1 of 2 |" in text
     # runs made under different settings (a campaign resumed after a default changed) are said to differ, and how
     assert '**The runs differ in `start_pair`**: "none": stiff-s0, stiff-s1; "first": soft-s0' in text
     assert "differ in `seed`" not in text and "differ in `method`" not in text

@@ -20,7 +20,7 @@ from wrenorm.tasks.rope.control.correct import CoarseModel, NewtonRope, StoredTr
 from wrenorm.tasks.rope.control.correct_cli import builtin_is_the_real_rope, builtin_throws_of
 from wrenorm.tasks.rope.control.plan import Offset, predicted_states, state_vector
 from wrenorm.tasks.rope.problem import RopeProblem, resample
-from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
+from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS, builtin_reference_path, load_reference
 from wrenorm.tasks.rope.reference.paths import get_hand_path
 
 FRACTIONS = np.array([0.0, 0.25, 0.5, 0.75, 0.9])
@@ -45,14 +45,14 @@ def main(run: str, arm: str) -> None:
         pass
     if not (settings.get("real", "fine") == "fine" and builtin_throws_of(settings)
             and builtin_is_the_real_rope(settings)):
-        _fail(f"{run}/correct.json: this diagnostic replays the run on newton's built-in 64-segment rope; this run's "
-              f"real rope was {r.get('real_system', 'another')!r}")
+        _fail(f"{run}/correct.json: this diagnostic replays the run on newton's built-in {DEFAULT_SEGMENTS}-segment "
+              f"rope; this run's real rope was {r.get('real_system', 'another')!r}")
     gref = load_reference(builtin_reference_path(r["goal"]["path"], r["variant"]))
     goal = crit.Target.from_reference(gref)
     space = CommandSpace(get_hand_path(r["start"]["path"]))
     problem = RopeProblem([gref], segments=r["model"]["segments"], dt=r["model"]["dt"], names=["goal"])
     model = CoarseModel(problem, np.array([r["runs"][arm]["parameters"][n] for n in problem.space.names]), space)
-    real = NewtonRope(r["variant"], 64, float(min(goal.state.time[0] + 0.5, 1.5)))
+    real = NewtonRope(r["variant"], DEFAULT_SEGMENTS, float(min(goal.state.time[0] + 0.5, 1.5)))
     best = min(r["runs"][arm]["trials"], key=lambda t: t["error"])
     u, u_goal = np.array(best["command_u"]), np.array(r["goal"]["command_u_of_goal_path"])
 

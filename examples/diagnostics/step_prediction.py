@@ -4,6 +4,9 @@ velocity, time, place) that the step predicted against the change the real rope 
 not predicted (correlation near 0) is one the steps chase blindly (README, "Which part of the critical state the
 steps can predict"). The steps of all runs named are pooled; each run's arm must step by Gauss-Newton (`--method gn`,
 or a renormalised arm of it), whose prediction is the linear model's, not the plan loops' model plus offset.
+Runs that recorded the corrected model's floor (secant.model_floor: the least error the linear model predicted for
+any command in the box when the step was planned) get a second table: the floor against the best error, the step's
+prediction and the rope's answer, and which terms the floor keeps (README, "What the steps can still reach").
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
@@ -86,7 +89,7 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
     if run.get("steps") != "gn":
         _fail(f"{folder}/correct.json: runs.{arm}: method {run.get('method')!r} does not step by Gauss-Newton")
     goal = goal_of(folder, r)
-    rows, best = [], None
+    rows, best, floor = [], None, None
     for t in run["trials"]:
         if t["self_collision"] and not np.isclose(float(goal.terms(_state(t["measured_state"]))["total"][0]),
                                                   t["error"], rtol=1e-4, atol=1e-6):
@@ -95,12 +98,18 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
         if (best is not None and best["self_collision"] and t["self_collision"]
                 and (t.get("predicted_state") or {}).get("self_collision")):
             predicted = goal.terms(_state(t["predicted_state"]))
-            rows.append({"best": best["error"], "accepted": bool(t["accepted"])}
+            rows.append({"best": best["error"], "accepted": bool(t["accepted"]), "error": t["error"],
+                         "predicted": float(predicted["total"][0]), "tolerance": float(r["tolerance"]),
+                         "floor": None if floor is None else floor["error"],
+                         "floor_terms": None if floor is None else {k: goal.weights[k] * floor["terms"][k]
+                                                                    for k in TERMS},
+                         "best_terms": {k: goal.weights[k] * best["terms"][k] for k in TERMS}}
                         | {f"{k}_actual": goal.weights[k] * (t["terms"][k] - best["terms"][k]) for k in TERMS}
                         | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
                            for k in TERMS})
         if t["accepted"]:
             best = t
+        floor = (t.get("next_step") or {}).get("model_floor")  # the floor when the next trial was planned
     return rows
 
 
@@ -118,6 +127,28 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def floor_table(rows: list[dict]) -> str:
+    """Per stage, what the corrected model said any command could still reach (its floor, secant.model_floor)
+    against the best error, the step's own prediction and what the rope did; and each weighted term at the best
+    trial and at the floor: the part of the error the model sees no command remove."""
+    lines = ["| steps | floor / best error | step's prediction / best | actual / best | floor above the tolerance "
+             "| shape, velocity, time, place at the best | ... at the floor |", "|---|---|---|---|---|---|---|"]
+    for label, keep in STAGES:
+        sub = [x for x in rows if keep(x["best"]) and x["floor"] is not None]
+        if not sub:
+            lines.append(f"| {label}: 0 | | | | | | |")
+            continue
+        b = np.array([x["best"] for x in sub])
+        ratio = [np.median(np.array(v) / b) for v in ([x["floor"] for x in sub],
+                                                      [x["predicted"] for x in sub], [x["error"] for x in sub])]
+        above = sum(x["floor"] > x["tolerance"] for x in sub)
+        at_best = ", ".join(f"{np.median([x['best_terms'][k] for x in sub]):.3f}" for k in TERMS)
+        at_floor = ", ".join(f"{np.median([x['floor_terms'][k] for x in sub]):.3f}" for k in TERMS)
+        lines.append(f"| {label}: {len(sub)} | {ratio[0]:.2f} | {ratio[1]:.2f} | {ratio[2]:.2f} | {above} of "
+                     f"{len(sub)} | {at_best} | {at_floor} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", help="run folders of `correct rope`, or campaign folders holding them")
@@ -127,6 +158,11 @@ def main(argv=None) -> int:
     if not rows:
         _fail("no step to score: every run ended at trial 1 or never hit after it")
     print(table(rows))
+    if any(x["floor"] is not None for x in rows):
+        print("\nWhat the corrected model said any command in the box could still reach (its floor), per step:\n")
+        print(floor_table(rows))
+    else:
+        print("\nNo step recorded the corrected model's floor (runs made before it was recorded).")
     return 0
 
 
