@@ -720,11 +720,17 @@ def _plot(path: Path, runs: dict, args) -> None:
 
     plt = _figure()
     fig, ax = plt.subplots(figsize=(6, 3.8))
+    floor_label = "corrected model's floor when planned"
     for label, r in runs.items():
         tr = r["trials"]
-        ax.semilogy([t.index + 1 for t in tr], [t.total for t in tr], "o-", label=f"{label} parameters")
+        line, = ax.semilogy([t.index + 1 for t in tr], [t.total for t in tr], "o-", label=f"{label} parameters")
         rej = [t for t in tr if not t.accepted]
         ax.semilogy([t.index + 1 for t in rej], [t.total for t in rej], "x", color="k")
+        floors = [(t.index + 2, t.sensitivity["model_floor"]["error"]) for t in tr[:-1]
+                  if (t.sensitivity or {}).get("model_floor")]
+        if floors:
+            ax.semilogy(*zip(*floors), "_", color=line.get_color(), ms=12, mew=1.5, label=floor_label)
+            floor_label = None
     ax.axhline(args.tolerance, color="k", lw=0.7, ls="--", label="tolerance")
     ax.set_xlabel("real trial")
     ax.set_ylabel("critical-state error to goal")
