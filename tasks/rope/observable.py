@@ -152,6 +152,14 @@ class Target:
         return {"position": slice(0, 3 * K), "velocity": slice(3 * K, 6 * K), "time": slice(6 * K, 6 * K + 1),
                 "place": slice(6 * K + 1, 6 * K + 3)}
 
+    @property
+    def error_groups(self) -> list:
+        """Rows of the residual whose norms add up to a hit's total error: |e_pos| + |e_vel| + |e_t| + |e_s1| + |e_s2|
+        (the module docstring; the place term is the mean of the two contact fractions' errors)."""
+        b = self.blocks
+        return [b["position"], b["velocity"], b["time"], slice(b["place"].start, b["place"].start + 1),
+                slice(b["place"].start + 1, b["place"].stop)]
+
     def device_target(self, device: str = "cpu"):
         """This target as the observable kernel's TargetStates (one condition), made once per device."""
         cache = self.__dict__.setdefault("_device_targets", {})

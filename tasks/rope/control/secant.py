@@ -208,8 +208,7 @@ def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray
     return space.limit_step(u_best, du)
 
 
-FLOOR_REG = 1e-9  # relative Levenberg term of the floor's least squares: numerical only
-FLOOR_FD = 1e-4  # units of u: the central difference of the floor's search (the predicted error is piecewise smooth)
+FLOOR_REG = 1e-9  # relative Levenberg term of the floor's least-squares start: numerical only
 
 
 def predicted_errors(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, dU: np.ndarray) -> np.ndarray:
@@ -225,25 +224,44 @@ def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarra
     """The command inside the command box whose error the linear model predicts least: what the corrected model
     says any command can still reach, with neither trust radius nor hand limits (which only shorten a step). A
     step predicted no better than this is limited by the model, not by the trust radius (README, "What the steps
-    can still reach"). Searched by L-BFGS-B (central differences, all 2n + 1 states in one call of the observable)
-    from the step's least-squares solution without radius and from `also` (the step taken); the best of them."""
+    can still reach").
+
+    The predicted error is a sum of norms of linear functions of the command (Target.error_groups: |e_g + F_g du|
+    with F = W S), convex with kinks where a term reaches 0, which is where the floor lies (a gradient method stops
+    at them). So it is solved as the smooth convex program min sum t_g, t_g >= |e_g + F_g du|, inside the box
+    (SLSQP), from the step's least-squares solution without a radius (with the step's row weights `rows`); the
+    result, that start and the commands in `also` (the step taken) are scored by the observable and the best kept."""
     from scipy.optimize import minimize
 
-    if rows is not None:
-        w, e_best = rows * w, rows * e_best
+    F = w[:, None] * S
     n = len(u_best)
     lo, hi = space.lower - u_best, space.upper - u_best
-    starts = [qp_step(w[:, None] * S, e_best, u_best, space, np.inf, FLOOR_REG)] + [np.asarray(u) - u_best
-                                                                                     for u in also]
-    probe = np.concatenate([np.zeros((1, n)), FLOOR_FD * np.eye(n), -FLOOR_FD * np.eye(n)])
+    groups = goal.error_groups
+    G = len(groups)
+    r_rows, e_rows = (w, e_best) if rows is None else (rows * w, rows * e_best)
+    du_ls = qp_step(r_rows[:, None] * S, e_rows, u_best, space, np.inf, FLOOR_REG)
 
-    def error_and_gradient(du):
-        f = predicted_errors(goal, best_state, S, du[None] + probe)
-        return float(f[0]), (f[1:n + 1] - f[n + 1:]) / (2 * FLOOR_FD)
+    def norms(du):
+        r = e_best + F @ du
+        return [r[g] for g in groups], np.array([np.sqrt(r[g] @ r[g] + 1e-24) for g in groups])
 
-    found = minimize(error_and_gradient, starts[0], jac=True, method="L-BFGS-B", bounds=list(zip(lo, hi)),
-                     options={"maxiter": 200})
-    candidates = starts + [np.clip(found.x, lo, hi)]
+    def constraint(x):
+        return x[n:] - norms(x[:n])[1]
+
+    def constraint_jacobian(x):
+        parts, size = norms(x[:n])
+        J = np.zeros((G, n + G))
+        for i, (g, r_g) in enumerate(zip(groups, parts)):
+            J[i, :n] = -(F[g].T @ r_g) / size[i]
+        J[:, n:] = np.eye(G)
+        return J
+
+    x0 = np.concatenate([du_ls, norms(du_ls)[1] * (1 + 1e-6)])
+    found = minimize(lambda x: float(np.sum(x[n:])), x0, jac=lambda x: np.concatenate([np.zeros(n), np.ones(G)]),
+                     method="SLSQP", bounds=list(zip(lo, hi)) + [(0.0, None)] * G,
+                     constraints=[{"type": "ineq", "fun": constraint, "jac": constraint_jacobian}],
+                     options={"maxiter": 500, "ftol": 1e-12})
+    candidates = [du_ls, np.clip(found.x[:n], lo, hi)] + [np.asarray(u) - u_best for u in also]
     errors = predicted_errors(goal, best_state, S, np.stack(candidates))
     return u_best + candidates[int(np.argmin(errors))]
 
