@@ -99,7 +99,8 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
             lines.append(f"| {v} | {s} | " + " | ".join(cells.get((v, s, p), "") for p in params)
                          + f" | {'' if wall is None else f'{wall / 60:.1f}'} |")
     lines += ["", "| arm | runs | reached | median trials (never = max + 1) | per-rope median trials | median best "
-                  "error | per-rope median best error | misses with the model's floor above the tolerance |",
+                  "error | per-rope median best error | misses whose last model floor was above the tolerance (of "
+                  "those that record one) |",
               "|---|---|---|---|---|---|---|---|"]
     stats = {}
     for p in params:
