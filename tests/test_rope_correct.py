@@ -319,10 +319,13 @@ def test_gn_correction_records_what_each_step_learned(problem):
     tr = res["trials"]
     assert res["method"] == "gn" and len(tr) == 4
     assert all(t.trust is not None for t in tr[1:])
-    # every step records the corrected model's floor: its error is its terms' weighted sum
+    # every step records the corrected model's floor: its error is its terms' weighted sum, and no higher than the
+    # prediction of the step that was taken from the same model
     floors = [t.sensitivity["model_floor"] for t in tr[:-1] if t.hit]
     assert len(floors) == sum(t.hit for t in tr[:-1]) and all(
         f["error"] == pytest.approx(sum(crit.WEIGHTS[k] * v for k, v in f["terms"].items())) for f in floors)
+    assert all(t.sensitivity["model_floor"]["error"] <= tr[k + 1].predicted_total + 1e-9
+               for k, t in enumerate(tr[:-1]) if t.hit)
     pairs = [t.sensitivity["secant_pairs"] for t in tr[:-1]]
     assert pairs == sorted(pairs) and pairs[-1] == sum(t.hit for t in tr[1:-1])
     assert len({t.sensitivity["chain_rollouts"] for t in tr[:-1]}) == 1  # measured once

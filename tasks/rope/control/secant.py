@@ -230,7 +230,8 @@ def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarra
     with F = W S), convex with kinks where a term reaches 0, which is where the floor lies (a gradient method stops
     at them). So it is solved as the smooth convex program min sum t_g, t_g >= |e_g + F_g du|, inside the box
     (SLSQP), from the step's least-squares solution without a radius (with the step's row weights `rows`); the
-    result, that start and the commands in `also` (the step taken) are scored by the observable and the best kept."""
+    result (when finite), that start and the commands in `also` (the step taken) are scored by the observable and
+    the best kept, so a failed search falls back to them rather than to something worse."""
     from scipy.optimize import minimize
 
     F = w[:, None] * S
@@ -261,9 +262,10 @@ def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarra
                      method="SLSQP", bounds=list(zip(lo, hi)) + [(0.0, None)] * G,
                      constraints=[{"type": "ineq", "fun": constraint, "jac": constraint_jacobian}],
                      options={"maxiter": 500, "ftol": 1e-12})
-    candidates = [du_ls, np.clip(found.x[:n], lo, hi)] + [np.asarray(u) - u_best for u in also]
+    candidates = [du_ls] + ([np.clip(found.x[:n], lo, hi)] if np.all(np.isfinite(found.x)) else []) + [
+        np.asarray(u) - u_best for u in also]
     errors = predicted_errors(goal, best_state, S, np.stack(candidates))
-    return u_best + candidates[int(np.argmin(errors))]
+    return u_best + candidates[int(np.nanargmin(errors))]
 
 
 def floor_record(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, u_best: np.ndarray,
