@@ -227,7 +227,7 @@ def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarra
     can still reach").
 
     The predicted error is a sum of norms of linear functions of the command (Target.error_groups: |e_g + F_g du|
-    with F = W S), convex with kinks where a term reaches 0, which is where the floor lies (a gradient method stops
+    with F = W S), convex with kinks where a term reaches 0, where the floor usually lies (a gradient method stops
     at them). So it is solved as the smooth convex program min sum t_g, t_g >= |e_g + F_g du|, inside the box
     (SLSQP), from the step's least-squares solution without a radius (with the step's row weights `rows`); the
     result (when finite), that start and the commands in `also` (the step taken) are scored by the observable and
