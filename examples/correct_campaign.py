@@ -22,6 +22,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -29,6 +30,16 @@ from wrenorm.results import write_atomic
 from wrenorm.tasks.rope.control.correct_cli import last_floor
 
 ROPES = ["stiff", "soft", "heavy", "light", "long", "damped", "heavy_end"]
+
+
+class Outcome(NamedTuple):
+    """One run of one arm in the summary: trials to the tolerance (max_trials + 1 when never), best error, and for a
+    miss that recorded the corrected model's floor whether its last floor lay above the tolerance (else None)."""
+
+    rope: str
+    trials: int
+    best_error: float
+    floor_above: bool | None
 
 
 def run_one(out: Path, variant: str, seed: int, args) -> dict:
@@ -84,8 +95,8 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
                 n = run["trials_to_tolerance"]
                 cells[(v, s, p)] = str(n) if run["success"] else f"- ({run['best_error']:.3f})"
                 floor = None if run["success"] else last_floor(run)
-                summary[p].append((v, s, n if run["success"] else r["max_trials"] + 1, run["best_error"],
-                                   None if floor is None else floor["error"] > r["tolerance"]))
+                summary[p].append(Outcome(v, n if run["success"] else r["max_trials"] + 1, run["best_error"],
+                                          None if floor is None else floor["error"] > r["tolerance"]))
                 trials_of.setdefault(f"{v}-s{s}", {})[p] = [
                     {"error": t["error"], "accepted": t["accepted"], "predicted_error": t.get("predicted_error")}
                     for t in run["trials"]]
@@ -107,13 +118,13 @@ def table(out: Path, variants, seeds, params, max_trials_default: int = 10) -> t
         rows = summary[p]
         if not rows:
             continue
-        trials = [n for _, _, n, _, _ in rows]
-        ropes = [v for v in variants if any(vv == v for vv, _, _, _, _ in rows)]
-        per_rope = {v: float(np.median([n for vv, _, n, _, _ in rows if vv == v])) for v in ropes}
-        per_rope_err = {v: float(np.median([e for vv, _, _, e, _ in rows if vv == v])) for v in ropes}
-        reached = sum(1 for _, _, n, _, _ in rows if n <= max_trials_default)
-        best = float(np.median([e for _, _, _, e, _ in rows]))
-        floors = [above for _, _, _, _, above in rows if above is not None]
+        trials = [o.trials for o in rows]
+        ropes = [v for v in variants if any(o.rope == v for o in rows)]
+        per_rope = {v: float(np.median([o.trials for o in rows if o.rope == v])) for v in ropes}
+        per_rope_err = {v: float(np.median([o.best_error for o in rows if o.rope == v])) for v in ropes}
+        reached = sum(1 for o in rows if o.trials <= max_trials_default)
+        best = float(np.median([o.best_error for o in rows]))
+        floors = [o.floor_above for o in rows if o.floor_above is not None]
         stats[p] = {"runs": len(rows), "reached": reached, "median": float(np.median(trials)), "per_rope": per_rope,
                     "median_best_error": best, "per_rope_median_best_error": per_rope_err,
                     "misses_with_floor": len(floors), "misses_floor_above_tolerance": sum(floors)}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -40,7 +41,7 @@ def main(run: str, arm: str) -> None:
         _fail(f"{run}/correct.json: runs: no run {arm!r}; it has {', '.join(r.get('runs', {}))}")
     settings = r.get("settings", {})
     try:  # the fine rope's resolution is in settings.json (and in correct.json's settings from stop 34 on)
-        settings = settings | json.load(open(f"{run}/settings.json"))
+        settings = settings | json.loads(Path(run, "settings.json").read_text())
     except (OSError, ValueError):
         pass
     if not (settings.get("real", "fine") == "fine" and builtin_throws_of(settings)

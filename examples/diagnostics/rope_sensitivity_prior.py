@@ -97,7 +97,8 @@ def run(argv: list[str]) -> int:
         t = time.perf_counter()
         settings = json.loads((out / "settings.json").read_text())
         if not (builtin_throws_of(settings) and builtin_is_the_real_rope(settings)):
-            _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' 64-segment one")
+            _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' "
+                  f"{DEFAULT_SEGMENTS}-segment one")
         if "rope" not in ropes:
             goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
             horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
