@@ -794,10 +794,10 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
                        "predicted_state": state_record(st)})
         best = min(best, terms["total"])
 
-    def scored(folder, run=None, settings=None, trials=trials):
+    def scored(folder, run=None, settings=None, trials=trials, tolerance=0.05):
         folder.mkdir()
         (folder / "correct.json").write_text(json.dumps({
-            "variant": "default", "goal": {"path": "flick_high"}, "tolerance": 0.05,
+            "variant": "default", "goal": {"path": "flick_high"}, "tolerance": tolerance,
             "settings": settings or {"engine": "newton", "real": "fine"},
             "runs": {"fitted": (run or {"method": "gn", "steps": "gn"}) | {"trials": trials}}}))
         return subprocess.run([sys.executable, str(script), str(folder)], capture_output=True, text=True)
@@ -826,7 +826,8 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
                                ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),
-                               ("other-goal", {"trials": wrong_goal}, "is not its state's error to this goal")):
+                               ("other-goal", {"trials": wrong_goal}, "is not its state's error to this goal"),
+                               ("no-tolerance", {"tolerance": None}, "tolerance: None, not a number")):
         r = scored(tmp_path / name, **kw)
         assert r.returncode == 2 and expected in r.stderr.strip().splitlines()[-1], r.stderr
 

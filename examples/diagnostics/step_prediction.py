@@ -88,6 +88,8 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
     run = r["runs"][arm]
     if run.get("steps") != "gn":
         _fail(f"{folder}/correct.json: runs.{arm}: method {run.get('method')!r} does not step by Gauss-Newton")
+    if not isinstance(r.get("tolerance"), (int, float)):
+        _fail(f"{folder}/correct.json: tolerance: {r.get('tolerance')!r}, not a number (the floor is judged by it)")
     goal = goal_of(folder, r)
     rows, best, floor = [], None, None
     for t in run["trials"]:
