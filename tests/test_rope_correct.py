@@ -1000,7 +1000,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # and before --velocity-weight: its steps weighed the velocity rows as the others
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0}
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
@@ -1014,7 +1014,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0}
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None}
     # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
     # its --min-radius, where no arm used it, is dropped rather than refused
     for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):

@@ -253,7 +253,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             min_radius: float | None = None, prior_centre: np.ndarray | None = None, steps: str = "gn",
             max_radius: float | None = None, trust_region: str | None = None,
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
-            recorded_until: str = "first", velocity_weight: float | None = None) -> dict:
+            recorded_until: str = "first", velocity_weight: float | None = None,
+            secant_locality: float | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -266,6 +267,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       recorded_until "first": only until the trials give a pair of their own, "every": at every step.
       velocity_weight: the steps' weight on the velocity rows of the residual (the step only; acceptance and the
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
+      secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
+      farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -326,6 +329,12 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         if not (isinstance(velocity_weight, (int, float)) and np.isfinite(velocity_weight) and velocity_weight >= 0):
             raise InputError("--velocity-weight", "velocity_weight", f"{velocity_weight!r} is not a finite number "
                                                                      ">= 0")
+    if secant_locality is not None:
+        if not gn_steps:
+            raise InputError("--secant-locality", "secant_locality", f"weighs the Gauss-Newton steps' secant pairs; "
+                                                                     f"the {method} loop (steps {steps}) has none")
+        if not (isinstance(secant_locality, (int, float)) and np.isfinite(secant_locality) and secant_locality > 0):
+            raise InputError("--secant-locality", "secant_locality", f"{secant_locality!r} is not a finite number > 0")
     if gn_steps:
         if velocity_weight is None:
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
@@ -336,7 +345,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                reg, seed, popsize, generations, trust, progress, on_trial, renorm,
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
-                               recorded_until=recorded_until, velocity_weight=float(velocity_weight))
+                               recorded_until=recorded_until, velocity_weight=float(velocity_weight),
+                               secant_locality=None if secant_locality is None else float(secant_locality))
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -670,7 +680,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     generations: int | None, trust, progress, on_trial,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
-                    recorded_until: str = "first", velocity_weight: float = 1.0) -> dict:
+                    recorded_until: str = "first", velocity_weight: float = 1.0,
+                    secant_locality: float | None = None) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -737,7 +748,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                              f"{match.distance:.2f} away ({match.chain_rollouts} chains, "
                              f"{match.wall_s:.1f} s)")
             if secant:
-                sens.ridge(*gauss_newton.secant_pairs(trials, best, recorded, recorded_until))
+                sens.ridge(*gauss_newton.secant_pairs(trials, best, recorded, recorded_until),
+                           locality=secant_locality)
             step, e_best = "gauss-newton", goal.residual(best.state)[0]
             if first_step == "space-mapping" and k == 0 and plan_first and renorm is None:
                 step = "space mapping"
@@ -772,6 +784,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,
                          "ridge": gauss_newton.RIDGE if secant else None,
+                         "secant_locality": secant_locality if secant else None,
                          "correction": "ridge over all trials" if secant else "none",
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
                                           "shrink": trust.SHRINK, "min_radius": trust.min_radius,

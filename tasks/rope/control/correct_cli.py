@@ -112,6 +112,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weight of the velocity rows in each Gauss-Newton step's least-squares problem "
                         "(the step only: trials are accepted and reported on the observable's error), a number >= 0; "
                         "by-arm (default): secant.VELOCITY_WEIGHT (0.5) for fixed parameters, 1 for renormalised ones")
+    p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
+                   help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
+                        "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
+                        "none (default): every pair alike")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -443,7 +447,8 @@ def run(args) -> int:
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
-                     "velocity_weight": args.velocity_weight, "fit_throws": args.fit_throws,
+                     "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
+                     "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
                              "run refits and plans in a trust region"},
@@ -559,6 +564,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              # gn steps weighed every row alike; plan and qp runs have no such step to weigh
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
+                             "secant_locality": ("none", "weighed every secant pair alike"),
                              "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
 
@@ -677,18 +683,34 @@ def velocity_weight_arg(text) -> float | str:
     return weight
 
 
+def secant_locality_arg(text) -> float | str:
+    """--secant-locality: none, or a finite number > 0 (as a float, so a resumed run compares numbers)."""
+    if text == "none":
+        return text
+    try:
+        length = float(text)
+    except (TypeError, ValueError):
+        length = float("nan")
+    if not (np.isfinite(length) and length > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a finite number > 0 nor none")
+    return length
+
+
 def _velocity_weight(args) -> float | None:
     """--velocity-weight as a number; None for by-arm (correct() picks it by the arm's method)."""
     return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
 
 
 def _check_velocity_weight(args) -> None:
-    """A number is given only where an arm steps by Gauss-Newton (checked before any real run)."""
-    if args.velocity_weight == "by-arm":
+    """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton (checked before
+    any real run)."""
+    if any(_step_options(args, label) for label in args.params):
         return
-    if not any(_step_options(args, label) for label in args.params):
-        raise InputError("--velocity-weight", "velocity_weight", f"weighs Gauss-Newton steps, and no run here takes "
-                                                                 f"one (--method {args.method})")
+    for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
+                             ("--secant-locality", "secant_locality", args.secant_locality != "none")):
+        if given:
+            raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
+                                        f"{args.method})")
 
 
 def _step_options(args, label: str) -> dict:
@@ -697,7 +719,8 @@ def _step_options(args, label: str) -> dict:
 
     if not takes_gn_steps(*_arm_method(args, label)):
         return {}
-    return {"velocity_weight": _velocity_weight(args)}
+    return {"velocity_weight": _velocity_weight(args),
+            "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 
 def _adapts(arms: dict) -> bool:

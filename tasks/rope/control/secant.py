@@ -40,7 +40,7 @@ development runs).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -80,6 +80,7 @@ class Sensitivity:
     chain_rollouts: int = 0
     wall_s: float = 0.0
     match: Match | None = None  # where it was measured, when not at a trial's own command
+    pair_weights: list = field(default_factory=list)  # each secant pair's weight in the last ridge fit
 
     @classmethod
     def of_chain(cls, model, u: np.ndarray, step: float = GN_FD_STEP) -> Sensitivity:
@@ -89,27 +90,42 @@ class Sensitivity:
         S = np.where(np.isfinite(jac.J), jac.J, 0.0)
         return cls(S.copy(), S, jac.kinds, 0, jac.evaluations, time.perf_counter() - t)
 
-    def ridge(self, dus: list, dzs: list, weight: float = RIDGE) -> None:
-        """S = argmin sum |(dz_k - S du_k) / |du_k||^2 + weight |S - prior|_F^2 over all pairs at once: each pair is
-        one directional derivative, whatever its length (a short step near the best teaches as much as a long
-        one). With one pair and weight -> 0 this is Broyden's update of the prior."""
+    def ridge(self, dus: list, dzs: list, weight: float = RIDGE, locality: float | None = None) -> None:
+        """S = argmin sum c_k |(dz_k - S du_k) / |du_k||^2 + weight |S - prior|_F^2 over all pairs at once: each pair
+        is one directional derivative. locality None: every pair counts alike whatever its length (c_k = 1);
+        a length L: c_k = pair_weight(du_k, L), pairs farther than L from the best fading as (L / |du_k|_inf)^2.
+        With one pair and weight -> 0 this is Broyden's update of the prior."""
         n = self.prior.shape[1]
         A, B = weight * np.eye(n), weight * self.prior
-        self.pairs = 0
+        self.pairs, self.pair_weights = 0, []
         for du, dz in zip(dus, dzs):
             norm2 = float(du @ du)
             if norm2 > 0 and np.all(np.isfinite(dz)):
-                A += np.outer(du, du) / norm2
-                B = B + np.outer(dz, du) / norm2
+                c = pair_weight(du, locality)
+                A += c * np.outer(du, du) / norm2
+                B = B + c * np.outer(dz, du) / norm2
                 self.pairs += 1
+                self.pair_weights.append(c)
         self.S = np.linalg.solve(A.T, B.T).T
 
     def record(self) -> dict:
         return {"chain_rollouts": self.chain_rollouts, "chain_wall_s": self.wall_s, "secant_pairs": self.pairs,
+                "secant_pair_weights": [float(c) for c in self.pair_weights],
                 "columns_not_central": [i for i, c in enumerate(self.columns) if c != "central"],
                 "relative_correction": float(np.linalg.norm(self.S - self.prior)
                                              / max(np.linalg.norm(self.prior), 1e-12))} | (
             {} if self.match is None else self.match.record())
+
+
+def pair_weight(du: np.ndarray, locality: float | None) -> float:
+    """A secant pair's weight in the ridge fit: 1 within `locality` units of u of the best command (|du|_inf), then
+    (locality / |du|_inf)^2; 1 for every pair without a locality. A pair across several steps is the mean slope over
+    a long stretch of a map that is not linear there, which the nearer pairs describe better (README, "Near pairs
+    before far ones")."""
+    if locality is None:
+        return 1.0
+    d = float(np.abs(du).max())
+    return 1.0 if d <= locality else (locality / d) ** 2
 
 
 @dataclass
