@@ -286,6 +286,41 @@ def test_secant_corrections_reproduce_the_trials():
     assert np.allclose(loose.S, prior, atol=1e-6)
 
 
+def test_secant_locality_weighs_far_pairs_down_as_weighted_least_squares():
+    """--secant-locality: each pair's weight is 1 within L of the best command (largest component) and (L / d)^2
+    beyond; the ridge fit with those weights equals the weighted least-squares problem stacked row by row and solved
+    by lstsq (an independent formulation); without a locality every pair weighs 1, as before. Two pairs along one
+    direction that disagree: the near one's slope wins with the locality, the mean of both without it."""
+    assert secant.pair_weight(np.array([0.3, -1.0]), 1.0) == 1.0
+    assert secant.pair_weight(np.array([0.3, -2.0]), 1.0) == pytest.approx(0.25)
+    assert secant.pair_weight(np.array([9.0, 0.0]), None) == 1.0
+    rng = np.random.default_rng(7)
+    m, n, ridge = 6, 3, 0.05
+    prior = rng.normal(size=(m, n))
+    dus = [rng.normal(scale=s, size=n) for s in (0.3, 1.0, 2.5, 4.0)]
+    dzs = [rng.normal(size=m) for _ in dus]
+    sens = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * n)
+    sens.ridge(dus, dzs, weight=ridge, locality=1.0)
+    c = [min(1.0, 1.0 / np.abs(du).max() ** 2) for du in dus]
+    assert sens.pair_weights == pytest.approx(c) and min(c) < 0.2 < max(c) == 1.0
+    # row i of S: min sum_k c_k (dz_ki - S_i du_k)^2 / |du_k|^2 + ridge |S_i - prior_i|^2
+    A = np.vstack([np.sqrt(ck) * du / np.linalg.norm(du) for ck, du in zip(c, dus)] + [np.sqrt(ridge) * np.eye(n)])
+    for i in range(m):
+        b = np.concatenate([[np.sqrt(ck) * dz[i] / np.linalg.norm(du) for ck, du, dz in zip(c, dus, dzs)],
+                            np.sqrt(ridge) * prior[i]])
+        assert np.allclose(sens.S[i], np.linalg.lstsq(A, b, rcond=None)[0], atol=1e-10)
+    alike = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * n)
+    alike.ridge(dus, dzs, weight=ridge)
+    assert alike.pair_weights == [1.0] * 4 and not np.allclose(alike.S, sens.S)
+    e = np.eye(n)[0]
+    near, far = (0.5 * e, 0.5 * np.ones(m)), (4.0 * e, 4.0 * 3.0 * np.ones(m))  # slopes 1 and 3 along e
+    local = secant.Sensitivity(np.zeros((m, n)), np.zeros((m, n)), ["central"] * n)
+    local.ridge([near[0], far[0]], [near[1], far[1]], weight=1e-9, locality=1.0)
+    mean = secant.Sensitivity(np.zeros((m, n)), np.zeros((m, n)), ["central"] * n)
+    mean.ridge([near[0], far[0]], [near[1], far[1]], weight=1e-9)
+    assert np.allclose(mean.S @ e, 2.0) and np.allclose(local.S @ e, (1 + 3 / 16) / (1 + 1 / 16))
+
+
 def test_matched_command_is_where_the_chain_reproduces_a_state(problem):
     """Space mapping's extraction: given a state the chain makes under some command, started elsewhere, the match
     finds a command that reproduces it far better than the start does; given the chain's own state at the start,
@@ -522,7 +557,15 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="velocity_weight"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
-    for bad, word in ((["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
+    for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0},
+               {"secant_locality": float("inf")}, {"secant_locality": "1"}):
+        space = CommandSpace(PATHS["flick"])
+        with pytest.raises(InputError, match="secant_locality"):
+            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
+    for bad, word in ((["--secant-locality", "0"], "neither a finite number > 0 nor none"),
+                      (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
+                      (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
+                      (["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "0.5", "--method", "plan", "--params", "measured"], "--method plan"),
@@ -969,7 +1012,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     correct_cli.add_arguments(parser)
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
-                                                             "velocity_weight")}
+                                                             "velocity_weight", "secant_locality")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
@@ -1012,6 +1055,9 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "0.5"])
     with pytest.raises(InputError, match="weighed the velocity rows"):
         correct_cli._restore_settings(args)
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--secant-locality", "1"])
+    with pytest.raises(InputError, match="weighed every secant pair alike"):
+        correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
     assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None}
@@ -1041,7 +1087,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for given in ([], ["--velocity-weight", ".5"]):
         args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
         correct_cli._restore_settings(args)
-        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5}
+        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None}
     with pytest.raises(InputError, match="ran with 0.5"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
@@ -1054,7 +1100,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     new = argparse.Namespace(**vars(parser.parse_args([])))  # left out: fixed for fixed parameters
     assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
-    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None}  # correct() picks it by the method
+    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
 
 
 class ChainEngine:
