@@ -130,8 +130,11 @@ def test_model_floor_is_the_least_error_the_linear_model_predicts_in_the_box():
     du_true = rng.uniform(-2.5, 2.5, space.dim)
     best = with_offset(goal.state, -S @ du_true)
     e = goal.residual(best)[0]
-    u_floor = secant.model_floor(goal, best, S, w, e, u0, space)
-    rec = secant.floor_record(goal, best, S, u0, u_floor)
+    floor = secant.model_floor(goal, best, S, w, e, u0, space)
+    rec = secant.floor_record(goal, best, S, u0, floor)
+    # recorded however SLSQP ended (here scipy's status 8, a line search stopped at the kink of a zero term)
+    assert rec["found_by"] in ("search", "least squares") and isinstance(rec["solver_status"], int)
+    assert rec["solver_message"]
     assert rec["error"] < 1e-4 and rec["distance"] == pytest.approx(np.abs(du_true).max(), abs=0.01)
     assert set(rec["terms"]) == {"shape", "velocity", "time", "place"}
     assert secant.predicted_errors(goal, best, S, secant.gn_step(S, w, e, u0, space, 1.0)[0])[0] > 0.05
@@ -142,7 +145,9 @@ def test_model_floor_is_the_least_error_the_linear_model_predicts_in_the_box():
         best = with_offset(goal.state, rng.normal(size=goal.dim) * 0.03 / w)
         e = goal.residual(best)[0]
         rows = secant.step_row_weights(goal, 0.5)
-        floor = secant.predicted_errors(goal, best, S, secant.model_floor(goal, best, S, w, e, u0, space, rows))[0]
+        found = secant.model_floor(goal, best, S, w, e, u0, space, rows)
+        assert (found.found_by, found.solver_status) == ("search", 0), found
+        floor = secant.predicted_errors(goal, best, S, found.u)[0]
         assert floor == pytest.approx(_smoothed_floor(goal, best, S, w, u0, space, groups), rel=1e-4)
         steps = [secant.gn_step(S, w, e, u0, space, radius, rows=rows)[0] for radius in (0.25, 1.0, 3.0)]
         assert floor <= secant.predicted_errors(goal, best, S, np.stack(steps)).min() + 1e-9

@@ -234,9 +234,20 @@ def predicted_errors(goal: crit.Target, best_state: crit.CriticalStates, S: np.n
     return goal.terms(with_offset(st, dU @ S.T))["total"]
 
 
+@dataclass
+class Floor:
+    """The corrected model's floor: the command, which candidate it was (the SLSQP search, the least-squares start,
+    or a step in `also`) and how SLSQP ended (scipy's status and message), so a floor that only fell back is seen."""
+
+    u: np.ndarray
+    found_by: str
+    solver_status: int
+    solver_message: str
+
+
 def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, w: np.ndarray,
                 e_best: np.ndarray, u_best: np.ndarray, space, rows: np.ndarray | None = None,
-                also: tuple = ()) -> np.ndarray:
+                also: tuple = ()) -> Floor:
     """The command inside the command box whose error the linear model predicts least: what the corrected model
     says any command can still reach, with neither trust radius nor hand limits (which only shorten a step). A
     step predicted no better than this is limited by the model, not by the trust radius (README, "What the steps
@@ -278,19 +289,22 @@ def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarra
                      method="SLSQP", bounds=list(zip(lo, hi)) + [(0.0, None)] * G,
                      constraints=[{"type": "ineq", "fun": constraint, "jac": constraint_jacobian}],
                      options={"maxiter": 500, "ftol": 1e-12})
-    candidates = [du_ls] + ([np.clip(found.x[:n], lo, hi)] if np.all(np.isfinite(found.x)) else []) + [
-        np.asarray(u) - u_best for u in also]
+    searched = np.all(np.isfinite(found.x))
+    candidates = [du_ls] + ([np.clip(found.x[:n], lo, hi)] if searched else []) + [np.asarray(u) - u_best for u in also]
+    names = ["least squares"] + (["search"] if searched else []) + ["step"] * len(also)
     errors = predicted_errors(goal, best_state, S, np.stack(candidates))
-    return u_best + candidates[int(np.nanargmin(errors))]
+    best = int(np.nanargmin(errors))
+    return Floor(u_best + candidates[best], names[best], int(found.status), str(found.message))
 
 
 def floor_record(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, u_best: np.ndarray,
-                 u_floor: np.ndarray) -> dict:
-    """The floor's predicted error, its terms and how far it lies from the best command (units of u, largest
-    component)."""
-    terms = goal.terms(predicted_state(best_state, S, u_floor - u_best))
+                 floor: Floor) -> dict:
+    """The floor's predicted error, its terms, how far it lies from the best command (units of u, largest
+    component), which candidate it was and how the search ended."""
+    terms = goal.terms(predicted_state(best_state, S, floor.u - u_best))
     return {"error": float(terms["total"][0]), "terms": {k: float(v[0]) for k, v in terms.items() if k != "total"},
-            "distance": float(np.abs(u_floor - u_best).max())}
+            "distance": float(np.abs(floor.u - u_best).max()), "found_by": floor.found_by,
+            "solver_status": floor.solver_status, "solver_message": floor.solver_message}
 
 
 def secant_pairs(trials: list, best, recorded: list, recorded_until: str) -> tuple[list, list]:
