@@ -578,7 +578,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--max-radius", "7"], "(0, 6]"), (["--min-radius", "0.5"], "no run here has one"),
                       (["--trust-region", "fixed", "--params", "renormalised", "--min-radius", "0.5"], "no run here"),
                       (["--trust-region", "adaptive", "--method", "plan", "--params", "measured"], "--method plan"),
-                      (["--trust-region", "sometimes"], "invalid choice")):
+                      (["--trust-region", "sometimes"], "invalid choice"),
+                      # MuJoCo's rod cannot mesh the 25 mm rope at 64 segments: said before any folder or throw
+                      (["--engine", "mujoco", "--variant", "thick"], "--fine-segments: fine_segments: 64: MuJoCo's "
+                                                                     "rope needs 4 to 39 segments")):
         assert main(["correct", "rope", "--out", str(tmp_path / "o6")] + bad) == 2
         err = capsys.readouterr().err
         assert word in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "o6").exists(), err

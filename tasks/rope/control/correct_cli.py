@@ -322,6 +322,14 @@ def run(args) -> int:
                                                        "throws; it has no throws of its own (leave the option out)")
     args.fit_throws = args.fit_throws or ("real" if args.real == "fine" else "newton")
     real_rope_class(args.engine)
+    if args.engine == "mujoco" and args.real == "fine":  # before any folder or throw: MuJoCo's rod has a finest mesh
+        from wrenorm.tasks.rope.reference.materials import get_variant
+        from wrenorm.tasks.rope.reference.mujoco import check_resolution
+
+        try:
+            check_resolution(get_variant(args.variant), args.fine_segments)
+        except InputError as e:
+            raise InputError("--fine-segments", "fine_segments", e.problem) from None
     if args.builtin_throws is None:
         args.builtin_throws = builtin_is_the_real_rope(vars(args))
     elif args.builtin_throws and args.engine != "newton":
