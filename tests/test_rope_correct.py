@@ -132,9 +132,10 @@ def test_model_floor_is_the_least_error_the_linear_model_predicts_in_the_box():
     e = goal.residual(best)[0]
     floor = secant.model_floor(goal, best, S, w, e, u0, space)
     rec = secant.floor_record(goal, best, S, u0, floor)
-    # recorded however SLSQP ended (here scipy's status 8, a line search stopped at the kink of a zero term)
-    assert rec["found_by"] in ("search", "least squares") and isinstance(rec["solver_status"], int)
-    assert rec["solver_message"]
+    assert isinstance(rec["solver_status"], int) and rec["solver_message"]  # recorded however SLSQP ended
+    stepped = secant.model_floor(goal, best, S, w, e, u0, space, also=(du_true,))  # the exact answer, given as a step
+    assert stepped.found_by in ("step", "search", "least squares")
+    assert secant.predicted_errors(goal, best, S, stepped.u)[0] <= secant.predicted_errors(goal, best, S, du_true)[0]
     assert rec["error"] < 1e-4 and rec["distance"] == pytest.approx(np.abs(du_true).max(), abs=0.01)
     assert set(rec["terms"]) == {"shape", "velocity", "time", "place"}
     assert secant.predicted_errors(goal, best, S, secant.gn_step(S, w, e, u0, space, 1.0)[0])[0] > 0.05
@@ -562,7 +563,8 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="velocity_weight"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
-    for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0},
+    for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0}, {"secant": False,
+                                                                                     "secant_locality": 1.0},
                {"secant_locality": float("inf")}, {"secant_locality": "1"}):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="secant_locality"):
@@ -570,6 +572,7 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     for bad, word in ((["--secant-locality", "0"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
+                      (["--secant-locality", "1", "--no-secant"], "--no-secant uses none"),
                       (["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),

@@ -335,6 +335,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                                                      f"the {method} loop (steps {steps}) has none")
         if not (isinstance(secant_locality, (int, float)) and np.isfinite(secant_locality) and secant_locality > 0):
             raise InputError("--secant-locality", "secant_locality", f"{secant_locality!r} is not a finite number > 0")
+    if secant_locality is not None and secant is False:
+        raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
         if velocity_weight is None:
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0

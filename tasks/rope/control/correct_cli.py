@@ -710,8 +710,10 @@ def _velocity_weight(args) -> float | None:
 
 
 def _check_velocity_weight(args) -> None:
-    """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton (checked before
-    any real run)."""
+    """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton, the locality only
+    with secant pairs (checked before any real run)."""
+    if args.secant is False and args.secant_locality != "none":
+        raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),

@@ -165,7 +165,10 @@ def generate(args) -> int:
     jobs = [(v, p, None) for v in args.variants for p in args.paths]
     jobs += [(v, args.perturb_paths[i % len(args.perturb_paths)], int(s)) for v in args.variants
              for i, s in enumerate(args.perturb_seeds)]
-    failed = 0
+    if not jobs:
+        print("generate: nothing to make: --paths and --perturb-seeds are both empty", file=sys.stderr)
+        return 2
+    failed, said = 0, set()
     for variant, path, seed in jobs:
         name = f"{args.engine}_{variant}_{path}" + ("" if seed is None else f"_p{seed}")
         f = out / f"{name}.npz"
@@ -178,7 +181,10 @@ def generate(args) -> int:
                                      annotate=args.annotate, **({} if args.segments is None else
                                                                 {"segments": args.segments}))
         except InputError as e:  # one throw this engine cannot make costs that throw, not the set
-            print(f"{name}: {e} (skipped)", file=sys.stderr, flush=True)
+            if str(e) not in said:  # an option every throw shares fails every throw: said once
+                print(f"{name}: {e} (skipped; so is every later throw with this problem)", file=sys.stderr,
+                      flush=True)
+                said.add(str(e))
             failed += 1
             continue
         hit = ref.sim_contact_time
@@ -186,7 +192,7 @@ def generate(args) -> int:
               f"({_time.perf_counter() - t0:.1f} s)", flush=True)
     if failed:
         print(f"{failed} of {len(jobs)} throws could not be made (above)", file=sys.stderr)
-    return 2 if failed == len(jobs) else 0
+    return 2 if failed and failed == len(jobs) else 0
 
 
 def main(argv=None) -> int:
@@ -222,6 +228,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.cmd == "generate":
         return generate(a)
+    if a.gaps < 0:
+        print(f"score: --gaps: {a.gaps} is below 0 (gaps per file with a contact)", file=sys.stderr)
+        return 2
     files = sorted(f for d in a.dirs for f in Path(d).glob("*.npz"))
     result = {}
     for m in a.markers:

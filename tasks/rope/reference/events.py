@@ -26,7 +26,8 @@ Method (README, "Events in motion capture", has the measurements behind every th
    uncertainty (the only way to report a contact late), a slow approach, an unresolved curl at the contact
    (chord/arc < 2/pi: more than a half turn between two markers), a one-frame touch whose pieces then pass
    each other instead of staying together, bridged (occluded) markers bounding the contact, near it, or
-   stretching the rope before it (the contact may lie in the gap), an event long after the rope's fastest
+   stretching the rope before it, or any marker missing for longer than 20 ms before it (the contact may lie in
+   the gap; with no contact seen, such a gap leaves no usable answer), an event long after the rope's fastest
    motion. Marker noise widens the uncertainty; it never moves the contact level.
 """
 from __future__ import annotations
@@ -80,7 +81,8 @@ class CollisionEvent:
 
 @dataclass
 class Detection:
-    status: str  # "contact", "no_contact" (none even within its uncertainty) or "unusable" (cannot tell)
+    status: str  # "contact", "no_contact" (none even within its uncertainty, and no marker missing for long) or
+    # "unusable" (cannot tell)
     event: CollisionEvent | None  # set when status == "contact"
     confidence: str  # "high", "low" (contact reported but flagged) or "none" (status != "contact")
     reasons: list = field(default_factory=list)  # sentences; empty when nothing is doubtful
@@ -481,8 +483,8 @@ def _long_gaps_before(time, untrusted: np.ndarray, k_end: int) -> str:
     ms = np.flatnonzero(window.any(axis=0)).tolist()
     spans = [sp for m in ms for sp in _missing_spans(untrusted[:, m], 0, max(k_end, 1))]
     t0, t1 = time[min(a for a, _ in spans)], time[max(b for _, b in spans)]
-    return (f"markers {ms} were missing for longer than {1000 * MAX_BRIDGE_TIME:.0f} ms between t={t0:.3f} and "
-            f"{t1:.3f} s and were bridged in time")
+    return (f"markers {ms} were missing for longer than {1000 * MAX_BRIDGE_TIME:.0f} ms, from t={t0:.3f} to "
+            f"{t1:.3f} s, and were bridged in time")
 
 
 # ---------------------------------------------------------------------------------------------- detection
@@ -773,8 +775,8 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             low.append("occlusion")
         gap_reasons = _bridged_gap_reasons(time, X, S, missing, ratio, a, radius, margin, k, (sa, sb), ends, w0, w1)
         if hidden:
-            gap_reasons.append(f"{hidden}, before the event: an earlier first contact may lie in the gap, where the "
-                               "rope's shape is a guess")
+            gap_reasons.append(f"{hidden} (a gap starting before the event): an earlier first contact may lie in it, "
+                               "where the rope's shape is a guess")
         diag["bridged_gap_reasons"] = len(gap_reasons)
         if gap_reasons:
             reasons.extend(gap_reasons)
