@@ -65,25 +65,34 @@ def classify(status: str, flagged: bool, t_det, t_true) -> str:
     return "flagged"
 
 
-def contact_gaps(time, s: np.ndarray, t_true: float, s_true, count: int, rng) -> list:
-    """`count` long occlusions over a known first contact, each (markers, first frame, last frame + 1): 1-3 adjacent
-    markers, one of them the marker nearest either contact point (never marker 0, which the hand stands in for),
-    missing for 30-500 ms with the contact at a uniformly drawn place inside the gap: the occlusions that can hide a
-    contact from the bridged markers (README, "Events in motion capture")."""
+def contact_gaps(time, s: np.ndarray, t_true: float, s_true, count: int, rng, at: str = "contact") -> list:
+    """`count` long occlusions, each (markers, first frame, last frame + 1): 1-3 adjacent markers missing for 30-500
+    ms (never marker 0, which the hand stands in for). at "contact": one of the markers is the one nearest either
+    contact point and the contact lies at a uniformly drawn place inside the gap, the occlusions that can hide a
+    contact from the bridged markers (README, "Events in motion capture"); "before": any markers, the gap ending at
+    least 50 ms before the contact, the occlusions that should cost nothing."""
     gaps = []
     dt = float(time[1] - time[0])
-    for _ in range(count):
-        near = int(np.argmin(np.abs(s - s_true[int(rng.integers(0, 2))])))
-        k = int(rng.integers(1, 4))
-        first = int(np.clip(near - int(rng.integers(0, k)), 1, len(s) - k))
-        n = max(1, int(round(rng.uniform(0.030, 0.500) / dt)))
-        start = int(np.clip(np.searchsorted(time, t_true) - int(rng.integers(0, n)), 0, len(time) - n))
+    k_true = int(np.searchsorted(time, t_true))
+    for _ in range(count):  # the draws in this order, so that a seed repeats the README's gaps
+        if at == "before":
+            k = int(rng.integers(1, 4))
+            first = int(rng.integers(1, len(s) - k + 1))
+            room = max(1, k_true - int(round(0.050 / dt)))
+            n = min(max(1, int(round(rng.uniform(0.030, 0.500) / dt))), room)
+            start = int(rng.integers(0, room - n + 1))
+        else:
+            near = int(np.argmin(np.abs(s - s_true[int(rng.integers(0, 2))])))
+            k = int(rng.integers(1, 4))
+            first = int(np.clip(near - int(rng.integers(0, k)), 1, len(s) - k))
+            n = max(1, int(round(rng.uniform(0.030, 0.500) / dt)))
+            start = int(np.clip(k_true - int(rng.integers(0, n)), 0, len(time) - n))
         gaps.append((list(range(first, first + k)), start, start + n))
     return gaps
 
 
 def score(files, markers: int, noise: float = 0.0, occlude: int = 0, seed: int = 1, verbose: bool = False,
-          gaps: int = 0):
+          gaps: int = 0, gaps_at: str = "contact"):
     """One row per file, or with `gaps` one row per long occlusion over each file's known contact (contact_gaps;
     files without a contact are skipped then)."""
     from wrenorm.tasks.rope.reference.generate import resample_nodes
@@ -100,7 +109,7 @@ def score(files, markers: int, noise: float = 0.0, occlude: int = 0, seed: int =
             if "sim_contact_s" not in z.files or not np.all(np.isfinite(z["sim_contact_s"])):
                 raise SystemExit(f"{f}: sim_contact_s: needed to place the gaps over the contact")
             cases = [(g, f"{Path(f).stem}#gap{i}") for i, g in enumerate(
-                contact_gaps(time, s, t_true, z["sim_contact_s"], gaps, rng))]
+                contact_gaps(time, s, t_true, z["sim_contact_s"], gaps, rng, gaps_at))]
         else:
             cases = [(None, Path(f).stem)]
         for gap, name in cases:
@@ -222,6 +231,9 @@ def main(argv=None) -> int:
     s.add_argument("--gaps", type=int, default=0,
                    help="score each file with a contact this many times, each with 1-3 markers next to the contact "
                         "missing for 30-500 ms over it (files without a contact are skipped)")
+    s.add_argument("--gaps-at", choices=("contact", "before"), default="contact",
+                   help="where --gaps lie: over the contact, beside its markers (contact), or on any markers, ending "
+                        "at least 50 ms before it (before)")
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--json", default=None, help="write every row and the summaries here")
     s.add_argument("-v", "--verbose", action="store_true")
@@ -234,14 +246,14 @@ def main(argv=None) -> int:
     files = sorted(f for d in a.dirs for f in Path(d).glob("*.npz"))
     result = {}
     for m in a.markers:
-        rows = score(files, m, a.noise, a.occlude, a.seed, a.verbose, a.gaps)
+        rows = score(files, m, a.noise, a.occlude, a.seed, a.verbose, a.gaps, a.gaps_at)
         result[str(m)] = {"summary": summarise(rows), "rows": rows}
         print(f"{m} markers: {json.dumps(result[str(m)]['summary'])}", flush=True)
     if a.json:
         from wrenorm.results import write_json
 
-        write_json(a.json, {"dirs": a.dirs, "noise": a.noise, "occlude": a.occlude, "gaps": a.gaps, "seed": a.seed,
-                            "results": result})
+        write_json(a.json, {"dirs": a.dirs, "noise": a.noise, "occlude": a.occlude, "gaps": a.gaps,
+                            "gaps_at": a.gaps_at, "seed": a.seed, "results": result})
     return 0
 
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-VERSION = 7  # bump when the detector's answer can change (keys the event cache)
+VERSION = 8  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -471,20 +471,44 @@ def _bridged_gap_reasons(time, X, S, missing, ratio, arc, radius, margin, k, s_c
     return out
 
 
-def _long_gaps_before(time, untrusted: np.ndarray, k_end: int) -> str:
-    """A phrase naming the markers missing for longer than MAX_BRIDGE_TIME at any frame before k_end (the event, or
-    the end), when and for how long; empty when there are none. Shorter occlusions are bridged well enough (dev sets,
-    1-4 frames at 200 Hz). Every frame counts, not only those where the rope's bound lets it touch itself: that bound
-    is computed through the bridged markers, and where a hidden tip was guessed it stayed clear of a real contact
-    (held-out MuJoCo gaps at 24 markers, README)."""
-    window = untrusted[:max(k_end, 1)]
-    if not window.any():
+def _gaps_that_may_hide_a_contact(time, X, S, radius, excl, margin, untrusted: np.ndarray, k_end: int) -> str:
+    """A phrase naming the markers missing for longer than MAX_BRIDGE_TIME before frame k_end (the event, or the
+    end) over which the hidden rope could have touched itself, when and for how long; empty when there are none.
+    Shorter occlusions are bridged well enough (dev sets, 1-4 frames at 200 Hz).
+
+    Whether a hidden stretch could touch is decided without the bridged guesses: over each long gap the missing
+    markers are dropped, and the stretch between the observed markers on either side lies in their spheroid
+    (interval_bounds, rigorous for any rope of the known length); the gap is harmless only if that bound keeps the
+    merged interval clear of the rest of the rope (and of itself) by more than the contact level at every frame of
+    the gap. A hidden free end has no observed marker beyond it and is always counted. A bound drawn through the
+    bridged markers instead kept a hidden tip clear of a real contact (held-out MuJoCo gaps, README)."""
+    if k_end <= 0 or not untrusted[:k_end].any():
         return ""
-    ms = np.flatnonzero(window.any(axis=0)).tolist()
-    spans = [sp for m in ms for sp in _missing_spans(untrusted[:, m], 0, max(k_end, 1))]
-    t0, t1 = time[min(a for a, _ in spans)], time[max(b for _, b in spans)]
+    M = X.shape[1]
+    hiding = []
+    for m in np.flatnonzero(untrusted[:k_end].any(axis=0)):
+        for a, b in _missing_spans(untrusted[:, m], 0, k_end):
+            f0, f1 = max(a - 1, 0), min(b + 2, X.shape[0])  # the frames on either side are observed
+            dropped = untrusted[a:b + 1].any(axis=0)
+            if dropped[M - 1] or dropped[0]:
+                hiding.append((int(m), a, b))
+                continue
+            keep = np.flatnonzero(~dropped)
+            Sr = S[keep]
+            merged = np.flatnonzero(np.diff(keep) > 1)  # reduced intervals that span a hidden marker
+            iv, jv = np.triu_indices(len(keep) - 1, k=0)
+            sel = ((Sr[jv + 1] - Sr[iv]) > excl) & (np.isin(iv, merged) | np.isin(jv, merged))
+            if not sel.any():
+                continue
+            glow, _ = interval_bounds(X[f0:f1][:, keep], Sr, radius, excl, iv[sel], jv[sel])
+            if (glow - margin).min() <= CONTACT_LEVEL:
+                hiding.append((int(m), a, b))
+    if not hiding:
+        return ""
+    t0, t1 = time[min(a for _, a, _ in hiding)], time[max(b for _, _, b in hiding)]
+    ms = sorted({m for m, _, _ in hiding})
     return (f"markers {ms} were missing for longer than {1000 * MAX_BRIDGE_TIME:.0f} ms, from t={t0:.3f} to "
-            f"{t1:.3f} s, and were bridged in time")
+            f"{t1:.3f} s, while the rope hidden there could have touched itself, and were bridged in time")
 
 
 # ---------------------------------------------------------------------------------------------- detection
@@ -661,7 +685,8 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     # long gaps before the event: bridging through one can hide the first contact anywhere the hidden stretch could
     # reach (held-out MuJoCo throws: no-contact answers and a contact 30 ms late, all unflagged, with markers near the
     # real contact missing for 55-490 ms; README, "Events in motion capture")
-    hidden = _long_gaps_before(time, untrusted, T if k is None else k) if "occlusion" in rules else ""
+    hidden = (_gaps_that_may_hide_a_contact(time, X, S, radius, excl, margin, untrusted, T if k is None else k)
+              if "occlusion" in rules else "")
     if k is None:
         if kq is None and hidden:
             reasons.append(f"no contact on the reconstructed rope, but {hidden}: a contact may lie in the gap")
