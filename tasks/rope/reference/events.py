@@ -26,8 +26,9 @@ Method (README, "Events in motion capture", has the measurements behind every th
    uncertainty (the only way to report a contact late), a slow approach, an unresolved curl at the contact
    (chord/arc < 2/pi: more than a half turn between two markers), a one-frame touch whose pieces then pass
    each other instead of staying together, bridged (occluded) markers bounding the contact, near it, or
-   stretching the rope before it, or any marker missing for longer than 20 ms before it (the contact may lie in
-   the gap; with no contact seen, such a gap leaves no usable answer), an event long after the rope's fastest
+   stretching the rope before it, or a marker missing for longer than 20 ms before it where the rope hidden there
+   could have touched itself (the contact may lie in the gap; with no contact seen, such a gap leaves no usable
+   answer), an event long after the rope's fastest
    motion. Marker noise widens the uncertainty; it never moves the contact level.
 """
 from __future__ import annotations
@@ -81,8 +82,8 @@ class CollisionEvent:
 
 @dataclass
 class Detection:
-    status: str  # "contact", "no_contact" (none even within its uncertainty, and no marker missing for long) or
-    # "unusable" (cannot tell)
+    status: str  # "contact", "no_contact" (none even within its uncertainty, and no long gap that could hide one)
+    # or "unusable" (cannot tell)
     event: CollisionEvent | None  # set when status == "contact"
     confidence: str  # "high", "low" (contact reported but flagged) or "none" (status != "contact")
     reasons: list = field(default_factory=list)  # sentences; empty when nothing is doubtful
