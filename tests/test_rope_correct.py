@@ -1103,10 +1103,10 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
     # a weight is refused only where no arm steps by Gauss-Newton: renormalised arms of --method qp do, of plan not
-    correct_cli._check_velocity_weight(parser.parse_args(["--velocity-weight", "1", "--method", "qp", "--params",
+    correct_cli._check_step_options(parser.parse_args(["--velocity-weight", "1", "--method", "qp", "--params",
                                                           "measured", "renormalised"]))
     with pytest.raises(InputError, match="no run here takes one"):
-        correct_cli._check_velocity_weight(parser.parse_args(["--velocity-weight", "1", "--method", "plan",
+        correct_cli._check_step_options(parser.parse_args(["--velocity-weight", "1", "--method", "plan",
                                                               "--params", "measured", "renormalised"]))
     new = argparse.Namespace(**vars(parser.parse_args([])))  # left out: fixed for fixed parameters
     assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"

@@ -322,19 +322,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--trust-region/--min-radius/--max-radius", "trust_region", f"the {method} loop has no "
                                                                                      "trust region of these (--method "
                                                                                      "gn or renormalised runs)")
-    if velocity_weight is not None:
-        if not gn_steps:
-            raise InputError("--velocity-weight", "velocity_weight", f"weighs Gauss-Newton steps; the {method} loop "
-                                                                     f"(steps {steps}) has none")
-        if not (isinstance(velocity_weight, (int, float)) and np.isfinite(velocity_weight) and velocity_weight >= 0):
-            raise InputError("--velocity-weight", "velocity_weight", f"{velocity_weight!r} is not a finite number "
-                                                                     ">= 0")
-    if secant_locality is not None:
-        if not gn_steps:
-            raise InputError("--secant-locality", "secant_locality", f"weighs the Gauss-Newton steps' secant pairs; "
-                                                                     f"the {method} loop (steps {steps}) has none")
-        if not (isinstance(secant_locality, (int, float)) and np.isfinite(secant_locality) and secant_locality > 0):
-            raise InputError("--secant-locality", "secant_locality", f"{secant_locality!r} is not a finite number > 0")
+    _check_step_number(velocity_weight, "--velocity-weight", "velocity_weight", False, gn_steps,
+                       f"weighs Gauss-Newton steps; the {method} loop (steps {steps}) has none")
+    _check_step_number(secant_locality, "--secant-locality", "secant_locality", True, gn_steps,
+                       f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
@@ -472,6 +463,17 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         "best_u": best.u,
         "trials": trials,
     }
+
+
+def _check_step_number(value, flag: str, key: str, positive: bool, gn_steps: bool, without_steps: str) -> None:
+    """A Gauss-Newton step option given as a number: only where the loop takes such steps, finite and >= 0 (> 0 when
+    `positive`); None (left out) passes."""
+    if value is None:
+        return
+    if not gn_steps:
+        raise InputError(flag, key, without_steps)
+    if not (isinstance(value, (int, float)) and np.isfinite(value) and (value > 0 if positive else value >= 0)):
+        raise InputError(flag, key, f"{value!r} is not a finite number {'> 0' if positive else '>= 0'}")
 
 
 def takes_gn_steps(method: str, steps: str) -> bool:

@@ -296,7 +296,7 @@ def run(args) -> int:
         raise InputError("--min-radius", "min_radius", f"must be in (0, 6], got {args.min_radius:g}")
     if args.max_radius is not None and not 0 < args.max_radius <= 6:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
-    _check_velocity_weight(args)
+    _check_step_options(args)
     arms = {label: _trust_options(args, label) for label in args.params}
     if args.trust_region != "by-arm" and not any(arms.values()):
         raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
@@ -678,30 +678,27 @@ def _trust_options(args, label: str) -> dict:
             "max_radius": args.max_radius if adaptive else None}
 
 
-def velocity_weight_arg(text) -> float | str:
-    """--velocity-weight: by-arm, or a finite number >= 0 (as a float, so a resumed run compares numbers)."""
-    if text == "by-arm":
-        return text
-    try:
-        weight = float(text)
-    except (TypeError, ValueError):
-        weight = float("nan")
-    if not (np.isfinite(weight) and weight >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a finite number >= 0 nor by-arm")
-    return weight
+def number_or_word(word: str, positive: bool):
+    """An argparse type: `word`, or a finite number >= 0 (> 0 when `positive`), returned as a float so that a
+    resumed run compares numbers."""
+    bound = "> 0" if positive else ">= 0"
+
+    def parse(text) -> float | str:
+        if text == word:
+            return text
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if not (np.isfinite(value) and (value > 0 if positive else value >= 0)):
+            raise argparse.ArgumentTypeError(f"{text!r} is neither a finite number {bound} nor {word}")
+        return value
+
+    return parse
 
 
-def secant_locality_arg(text) -> float | str:
-    """--secant-locality: none, or a finite number > 0 (as a float, so a resumed run compares numbers)."""
-    if text == "none":
-        return text
-    try:
-        length = float(text)
-    except (TypeError, ValueError):
-        length = float("nan")
-    if not (np.isfinite(length) and length > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a finite number > 0 nor none")
-    return length
+velocity_weight_arg = number_or_word("by-arm", positive=False)  # --velocity-weight
+secant_locality_arg = number_or_word("none", positive=True)  # --secant-locality
 
 
 def _velocity_weight(args) -> float | None:
@@ -709,7 +706,7 @@ def _velocity_weight(args) -> float | None:
     return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
 
 
-def _check_velocity_weight(args) -> None:
+def _check_step_options(args) -> None:
     """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton, the locality only
     with secant pairs (checked before any real run)."""
     if args.secant is False and args.secant_locality != "none":
