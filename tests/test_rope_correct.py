@@ -227,6 +227,25 @@ def test_plan_on_the_model_alone_reaches_a_reachable_goal(problem):
     assert space.feasible(p["u"])
 
 
+def test_first_plan_weight_picks_a_command_nearer_the_start(problem):
+    """The chain reproduces the goal about as well along a long stretch of commands; weighing the distance from the
+    start in trial 1's plan picks one nearer it, at a chain error that grows by no more than the weight's own cost
+    (the plan minimises error + reg |u|^2, so error(reg) <= error(0) + reg |u(0)|^2, up to the search's slack)."""
+    from wrenorm.tasks.rope.control.correct import _first_plan
+
+    space = CommandSpace(PATHS["flick"])
+    model = CoarseModel(problem, shifted(problem), space)
+    goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
+    opts = {"popsize": 16, "generations": 20, "reg": 1e-4}
+    plans = {reg: _first_plan(model, goal, np.zeros(space.dim), 0, opts, None, reg) for reg in (None, 0.01)}
+    (_, u0, _, rec0), (_, u1, _, rec1) = plans[None], plans[0.01]
+    assert rec0["reg"] == 1e-4 and rec1["reg"] == 0.01  # as-plans: the plans' own weight
+    assert np.isclose(rec1["distance_from_start"], np.linalg.norm(u1)) and space.feasible(u1)
+    assert np.linalg.norm(u1) < 0.8 * np.linalg.norm(u0), (np.linalg.norm(u0), np.linalg.norm(u1))
+    slack = 0.05  # the search's own: two CMA-ES runs of 1600 chains on a rough event map
+    assert rec1["model_total_at_plan"] <= rec0["model_total_at_plan"] + 0.01 * np.sum(u0 ** 2) + slack
+
+
 @pytest.mark.parametrize("method,plan_first", [("plan", True), ("plan", False), ("gn", True)])
 def test_correction_converges_on_a_system_with_known_answer(problem, method, plan_first):
     """The coarse chain with shifted parameters is the 'real' rope; the goal is its own critical
@@ -569,7 +588,16 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="secant_locality"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
+    for kw in ({"method": "qp", "first_plan_reg": 0.01}, {"plan_first": False, "first_plan_reg": 0.01},
+               {"first_plan_reg": -1.0}, {"first_plan_reg": float("nan")}, {"first_plan_reg": "0.01"}):
+        space = CommandSpace(PATHS["flick"])
+        with pytest.raises(InputError, match="first_plan_reg"):
+            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
     for bad, word in ((["--secant-locality", "0"], "neither a finite number > 0 nor none"),
+                      (["--first-plan-reg", "-0.1"], "neither a finite number >= 0 nor as-plans"),
+                      (["--first-plan-reg", "near"], "neither a finite number >= 0 nor as-plans"),
+                      (["--first-plan-reg", "0.01", "--no-plan-first"], "no run here plans it"),
+                      (["--first-plan-reg", "0.01", "--method", "qp", "--params", "measured"], "no run here plans it"),
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--secant-locality", "1", "--no-secant"], "--no-secant uses none"),
@@ -1023,11 +1051,16 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     correct_cli.add_arguments(parser)
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
-                                                             "velocity_weight", "secant_locality")}
+                                                             "velocity_weight", "secant_locality",
+                                                             "first_plan_reg")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
+    assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args) is None  # as it ran
+    with pytest.raises(InputError, match="other plans' weight"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-reg",
+                                                         "0.01"]))
     assert args.builtin_throws  # a newton run saved before the setting used the built-in throws, as it resumes
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old | {"fine_segments": 32, "device": "cuda:0"}))
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--device", "cuda"])  # "cuda:0" saved is "cuda"

@@ -254,7 +254,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             max_radius: float | None = None, trust_region: str | None = None,
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
-            secant_locality: float | None = None) -> dict:
+            secant_locality: float | None = None, first_plan_reg: float | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -272,6 +272,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
+    first_plan_reg: the weight of |u - u0|^2 in that first plan (per unit of u squared); left out, the plans' own
+      (plan.DEFAULT_REG, or `reg` for the plan loop).
     method "qp": a linear trust-region step through the coarse model's FD sensitivity.
     secant: learn how the model's error changes with u from pairs of real trials (for "gn" a ridge fit of all
       pairs toward the chain's sensitivity, for "plan" a Broyden term of the offset, for "qp" of F). Default: on
@@ -311,6 +313,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                                      "it needs --method gn (the plan and qp loops would ignore it)")
     if max_trials < 1:
         raise InputError("--max-trials", "max_trials", f"must be >= 1, got {max_trials}")
+    _check_loop_number(first_plan_reg, "--first-plan-reg", "first_plan_reg", False,
+                       plans_first(method, steps, plan_first),
+                       f"weighs the first plan, and the {method} loop here makes none (qp, or --no-plan-first)")
     space = model.space
     problems = space.violations(u0)
     if problems:
@@ -322,9 +327,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--trust-region/--min-radius/--max-radius", "trust_region", f"the {method} loop has no "
                                                                                      "trust region of these (--method "
                                                                                      "gn or renormalised runs)")
-    _check_step_number(velocity_weight, "--velocity-weight", "velocity_weight", False, gn_steps,
+    _check_loop_number(velocity_weight, "--velocity-weight", "velocity_weight", False, gn_steps,
                        f"weighs Gauss-Newton steps; the {method} loop (steps {steps}) has none")
-    _check_step_number(secant_locality, "--secant-locality", "secant_locality", True, gn_steps,
+    _check_loop_number(secant_locality, "--secant-locality", "secant_locality", True, gn_steps,
                        f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
@@ -339,12 +344,13 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                plan_first=plan_first, secant=True if secant is None else bool(secant),
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until, velocity_weight=float(velocity_weight),
-                               secant_locality=None if secant_locality is None else float(secant_locality))
+                               secant_locality=None if secant_locality is None else float(secant_locality),
+                               first_plan_reg=first_plan_reg)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
                                       prior_scale, decay, anchored, refit_generations, trust, progress,
-                                      on_trial, prior_centre)
+                                      on_trial, prior_centre, first_plan_reg)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
     reg = (rope_plan.DEFAULT_REG if method == "plan" else DEFAULT_REG) if reg is None else reg
@@ -358,7 +364,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     D = np.zeros((goal.dim, space.dim))  # learned correction of the model's sensitivity (qp, secant=True)
     offset, last_plan = None, []
     if method == "plan" and plan_first:
-        p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+        p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
         predicted, last_plan = p["predicted_total"], [u.copy()]
     for k in range(max_trials):
         t = time.perf_counter()
@@ -465,15 +471,21 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
-def _check_step_number(value, flag: str, key: str, positive: bool, gn_steps: bool, without_steps: str) -> None:
-    """A Gauss-Newton step option given as a number: only where the loop takes such steps, finite and >= 0 (> 0 when
-    `positive`); None (left out) passes."""
+def _check_loop_number(value, flag: str, key: str, positive: bool, applies: bool, why_not: str) -> None:
+    """A number option of the loop: only where it `applies` (e.g. the loop takes Gauss-Newton steps), finite
+    and >= 0 (> 0 when `positive`); None (left out) passes."""
     if value is None:
         return
-    if not gn_steps:
-        raise InputError(flag, key, without_steps)
+    if not applies:
+        raise InputError(flag, key, why_not)
     if not (isinstance(value, (int, float)) and np.isfinite(value) and (value > 0 if positive else value >= 0)):
         raise InputError(flag, key, f"{value!r} is not a finite number {'> 0' if positive else '>= 0'}")
+
+
+def plans_first(method: str, steps: str, plan_first: bool) -> bool:
+    """Whether correct()'s loop for `method` (and `steps`, for renormalise) plans trial 1 on the chain: qp never
+    does, the renormalised plan loop always, the others unless plan_first is off."""
+    return (method in ("gn", "plan") and plan_first) or (method == "renormalise" and (plan_first or steps == "plan"))
 
 
 def takes_gn_steps(method: str, steps: str) -> bool:
@@ -518,20 +530,26 @@ def check_first_step(first_step: str, gn_steps: bool, linearise_at: str) -> None
                                                        "and the match (--linearise-at matched)")
 
 
-def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int, plan_opts: dict, progress):
-    """Trial 0: the model alone picks the first real command, in the whole box around the start.
+def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int, plan_opts: dict, progress,
+                reg: float | None = None):
+    """Trial 0: the model alone picks the first real command, in the whole box around the start, paying `reg`
+    (default: the plans' own) per squared unit of u away from it.
     Returns (plan, feasible command, its step scale, what the planning did)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
     space = model.space
+    opts = plan_opts if reg is None else plan_opts | {"reg": float(reg)}
     p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, rope_plan.Offset.zero(space.dim, goal.dim, u0),
-                       seed=seed, **plan_opts)
+                       seed=seed, **opts)
     u, scale_used = _feasible(space, u0, p["u"])
     planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
-                "evaluations": p["evaluations"], "wall_s": p["wall_s"]}
+                "evaluations": p["evaluations"], "wall_s": p["wall_s"], "reg": opts["reg"],
+                "distance_from_start": float(np.linalg.norm(u - u0))}
     if progress:
         progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
-                 f"the start -> {p['model_total']:.3f}, {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
+                 f"the start -> {p['model_total']:.3f} at {planning['distance_from_start']:.2f} from it (Euclidean, "
+                 f"units of u; weight {opts['reg']:g} per unit squared), {p['evaluations']} coarse rollouts, "
+                 f"{p['wall_s']:.1f} s")
     return p, u, scale_used, planning
 
 
@@ -546,7 +564,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                            popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
                            prior_scale: float | None, decay: float | None, anchored: bool,
                            refit_generations: int | None, trust, progress, on_trial,
-                           prior_centre: np.ndarray | None = None) -> dict:
+                           prior_centre: np.ndarray | None = None, first_plan_reg: float | None = None) -> dict:
     """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
@@ -556,7 +574,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
-    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
     offset, last_plan = rope_plan.Offset.zero(space.dim, goal.dim, u0), [u.copy()]
     trials: list[Trial] = []
     hits: list[tuple[int, np.ndarray, crit.CriticalStates]] = []
@@ -685,7 +703,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first", velocity_weight: float = 1.0,
-                    secant_locality: float | None = None) -> dict:
+                    secant_locality: float | None = None, first_plan_reg: float | None = None) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -709,7 +727,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     rows = gauss_newton.step_row_weights(goal, velocity_weight)
     u, scale_used, planning = u0.copy(), None, None
     if plan_first:
-        _, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress)
+        _, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
     pred_state = model.states(u[None])
     predicted = float(goal.terms(pred_state)["total"][0])
     trials: list[Trial] = []

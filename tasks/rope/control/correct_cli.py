@@ -116,6 +116,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
                         "none (default): every pair alike")
+    p.add_argument("--first-plan-reg", type=first_plan_reg_arg, default="as-plans",
+                   help="weight of the squared distance (units of u) from the start command in trial 1's plan on the "
+                        "chain: the chain reproduces the goal about as well along a long stretch of commands, and "
+                        "this picks one nearer the start; a number >= 0, or as-plans (default): the loop's other "
+                        "plans' weight (1e-4, a tie-breaker; the plan loop's --reg)")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -297,6 +302,7 @@ def run(args) -> int:
     if args.max_radius is not None and not 0 < args.max_radius <= 6:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
     _check_step_options(args)
+    _check_first_plan(args)
     arms = {label: _trust_options(args, label) for label in args.params}
     if args.trust_region != "by-arm" and not any(arms.values()):
         raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
@@ -426,7 +432,7 @@ def run(args) -> int:
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
                       recorded_until="every" if args.start_pair == "every" else "first",
-                      **_step_options(args, label))
+                      first_plan_reg=_first_plan_reg(args), **_step_options(args, label))
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -456,6 +462,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
+                     "first_plan_reg": args.first_plan_reg,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
@@ -573,6 +580,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
+                             "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
                              "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
 
@@ -699,11 +707,28 @@ def number_or_word(word: str, positive: bool):
 
 velocity_weight_arg = number_or_word("by-arm", positive=False)  # --velocity-weight
 secant_locality_arg = number_or_word("none", positive=True)  # --secant-locality
+first_plan_reg_arg = number_or_word("as-plans", positive=False)  # --first-plan-reg
 
 
 def _velocity_weight(args) -> float | None:
     """--velocity-weight as a number; None for by-arm (correct() picks it by the arm's method)."""
     return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
+
+
+def _first_plan_reg(args) -> float | None:
+    """--first-plan-reg as a number; None for as-plans (correct() weighs trial 1's plan as its other plans)."""
+    return None if args.first_plan_reg == "as-plans" else float(args.first_plan_reg)
+
+
+def _check_first_plan(args) -> None:
+    """--first-plan-reg weighs trial 1's plan: refused where no run here plans it (checked before any real run)."""
+    from wrenorm.tasks.rope.control.correct import plans_first
+
+    if args.first_plan_reg == "as-plans":
+        return
+    if not any(plans_first(*_arm_method(args, label), not args.no_plan_first) for label in args.params):
+        raise InputError("--first-plan-reg", "first_plan_reg", "weighs trial 1's plan, and no run here plans it "
+                                                               "(--no-plan-first, or --method qp)")
 
 
 def _check_step_options(args) -> None:
