@@ -270,6 +270,8 @@ def test_correction_converges_on_a_system_with_known_answer(problem, method, pla
         assert space.feasible(t.u)
     if not plan_first:
         assert np.all(wrong["trials"][0].u == 0.0)
+    else:  # by method: the plan loop weighs trial 1 as its other plans, Gauss-Newton steps nearer the start
+        assert wrong["trial0_plan"]["reg"] == (secant.FIRST_PLAN_REG if method == "gn" else FAST_PLAN.get("reg", 1e-4))
 
 
 def test_residual_weights_make_the_observables_residual_linear_in_the_state(problem):
@@ -378,6 +380,7 @@ def test_gn_correction_records_what_each_step_learned(problem):
                   max_trials=4, tolerance=1e-6, method="gn", **FAST_PLAN)
     tr = res["trials"]
     assert res["method"] == "gn" and len(tr) == 4
+    assert res["trial0_plan"]["reg"] == secant.FIRST_PLAN_REG  # by method: Gauss-Newton steps follow
     assert all(t.trust is not None for t in tr[1:])
     # every step records the corrected model's floor: its error is its terms' weighted sum, and no higher than the
     # prediction of the step that was taken from the same model
@@ -594,8 +597,8 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         with pytest.raises(InputError, match="first_plan_reg"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
     for bad, word in ((["--secant-locality", "0"], "neither a finite number > 0 nor none"),
-                      (["--first-plan-reg", "-0.1"], "neither a finite number >= 0 nor as-plans"),
-                      (["--first-plan-reg", "near"], "neither a finite number >= 0 nor as-plans"),
+                      (["--first-plan-reg", "-0.1"], "neither a finite number >= 0 nor by-method nor as-plans"),
+                      (["--first-plan-reg", "near"], "neither a finite number >= 0 nor by-method nor as-plans"),
                       (["--first-plan-reg", "0.01", "--no-plan-first"], "no run here plans it"),
                       (["--first-plan-reg", "0.01", "--method", "qp", "--params", "measured"], "no run here plans it"),
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
@@ -1057,7 +1060,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
-    assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args) is None  # as it ran
+    assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
     with pytest.raises(InputError, match="other plans' weight"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-reg",
                                                          "0.01"]))
@@ -1145,6 +1148,13 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
     assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
+    # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own
+    assert new.first_plan_reg == "by-method" and correct_cli._first_plan_reg(new, "fitted") is None
+    as_plans = parser.parse_args(["--first-plan-reg", "as-plans", "--method", "plan"])
+    assert correct_cli._first_plan_reg(as_plans, "fitted") is None  # the plan loop's --reg
+    assert correct_cli._first_plan_reg(as_plans, "renormalised") is None  # renormalised arms of plan plan too
+    assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", "as-plans"]), "renormalised") == 1e-4
+    assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", ".01"]), "measured") == 0.01
 
 
 class ChainEngine:

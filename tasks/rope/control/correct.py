@@ -272,8 +272,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
-    first_plan_reg: the weight of |u - u0|^2 in that first plan (per unit of u squared); left out, the plans' own
-      (plan.DEFAULT_REG, or `reg` for the plan loop).
+    first_plan_reg: the weight of |u - u0|^2 in that first plan (per unit of u squared); left out,
+      secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
     method "qp": a linear trust-region step through the coarse model's FD sensitivity.
     secant: learn how the model's error changes with u from pairs of real trials (for "gn" a ridge fit of all
       pairs toward the chain's sensitivity, for "plan" a Broyden term of the offset, for "qp" of F). Default: on
@@ -334,6 +334,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
+        if first_plan_reg is None:
+            first_plan_reg = gauss_newton.FIRST_PLAN_REG
         if velocity_weight is None:
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
         renorm = None

@@ -116,11 +116,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
                         "none (default): every pair alike")
-    p.add_argument("--first-plan-reg", type=first_plan_reg_arg, default="as-plans",
+    p.add_argument("--first-plan-reg", type=first_plan_reg_arg, default="by-method",
                    help="weight of the squared distance (units of u) from the start command in trial 1's plan on the "
                         "chain: the chain reproduces the goal about as well along a long stretch of commands, and "
-                        "this picks one nearer the start; a number >= 0, or as-plans (default): the loop's other "
-                        "plans' weight (1e-4, a tie-breaker; the plan loop's --reg)")
+                        "this picks one nearer the start; a number >= 0, by-method (default): secant.FIRST_PLAN_REG "
+                        "(0.003) where Gauss-Newton steps follow, else as-plans; as-plans: the loop's other plans' "
+                        "weight (1e-4, a tie-breaker; the plan loop's --reg), as every run before the option")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -432,7 +433,7 @@ def run(args) -> int:
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
                       recorded_until="every" if args.start_pair == "every" else "first",
-                      first_plan_reg=_first_plan_reg(args), **_step_options(args, label))
+                      first_plan_reg=_first_plan_reg(args, label), **_step_options(args, label))
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -686,13 +687,15 @@ def _trust_options(args, label: str) -> dict:
             "max_radius": args.max_radius if adaptive else None}
 
 
-def number_or_word(word: str, positive: bool):
-    """An argparse type: `word`, or a finite number >= 0 (> 0 when `positive`), returned as a float so that a
-    resumed run compares numbers."""
+def number_or_word(word: str | tuple, positive: bool):
+    """An argparse type: `word` (or one of a tuple of words), or a finite number >= 0 (> 0 when `positive`),
+    returned as a float so that a resumed run compares numbers."""
     bound = "> 0" if positive else ">= 0"
+    words = (word,) if isinstance(word, str) else tuple(word)
+    word = " nor ".join(words)
 
     def parse(text) -> float | str:
-        if text == word:
+        if text in words:
             return text
         try:
             value = float(text)
@@ -707,7 +710,7 @@ def number_or_word(word: str, positive: bool):
 
 velocity_weight_arg = number_or_word("by-arm", positive=False)  # --velocity-weight
 secant_locality_arg = number_or_word("none", positive=True)  # --secant-locality
-first_plan_reg_arg = number_or_word("as-plans", positive=False)  # --first-plan-reg
+first_plan_reg_arg = number_or_word(("by-method", "as-plans"), positive=False)  # --first-plan-reg
 
 
 def _velocity_weight(args) -> float | None:
@@ -715,16 +718,25 @@ def _velocity_weight(args) -> float | None:
     return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
 
 
-def _first_plan_reg(args) -> float | None:
-    """--first-plan-reg as a number; None for as-plans (correct() weighs trial 1's plan as its other plans)."""
-    return None if args.first_plan_reg == "as-plans" else float(args.first_plan_reg)
+def _first_plan_reg(args, label: str) -> float | None:
+    """correct()'s first_plan_reg for the run with parameters `label`: None for by-method (correct() picks it by the
+    arm's loop); for as-plans the weight of that loop's other plans (None where they are plans, whose weight
+    correct() takes from --reg)."""
+    from wrenorm.tasks.rope.control import plan as rope_plan
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+
+    if args.first_plan_reg == "by-method":
+        return None
+    if args.first_plan_reg == "as-plans":
+        return rope_plan.DEFAULT_REG if takes_gn_steps(*_arm_method(args, label)) else None
+    return float(args.first_plan_reg)
 
 
 def _check_first_plan(args) -> None:
     """--first-plan-reg weighs trial 1's plan: refused where no run here plans it (checked before any real run)."""
     from wrenorm.tasks.rope.control.correct import plans_first
 
-    if args.first_plan_reg == "as-plans":
+    if args.first_plan_reg in ("by-method", "as-plans"):
         return
     if not any(plans_first(*_arm_method(args, label), not args.no_plan_first) for label in args.params):
         raise InputError("--first-plan-reg", "first_plan_reg", "weighs trial 1's plan, and no run here plans it "
