@@ -269,11 +269,11 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
+    first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
+      secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
-    first_plan_reg: the weight of |u - u0|^2 in that first plan (per unit of u squared); left out,
-      secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
     method "qp": a linear trust-region step through the coarse model's FD sensitivity.
     secant: learn how the model's error changes with u from pairs of real trials (for "gn" a ridge fit of all
       pairs toward the chain's sensitivity, for "plan" a Broyden term of the offset, for "qp" of F). Default: on
