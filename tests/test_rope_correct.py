@@ -244,6 +244,13 @@ def test_first_plan_weight_picks_a_command_nearer_the_start(problem):
     assert np.linalg.norm(u1) < 0.8 * np.linalg.norm(u0), (np.linalg.norm(u0), np.linalg.norm(u1))
     slack = 0.05  # the search's own: two CMA-ES runs of 1600 chains on a rough event map
     assert rec1["model_total_at_plan"] <= rec0["model_total_at_plan"] + 0.01 * np.sum(u0 ** 2) + slack
+    # left out, the plan loop weighs trial 1 as its other plans (its --reg), Gauss-Newton loops by FIRST_PLAN_REG
+    real = CoarseRope(problem, problem.space.measured)
+    for method, reg, weight in (("plan", 0.02, 0.02), ("gn", None, secant.FIRST_PLAN_REG)):
+        res = correct(real, model, goal, np.zeros(space.dim), max_trials=1, method=method, reg=reg, **FAST_PLAN)
+        assert res["trial0_plan"]["reg"] == weight, method
+    with pytest.raises(InputError, match="first_plan_reg"):
+        correct(real, model, goal, np.zeros(space.dim), first_plan_reg=True)  # a bool is no weight
 
 
 @pytest.mark.parametrize("method,plan_first", [("plan", True), ("plan", False), ("gn", True)])
@@ -1155,6 +1162,24 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     assert correct_cli._first_plan_reg(as_plans, "renormalised") is None  # renormalised arms of plan plan too
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", "as-plans"]), "renormalised") == 1e-4
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", ".01"]), "measured") == 0.01
+    # a run that plans no trial 1 gets no weight, whatever was asked or restored, so that correct() accepts every arm
+    from wrenorm.tasks.rope.control.correct import plans_first
+
+    for argv in (["--first-plan-reg", "as-plans", "--no-plan-first"], ["--first-plan-reg", ".01", "--no-plan-first",
+                                                                       "--method", "plan"],
+                 ["--first-plan-reg", ".01", "--method", "qp"], ["--first-plan-reg", "as-plans", "--method", "qp"],
+                 ["--no-plan-first"]):
+        args = parser.parse_args(argv)
+        for label in ("fitted", "measured", "renormalised"):
+            method, steps = correct_cli._arm_method(args, label)
+            value = correct_cli._first_plan_reg(args, label)
+            assert value is None or plans_first(method, steps, not args.no_plan_first), (argv, label)
+            if label == "renormalised" and "plan" in argv:  # the renormalised plan loop always plans trial 1
+                assert value == 0.01
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old | {"no_plan_first": True}))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)  # an old --no-plan-first run resumes with no first-plan weight
+    assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") is None
 
 
 class ChainEngine:

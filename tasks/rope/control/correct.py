@@ -480,7 +480,8 @@ def _check_loop_number(value, flag: str, key: str, positive: bool, applies: bool
         return
     if not applies:
         raise InputError(flag, key, why_not)
-    if not (isinstance(value, (int, float)) and np.isfinite(value) and (value > 0 if positive else value >= 0)):
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+            and (value > 0 if positive else value >= 0)):
         raise InputError(flag, key, f"{value!r} is not a finite number {'> 0' if positive else '>= 0'}")
 
 

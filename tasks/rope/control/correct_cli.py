@@ -121,7 +121,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "chain: the chain reproduces the goal about as well along a long stretch of commands, and "
                         "this picks one nearer the start; a number >= 0, by-method (default): secant.FIRST_PLAN_REG "
                         "(0.003) where Gauss-Newton steps follow, else as-plans; as-plans: the loop's other plans' "
-                        "weight (1e-4, a tie-breaker; the plan loop's --reg), as every run before the option")
+                        "weight (1e-4, a tie-breaker; the plan loop's --reg), as every run before the option. A run "
+                        "that plans no trial 1 (qp, --no-plan-first) has none; refused where no run here plans one")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -719,13 +720,13 @@ def _velocity_weight(args) -> float | None:
 
 
 def _first_plan_reg(args, label: str) -> float | None:
-    """correct()'s first_plan_reg for the run with parameters `label`: None for by-method (correct() picks it by the
-    arm's loop); for as-plans the weight of that loop's other plans (None where they are plans, whose weight
-    correct() takes from --reg)."""
+    """correct()'s first_plan_reg for the run with parameters `label`: None where that run plans no trial 1 (qp,
+    --no-plan-first) and for by-method (correct() picks it by the arm's loop); for as-plans the weight of that loop's
+    other plans (None where they are plans, whose weight correct() takes from --reg)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
-    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+    from wrenorm.tasks.rope.control.correct import plans_first, takes_gn_steps
 
-    if args.first_plan_reg == "by-method":
+    if args.first_plan_reg == "by-method" or not plans_first(*_arm_method(args, label), not args.no_plan_first):
         return None
     if args.first_plan_reg == "as-plans":
         return rope_plan.DEFAULT_REG if takes_gn_steps(*_arm_method(args, label)) else None
