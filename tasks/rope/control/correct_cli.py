@@ -724,22 +724,27 @@ def _first_plan_reg(args, label: str) -> float | None:
     --no-plan-first) and for by-method (correct() picks it by the arm's loop); for as-plans the weight of that loop's
     other plans (None where they are plans, whose weight correct() takes from --reg)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
-    from wrenorm.tasks.rope.control.correct import plans_first, takes_gn_steps
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
 
-    if args.first_plan_reg == "by-method" or not plans_first(*_arm_method(args, label), not args.no_plan_first):
+    if args.first_plan_reg == "by-method" or not _plans_trial_one(args, label):
         return None
     if args.first_plan_reg == "as-plans":
         return rope_plan.DEFAULT_REG if takes_gn_steps(*_arm_method(args, label)) else None
     return float(args.first_plan_reg)
 
 
-def _check_first_plan(args) -> None:
-    """--first-plan-reg weighs trial 1's plan: refused where no run here plans it (checked before any real run)."""
+def _plans_trial_one(args, label: str) -> bool:
+    """Whether the run with parameters `label` plans trial 1 on the chain (correct.plans_first for its loop)."""
     from wrenorm.tasks.rope.control.correct import plans_first
 
+    return plans_first(*_arm_method(args, label), not args.no_plan_first)
+
+
+def _check_first_plan(args) -> None:
+    """--first-plan-reg weighs trial 1's plan: refused where no run here plans it (checked before any real run)."""
     if args.first_plan_reg in ("by-method", "as-plans"):
         return
-    if not any(plans_first(*_arm_method(args, label), not args.no_plan_first) for label in args.params):
+    if not any(_plans_trial_one(args, label) for label in args.params):
         raise InputError("--first-plan-reg", "first_plan_reg", "weighs trial 1's plan, and no run here plans it "
                                                                "(--no-plan-first, or --method qp)")
 
