@@ -238,7 +238,7 @@ def test_first_plan_weight_picks_a_command_nearer_the_start(problem):
     goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
     opts = {"popsize": 16, "generations": 20, "reg": 1e-4}
     plans = {reg: _first_plan(model, goal, np.zeros(space.dim), 0, opts, None, reg) for reg in (None, 0.01)}
-    (_, u0, _, rec0), (_, u1, _, rec1) = plans[None], plans[0.01]
+    (_, u0, _, rec0, _), (_, u1, _, rec1, _) = plans[None], plans[0.01]
     assert rec0["reg"] == 1e-4 and rec1["reg"] == 0.01  # as-plans: the plans' own weight
     assert np.isclose(rec1["distance_from_start"], np.linalg.norm(u1)) and space.feasible(u1)
     assert np.linalg.norm(u1) < 0.8 * np.linalg.norm(u0), (np.linalg.norm(u0), np.linalg.norm(u1))
@@ -251,6 +251,58 @@ def test_first_plan_weight_picks_a_command_nearer_the_start(problem):
         assert res["trial0_plan"]["reg"] == weight, method
     with pytest.raises(InputError, match="first_plan_reg"):
         correct(real, model, goal, np.zeros(space.dim), first_plan_reg=True)  # a bool is no weight
+
+
+def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
+    """--first-plan-offset: the real rope's critical state under the start command, recorded before the trials, makes
+    the chain plus a constant offset reproduce it exactly there (output space mapping; the contact place frozen as the
+    trials' offsets freeze it); trial 1 is planned on that, and its prediction is the shifted chain's. A recording
+    that missed gives no offset and the plain plan; a loop that plans no trial 1 refuses it."""
+    from wrenorm.tasks.rope.control.plan import predicted_states, start_offset
+
+    space = CommandSpace(PATHS["flick"])
+    real = CoarseRope(problem, shifted(problem))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
+    start = crit.from_reference(real(PATHS["flick"]))
+    model = CoarseModel(problem, problem.space.measured, space)
+    u_start = np.zeros(space.dim)
+    off = start_offset(model, u_start, start)
+    there, alone = predicted_states(model, u_start[None], off)
+    for key in ("pos", "vel", "time", "s"):
+        assert np.allclose(getattr(there, key), getattr(start, key), atol=1e-9), key
+    assert not np.allclose(alone.pos, start.pos, atol=1e-3)  # the chain alone misses it: the offset does the work
+    # a constant offset is right to first order: 0.05 units of u from the start the shifted chain predicts the rope's
+    # critical state several times closer than the chain alone (in the observable's weights, the contact place aside:
+    # the prediction freezes it), in every direction tried
+    w = secant.residual_weights(goal)[:-2]
+    for direction in np.random.default_rng(0).normal(size=(3, space.dim)):
+        u_near = 0.05 * direction / np.abs(direction).max()
+        z_real = state_vector(crit.from_reference(real(space.decode(u_near))))[0][:-2]
+        z_shifted, z_alone = (state_vector(z)[0][:-2] for z in predicted_states(model, u_near[None], off))
+        miss_shifted, miss_alone = np.linalg.norm(w * (z_shifted - z_real)), np.linalg.norm(w * (z_alone - z_real))
+        assert miss_shifted < 0.35 * miss_alone, (miss_shifted, miss_alone)
+
+    kw = dict(max_trials=1, tolerance=1e-6, method="gn", **FAST_PLAN)
+    plain = correct(real, model, goal, u_start, **kw)
+    shifted_plan = correct(real, model, goal, u_start, first_plan_offset=(u_start, start), **kw)
+    rec = shifted_plan["trial0_plan"]["offset"]
+    miss = crit.Target(start, goal.length, goal.speed, dict(goal.weights)).terms(model.states(u_start[None]))
+    assert "offset" not in plain["trial0_plan"] and np.isclose(rec["chain_error_to_rope_there"], miss["total"][0])
+    t1 = shifted_plan["trials"][0]
+    assert np.isclose(t1.predicted_total, rec["predicted_total_at_plan"])
+    pred = predicted_states(model, t1.u[None], off)[0]
+    assert np.allclose(t1.predicted_state.pos, pred.pos) and not np.allclose(t1.u, plain["trials"][0].u)
+    assert space.feasible(t1.u)
+
+    nan = np.full_like(start.pos, np.nan)
+    missed = crit.CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
+                                 np.array([0.02]))
+    assert start_offset(model, u_start, missed) is None
+    none = correct(real, model, goal, u_start, first_plan_offset=(u_start, missed), **kw)
+    assert none["trial0_plan"]["offset"] is None and np.array_equal(none["trials"][0].u, plain["trials"][0].u)
+    for bad in ({"method": "qp"}, {"plan_first": False}):
+        with pytest.raises(InputError, match="first_plan_offset"):
+            correct(real, model, goal, u_start, first_plan_offset=(u_start, start), **(kw | bad))
 
 
 @pytest.mark.parametrize("method,plan_first", [("plan", True), ("plan", False), ("gn", True)])
@@ -608,6 +660,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--first-plan-reg", "near"], "neither a finite number >= 0 nor by-method nor as-plans"),
                       (["--first-plan-reg", "0.01", "--no-plan-first"], "no run here plans it"),
                       (["--first-plan-reg", "0.01", "--method", "qp", "--params", "measured"], "no run here plans it"),
+                      (["--first-plan-offset", "start", "--no-plan-first"], "no run here plans it"),
+                      (["--first-plan-offset", "start", "--method", "qp", "--params", "measured"],
+                       "no run here plans it"),
+                      (["--first-plan-offset", "sometimes"], "invalid choice"),
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--secant-locality", "1", "--no-secant"], "--no-secant uses none"),
@@ -1040,6 +1096,14 @@ def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
     assert rec["path"] == "flick" and rec["hit"] and rec["error"] > 0 and "coarse" in rec["source"]
     assert done["runs"]["measured"]["recorded_pairs"] == 1 and done["settings"]["start_pair"] == "first"
     assert len(list((out / "start").glob("trial-*.npz"))) == 1
+    # without the pair the start throw is still recorded where trial 1 is planned with its offset (the default)
+    out = tmp_path / "offset-only"
+    assert main(CORRECT_QUICK + ["--max-trials", "1", "--start-pair", "none", "--out", str(out)]) == 0
+    done = json.loads((out / "correct.json").read_text())
+    run = done["runs"]["measured"]
+    assert run["recorded_pairs"] == 0 and run["trial0_plan"]["offset"]["chain_error_to_rope_there"] > 0
+    assert done["settings"]["first_plan_offset"] == "by-method" and done["start"]["recorded_pair"]["hit"]
+    assert len(list((out / "start").glob("trial-*.npz"))) == 1
 
 
 def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tmp_path):
@@ -1062,12 +1126,13 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg")}
+                                                             "first_plan_reg", "first_plan_offset")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
     assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
+    assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")
     with pytest.raises(InputError, match="other plans' weight"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-reg",
                                                          "0.01"]))
@@ -1162,6 +1227,15 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     assert correct_cli._first_plan_reg(as_plans, "renormalised") is None  # renormalised arms of plan plan too
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", "as-plans"]), "renormalised") == 1e-4
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", ".01"]), "measured") == 0.01
+    # trial 1's offset: by method where Gauss-Newton steps follow; never where no trial 1 is planned
+    assert new.first_plan_offset == "by-method"
+    assert correct_cli._first_plan_offset(new, "fitted") and correct_cli._first_plan_offset(new, "renormalised")
+    assert not correct_cli._first_plan_offset(as_plans, "fitted")  # the plan loop: by method, none
+    assert correct_cli._first_plan_offset(parser.parse_args(["--first-plan-offset", "start", "--method", "plan"]),
+                                          "fitted")
+    for argv in (["--first-plan-offset", "start", "--no-plan-first"], ["--first-plan-offset", "start", "--method",
+                                                                       "qp"], ["--first-plan-offset", "none"]):
+        assert not correct_cli._first_plan_offset(parser.parse_args(argv), "measured"), argv
     # a run that plans no trial 1 gets no weight, whatever was asked or restored, so that correct() accepts every arm
     from wrenorm.tasks.rope.control.correct import plans_first
 

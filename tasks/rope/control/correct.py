@@ -254,7 +254,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             max_radius: float | None = None, trust_region: str | None = None,
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
-            secant_locality: float | None = None, first_plan_reg: float | None = None) -> dict:
+            secant_locality: float | None = None, first_plan_reg: float | None = None,
+            first_plan_offset: tuple | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -271,6 +272,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
       secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
+    first_plan_offset: (u, CriticalStates) the real rope's critical state under a command recorded before the
+      trials (the start throw): trial 1 is planned on the chain plus the rope's offset from it there (output space
+      mapping, plan.start_offset); None, on the chain alone. A recorded state that missed gives no offset.
     method "plan": model-offset ILC, every next command a global CMA-ES plan on the
       coarse model plus the offset learned from the real trials (tasks/rope_plan); with
       plan_first, the first real trial is already the model's own plan from u0 ("trial 0").
@@ -316,6 +320,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     _check_loop_number(first_plan_reg, "--first-plan-reg", "first_plan_reg", False,
                        plans_first(method, steps, plan_first),
                        f"weighs the first plan, and the {method} loop here makes none (qp, or --no-plan-first)")
+    if first_plan_offset is not None and not plans_first(method, steps, plan_first):
+        raise InputError("--first-plan-offset", "first_plan_offset", f"shifts the first plan, and the {method} loop "
+                                                                     "here makes none (qp, or --no-plan-first)")
     space = model.space
     problems = space.violations(u0)
     if problems:
@@ -347,12 +354,12 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until, velocity_weight=float(velocity_weight),
                                secant_locality=None if secant_locality is None else float(secant_locality),
-                               first_plan_reg=first_plan_reg)
+                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
                                       prior_scale, decay, anchored, refit_generations, trust, progress,
-                                      on_trial, prior_centre, first_plan_reg)
+                                      on_trial, prior_centre, first_plan_reg, first_plan_offset)
     secant = (method == "plan") if secant is None else secant
     radius = (DEFAULT_PLAN_RADIUS if method == "plan" else DEFAULT_RADIUS) if radius is None else radius
     reg = (rope_plan.DEFAULT_REG if method == "plan" else DEFAULT_REG) if reg is None else reg
@@ -366,7 +373,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     D = np.zeros((goal.dim, space.dim))  # learned correction of the model's sensitivity (qp, secant=True)
     offset, last_plan = None, []
     if method == "plan" and plan_first:
-        p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
+        p, u, scale_used, planning, _ = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg,
+                                                    first_plan_offset)
         predicted, last_plan = p["predicted_total"], [u.copy()]
     for k in range(max_trials):
         t = time.perf_counter()
@@ -534,26 +542,42 @@ def check_first_step(first_step: str, gn_steps: bool, linearise_at: str) -> None
 
 
 def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int, plan_opts: dict, progress,
-                reg: float | None = None):
+                reg: float | None = None, recorded: tuple | None = None):
     """Trial 0: the model alone picks the first real command, in the whole box around the start, paying `reg`
-    (default: the plans' own) per squared unit of u away from it.
-    Returns (plan, feasible command, its step scale, what the planning did)."""
+    (default: the plans' own) per squared unit of u away from it; with `recorded` (u, the real rope's critical state
+    there) on the model plus the rope's offset from it there (plan.start_offset).
+    Returns (plan, feasible command, its step scale, what the planning did, the offset planned with)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
     space = model.space
     opts = plan_opts if reg is None else plan_opts | {"reg": float(reg)}
-    p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, rope_plan.Offset.zero(space.dim, goal.dim, u0),
-                       seed=seed, **opts)
+    offset = None
+    if recorded is not None:
+        offset = rope_plan.start_offset(model, recorded[0], recorded[1])
+    zero = offset is None
+    if zero:
+        offset = rope_plan.Offset.zero(space.dim, goal.dim, u0)
+    p = rope_plan.plan(model, goal, u0, 2.0 * space.bound, offset, seed=seed, **opts)
     u, scale_used = _feasible(space, u0, p["u"])
     planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
                 "evaluations": p["evaluations"], "wall_s": p["wall_s"], "reg": opts["reg"],
                 "distance_from_start": float(np.linalg.norm(u - u0))}
+    if recorded is not None:
+        miss = None if zero else float(crit.Target(recorded[1], goal.length, goal.speed, dict(goal.weights)).terms(
+            model.states(np.asarray(recorded[0], dtype=np.float64)[None]))["total"][0])
+        planning["offset"] = None if zero else {
+            "at_command_u": np.asarray(recorded[0], dtype=np.float64).tolist(), "chain_error_to_rope_there": miss,
+            "predicted_total_at_plan": p["predicted_total"]}
     if progress:
-        progress(f"  trial 0 (plan on the model alone): model error {planning['model_total_at_start']:.3f} at "
-                 f"the start -> {p['model_total']:.3f} at {planning['distance_from_start']:.2f} from it (Euclidean, "
-                 f"units of u; weight {opts['reg']:g} per unit squared), {p['evaluations']} coarse rollouts, "
-                 f"{p['wall_s']:.1f} s")
-    return p, u, scale_used, planning
+        shifted = "" if zero else (f" (+ the rope's offset under the recorded command, where the chain misses the "
+                                   f"rope's state by {miss:.3f}: predicted {p['predicted_total']:.3f})")
+        progress(f"  trial 0 (plan on the model{'' if zero else ' and offset'}): model error "
+                 f"{planning['model_total_at_start']:.3f} at the start -> {p['model_total']:.3f}{shifted} at "
+                 f"{planning['distance_from_start']:.2f} from it (Euclidean, units of u; weight {opts['reg']:g} per "
+                 f"unit squared), {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
+        if recorded is not None and zero:
+            progress("  no offset for trial 1: the rope or the chain misses itself under the recorded command")
+    return p, u, scale_used, planning, offset
 
 
 def _measure(real, space: CommandSpace, goal: crit.Target, u: np.ndarray):
@@ -567,7 +591,8 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                            popsize: int | None, generations: int | None, freeze_place: bool, refit_offset: bool,
                            prior_scale: float | None, decay: float | None, anchored: bool,
                            refit_generations: int | None, trust, progress, on_trial,
-                           prior_centre: np.ndarray | None = None, first_plan_reg: float | None = None) -> dict:
+                           prior_centre: np.ndarray | None = None, first_plan_reg: float | None = None,
+                           first_plan_offset: tuple | None = None) -> dict:
     """The correction loop with the model renormalised after every trial (see correct(), renormalise.py)."""
     from wrenorm.tasks.rope.control import plan as rope_plan
 
@@ -577,8 +602,9 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
     plan_opts = {"popsize": popsize or rope_plan.DEFAULT_POPSIZE,
                  "generations": generations or rope_plan.DEFAULT_GENERATIONS,
                  "reg": rope_plan.DEFAULT_REG if reg is None else reg}
-    p, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
-    offset, last_plan = rope_plan.Offset.zero(space.dim, goal.dim, u0), [u.copy()]
+    p, u, scale_used, planning, offset = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg,
+                                                     first_plan_offset)
+    last_plan = [u.copy()]
     trials: list[Trial] = []
     hits: list[tuple[int, np.ndarray, crit.CriticalStates]] = []
     best: Trial | None = None
@@ -706,7 +732,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     renorm: dict | None, plan_first: bool = True, secant: bool = True,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first", velocity_weight: float = 1.0,
-                    secant_locality: float | None = None, first_plan_reg: float | None = None) -> dict:
+                    secant_locality: float | None = None, first_plan_reg: float | None = None,
+                    first_plan_offset: tuple | None = None) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -730,8 +757,11 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     rows = gauss_newton.step_row_weights(goal, velocity_weight)
     u, scale_used, planning = u0.copy(), None, None
     if plan_first:
-        _, u, scale_used, planning = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg)
-    pred_state = model.states(u[None])
+        _, u, scale_used, planning, offset = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg,
+                                                         first_plan_offset)
+        pred_state = rope_plan.predicted_states(model, u[None], offset)[0]
+    else:
+        pred_state = model.states(u[None])
     predicted = float(goal.terms(pred_state)["total"][0])
     trials: list[Trial] = []
     best: Trial | None = None

@@ -123,6 +123,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(0.003) where Gauss-Newton steps follow, else as-plans; as-plans: the loop's other plans' "
                         "weight (1e-4, a tie-breaker; the plan loop's --reg), as every run before the option. A run "
                         "that plans no trial 1 (qp, --no-plan-first) has none; refused where no run here plans one")
+    p.add_argument("--first-plan-offset", choices=("by-method", "start", "none"), default="by-method",
+                   help="plan trial 1 on the chain plus the real rope's offset from it under the start command "
+                        "(start: output space mapping from the start throw recorded before the trials, the one the "
+                        "start pair uses) or on the chain alone (none, as every run before the option); by-method "
+                        "(default): start where Gauss-Newton steps follow, none in the plan loop. A run that plans no "
+                        "trial 1 (qp, --no-plan-first) has none; start is refused where no run here plans one")
     p.add_argument("--max-radius", type=float, default=None,
                    help="(adaptive trust region) largest trust radius (units of u); default twice the command box's "
                         "bound")
@@ -305,6 +311,7 @@ def run(args) -> int:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
     _check_step_options(args)
     _check_first_plan(args)
+    _check_first_plan_offset(args)
     arms = {label: _trust_options(args, label) for label in args.params}
     if args.trust_region != "by-arm" and not any(arms.values()):
         raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
@@ -383,15 +390,16 @@ def run(args) -> int:
     if real.folder.exists() and any(real.folder.iterdir()):
         progress(f"resuming: {len(list(real.folder.glob('trial-*.npz')))} real trials on record in {real.folder}")
 
-    recorded, start_record = [], None
-    if args.start_pair != "none":
+    recorded, start_record, start_state = [], None, None
+    if args.start_pair != "none" or any(_first_plan_offset(args, label) for label in args.params):
         start_ref, source = _start_recording(args, real, start_path, out, progress, fit_recorded)
         start_state = crit.from_reference(start_ref)
-        recorded = [(np.zeros(space.dim), start_state)]
+        recorded = [(np.zeros(space.dim), start_state)] if args.start_pair != "none" else []
         start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
                         "error": float(goal.terms(start_state)["total"][0]), "source": source}
         if not start_state.hit[0]:
-            progress(f"  the rope under the start command {args.start} never hits itself: no start pair")
+            progress(f"  the rope under the start command {args.start} never hits itself: no start pair, and trial "
+                     "1 is planned on the chain alone")
     u0 = np.zeros(space.dim)
     if args.perturb > 0:
         u0 = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
@@ -434,7 +442,9 @@ def run(args) -> int:
                       prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
                       linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
                       recorded_until="every" if args.start_pair == "every" else "first",
-                      first_plan_reg=_first_plan_reg(args, label), **_step_options(args, label))
+                      first_plan_reg=_first_plan_reg(args, label),
+                      first_plan_offset=((np.zeros(space.dim), start_state) if _first_plan_offset(args, label)
+                                         else None), **_step_options(args, label))
         bar.close()
         runs[label] = res
         runs[label]["parameters"] = problem.space.as_dict(values)
@@ -464,7 +474,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
-                     "first_plan_reg": args.first_plan_reg,
+                     "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
@@ -583,6 +593,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
+                             "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
 
@@ -747,6 +758,23 @@ def _check_first_plan(args) -> None:
     if not any(_plans_trial_one(args, label) for label in args.params):
         raise InputError("--first-plan-reg", "first_plan_reg", "weighs trial 1's plan, and no run here plans it "
                                                                "(--no-plan-first, or --method qp)")
+
+
+def _first_plan_offset(args, label: str) -> bool:
+    """Whether the run with parameters `label` plans trial 1 on the chain plus the start throw's offset: start, or
+    by-method where Gauss-Newton steps follow; never where that run plans no trial 1."""
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+
+    if args.first_plan_offset == "none" or not _plans_trial_one(args, label):
+        return False
+    return args.first_plan_offset == "start" or takes_gn_steps(*_arm_method(args, label))
+
+
+def _check_first_plan_offset(args) -> None:
+    """--first-plan-offset start shifts trial 1's plan: refused where no run here plans it."""
+    if args.first_plan_offset == "start" and not any(_plans_trial_one(args, label) for label in args.params):
+        raise InputError("--first-plan-offset", "first_plan_offset", "shifts trial 1's plan, and no run here plans "
+                                                                     "it (--no-plan-first, or --method qp)")
 
 
 def _check_step_options(args) -> None:

@@ -74,6 +74,25 @@ class Offset:
         self.centre, self.d = np.asarray(u, dtype=np.float64).copy(), np.asarray(d, dtype=np.float64).copy()
 
 
+def start_offset(model, u: np.ndarray, real_state: crit.CriticalStates) -> Offset | None:
+    """The offset that makes the chain reproduce the real rope's critical state under a recorded command u (the
+    start throw, before any trial): output space mapping's correction, constant in u, the contact place frozen at the
+    chain's there as the trials' offsets freeze it. None where the rope or the chain misses under u.
+
+    Why a constant: the chain fitted at 10 links misses the rope's state by about as much near the start as near the
+    goal, and in the same direction; a plan that removes that miss lands nearer the goal than one on the chain alone
+    (README, "Trial 1 on the chain plus the start throw's offset")."""
+    u = np.asarray(u, dtype=np.float64)
+    st = model.states(u[None])
+    d = (state_vector(real_state) - state_vector(st))[0]
+    if not (st.hit[0] and real_state.hit[0] and np.all(np.isfinite(d))):
+        return None
+    offset = Offset.zero(u.size, d.size, u)
+    offset.recentre(u, d)
+    offset.model_place = st.s[0].copy()
+    return offset
+
+
 def predicted_states(model, U: np.ndarray, offset: Offset) -> tuple[crit.CriticalStates, crit.CriticalStates]:
     """(predicted real critical states, the model's own) for a batch of commands: ONE rollout."""
     st = model.states(U)
