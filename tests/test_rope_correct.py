@@ -1096,13 +1096,15 @@ def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
     assert rec["path"] == "flick" and rec["hit"] and rec["error"] > 0 and "coarse" in rec["source"]
     assert done["runs"]["measured"]["recorded_pairs"] == 1 and done["settings"]["start_pair"] == "first"
     assert len(list((out / "start").glob("trial-*.npz"))) == 1
-    # without the pair the start throw is still recorded where trial 1 is planned with its offset (the default)
+    assert "offset" not in done["runs"]["measured"]["trial0_plan"]  # trial 1 on the chain alone by default
+    # without the pair the start throw is still recorded where trial 1 is planned with its offset
     out = tmp_path / "offset-only"
-    assert main(CORRECT_QUICK + ["--max-trials", "1", "--start-pair", "none", "--out", str(out)]) == 0
+    assert main(CORRECT_QUICK + ["--max-trials", "1", "--start-pair", "none", "--first-plan-offset", "start", "--out",
+                                 str(out)]) == 0
     done = json.loads((out / "correct.json").read_text())
     run = done["runs"]["measured"]
     assert run["recorded_pairs"] == 0 and run["trial0_plan"]["offset"]["chain_error_to_rope_there"] > 0
-    assert done["settings"]["first_plan_offset"] == "by-method" and done["start"]["recorded_pair"]["hit"]
+    assert done["settings"]["first_plan_offset"] == "start" and done["start"]["recorded_pair"]["hit"]
     assert len(list((out / "start").glob("trial-*.npz"))) == 1
 
 
@@ -1126,7 +1128,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg", "first_plan_offset")}
+                                                             "first_plan_reg")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
@@ -1227,10 +1229,10 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     assert correct_cli._first_plan_reg(as_plans, "renormalised") is None  # renormalised arms of plan plan too
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", "as-plans"]), "renormalised") == 1e-4
     assert correct_cli._first_plan_reg(parser.parse_args(["--first-plan-reg", ".01"]), "measured") == 0.01
-    # trial 1's offset: by method where Gauss-Newton steps follow; never where no trial 1 is planned
-    assert new.first_plan_offset == "by-method"
-    assert correct_cli._first_plan_offset(new, "fitted") and correct_cli._first_plan_offset(new, "renormalised")
-    assert not correct_cli._first_plan_offset(as_plans, "fitted")  # the plan loop: by method, none
+    # trial 1's offset: none by default; with start wherever a trial 1 is planned
+    assert new.first_plan_offset == "none" and not correct_cli._first_plan_offset(new, "fitted")
+    start = parser.parse_args(["--first-plan-offset", "start"])
+    assert correct_cli._first_plan_offset(start, "fitted") and correct_cli._first_plan_offset(start, "renormalised")
     assert correct_cli._first_plan_offset(parser.parse_args(["--first-plan-offset", "start", "--method", "plan"]),
                                           "fitted")
     for argv in (["--first-plan-offset", "start", "--no-plan-first"], ["--first-plan-offset", "start", "--method",
