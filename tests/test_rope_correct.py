@@ -253,11 +253,13 @@ def test_first_plan_weight_picks_a_command_nearer_the_start(problem):
         correct(real, model, goal, np.zeros(space.dim), first_plan_reg=True)  # a bool is no weight
 
 
-def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
+@pytest.mark.parametrize("method", ["gn", "plan", "renormalise"])
+def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem, method):
     """--first-plan-offset: the real rope's critical state under the start command, recorded before the trials, makes
     the chain plus a constant offset reproduce it exactly there (output space mapping; the contact place frozen as the
-    trials' offsets freeze it); trial 1 is planned on that, and its prediction is the shifted chain's. A recording
-    that missed gives no offset and the plain plan; a loop that plans no trial 1 refuses it."""
+    trials' offsets freeze it); trial 1 is planned on that, in every loop that plans one, and its recorded prediction
+    is the shifted chain's. A recording that missed gives no offset and the plain plan; a loop that plans no trial 1
+    refuses it."""
     from wrenorm.tasks.rope.control.plan import predicted_states, start_offset
 
     space = CommandSpace(PATHS["flick"])
@@ -266,14 +268,16 @@ def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
     start = crit.from_reference(real(PATHS["flick"]))
     model = CoarseModel(problem, problem.space.measured, space)
     u_start = np.zeros(space.dim)
-    off = start_offset(model, u_start, start)
+    off, chain_there = start_offset(model, u_start, start)
     there, alone = predicted_states(model, u_start[None], off)
+    assert np.allclose(chain_there.pos, alone.pos)
     for key in ("pos", "vel", "time", "s"):
         assert np.allclose(getattr(there, key), getattr(start, key), atol=1e-9), key
     assert not np.allclose(alone.pos, start.pos, atol=1e-3)  # the chain alone misses it: the offset does the work
-    # a constant offset is right to first order: 0.05 units of u from the start the shifted chain predicts the rope's
-    # critical state several times closer than the chain alone (in the observable's weights, the contact place aside:
-    # the prediction freezes it), in every direction tried
+    # near the start the shifted chain is off by the difference of the two sensitivities times the distance, the
+    # chain alone by the whole miss: 0.05 units of u away the shifted chain predicts the rope's critical state several
+    # times closer (in the observable's weights, the contact place aside: the prediction freezes it), in every
+    # direction tried
     w = secant.residual_weights(goal)[:-2]
     for direction in np.random.default_rng(0).normal(size=(3, space.dim)):
         u_near = 0.05 * direction / np.abs(direction).max()
@@ -282,7 +286,7 @@ def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
         miss_shifted, miss_alone = np.linalg.norm(w * (z_shifted - z_real)), np.linalg.norm(w * (z_alone - z_real))
         assert miss_shifted < 0.35 * miss_alone, (miss_shifted, miss_alone)
 
-    kw = dict(max_trials=1, tolerance=1e-6, method="gn", **FAST_PLAN)
+    kw = dict(max_trials=1, tolerance=1e-6, method=method, **FAST_PLAN)
     plain = correct(real, model, goal, u_start, **kw)
     shifted_plan = correct(real, model, goal, u_start, first_plan_offset=(u_start, start), **kw)
     rec = shifted_plan["trial0_plan"]["offset"]
@@ -290,6 +294,7 @@ def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
     assert "offset" not in plain["trial0_plan"] and np.isclose(rec["chain_error_to_rope_there"], miss["total"][0])
     t1 = shifted_plan["trials"][0]
     assert np.isclose(t1.predicted_total, rec["predicted_total_at_plan"])
+    assert np.isclose(goal.terms(t1.predicted_state)["total"][0], rec["predicted_total_at_plan"])
     pred = predicted_states(model, t1.u[None], off)[0]
     assert np.allclose(t1.predicted_state.pos, pred.pos) and not np.allclose(t1.u, plain["trials"][0].u)
     assert space.feasible(t1.u)
@@ -297,12 +302,15 @@ def test_first_plan_on_the_chain_plus_the_start_throws_offset(problem):
     nan = np.full_like(start.pos, np.nan)
     missed = crit.CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
                                  np.array([0.02]))
-    assert start_offset(model, u_start, missed) is None
+    assert start_offset(model, u_start, missed)[0] is None
     none = correct(real, model, goal, u_start, first_plan_offset=(u_start, missed), **kw)
     assert none["trial0_plan"]["offset"] is None and np.array_equal(none["trials"][0].u, plain["trials"][0].u)
-    for bad in ({"method": "qp"}, {"plan_first": False}):
+    if method != "gn":
+        return
+    for bad in ({"method": "qp"}, {"plan_first": False}, {"first_plan_offset": True},
+                {"first_plan_offset": (np.zeros(3), start)}, {"first_plan_offset": (u_start, None)}):
         with pytest.raises(InputError, match="first_plan_offset"):
-            correct(real, model, goal, u_start, first_plan_offset=(u_start, start), **(kw | bad))
+            correct(real, model, goal, u_start, **({"first_plan_offset": (u_start, start)} | kw | bad))
 
 
 @pytest.mark.parametrize("method,plan_first", [("plan", True), ("plan", False), ("gn", True)])
@@ -1128,13 +1136,18 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg")}
+                                                             "first_plan_reg", "first_plan_offset")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
     assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
-    assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")
+    assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")  # as it ran
+    with pytest.raises(InputError, match="on the chain alone"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-offset",
+                                                         "start"]))
+    with pytest.raises(InputError, match="'by-method' is not none or start"):  # a saved value argparse never saw
+        correct_cli._check_first_plan_offset(argparse.Namespace(**(vars(args) | {"first_plan_offset": "by-method"})))
     with pytest.raises(InputError, match="other plans' weight"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-reg",
                                                          "0.01"]))

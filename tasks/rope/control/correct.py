@@ -320,9 +320,15 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     _check_loop_number(first_plan_reg, "--first-plan-reg", "first_plan_reg", False,
                        plans_first(method, steps, plan_first),
                        f"weighs the first plan, and the {method} loop here makes none (qp, or --no-plan-first)")
-    if first_plan_offset is not None and not plans_first(method, steps, plan_first):
-        raise InputError("--first-plan-offset", "first_plan_offset", f"shifts the first plan, and the {method} loop "
-                                                                     "here makes none (qp, or --no-plan-first)")
+    if first_plan_offset is not None:
+        if not plans_first(method, steps, plan_first):
+            raise InputError("--first-plan-offset", "first_plan_offset",
+                             f"shifts the first plan, and the {method} loop here makes none (qp, or --no-plan-first)")
+        ok = isinstance(first_plan_offset, tuple) and len(first_plan_offset) == 2 and isinstance(
+            first_plan_offset[1], crit.CriticalStates) and np.shape(first_plan_offset[0]) == (model.space.dim,)
+        if not ok:
+            raise InputError("--first-plan-offset", "first_plan_offset", f"must be (a command u of the model's "
+                             f"{model.space.dim} dimensions, the real rope's CriticalStates under it)")
     space = model.space
     problems = space.violations(u0)
     if problems:
@@ -371,10 +377,10 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     best: Trial | None = None
     predicted, scale_used, F_last, F_used = None, None, None, None
     D = np.zeros((goal.dim, space.dim))  # learned correction of the model's sensitivity (qp, secant=True)
-    offset, last_plan = None, []
+    offset, last_plan, first_offset = None, [], None
     if method == "plan" and plan_first:
-        p, u, scale_used, planning, _ = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg,
-                                                    first_plan_offset)
+        p, u, scale_used, planning, first_offset = _first_plan(model, goal, u0, seed, plan_opts, progress,
+                                                               first_plan_reg, first_plan_offset)
         predicted, last_plan = p["predicted_total"], [u.copy()]
     for k in range(max_trials):
         t = time.perf_counter()
@@ -383,8 +389,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, radius, st, time.perf_counter() - t,
                       predicted, scale_used, model_values=model.values.copy())
         if method == "plan":
+            # trial 1 was predicted with the plan's offset (zero, or the start throw's); later ones with the trials'
             trial.predicted_state = rope_plan.predicted_states(
-                model, u[None], offset or rope_plan.Offset.zero(space.dim, goal.dim, u))[0]
+                model, u[None], offset or first_offset or rope_plan.Offset.zero(space.dim, goal.dim, u))[0]
         trials.append(trial)
         d_new = None
         if method == "plan":
@@ -551,9 +558,9 @@ def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int
 
     space = model.space
     opts = plan_opts if reg is None else plan_opts | {"reg": float(reg)}
-    offset = None
+    offset, chain_there = None, None
     if recorded is not None:
-        offset = rope_plan.start_offset(model, recorded[0], recorded[1])
+        offset, chain_there = rope_plan.start_offset(model, recorded[0], recorded[1])
     zero = offset is None
     if zero:
         offset = rope_plan.Offset.zero(space.dim, goal.dim, u0)
@@ -563,15 +570,15 @@ def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int
                 "evaluations": p["evaluations"], "wall_s": p["wall_s"], "reg": opts["reg"],
                 "distance_from_start": float(np.linalg.norm(u - u0))}
     if recorded is not None:
-        miss = None if zero else float(crit.Target(recorded[1], goal.length, goal.speed, dict(goal.weights)).terms(
-            model.states(np.asarray(recorded[0], dtype=np.float64)[None]))["total"][0])
+        miss = None if zero else float(
+            crit.Target(recorded[1], goal.length, goal.speed, dict(goal.weights)).terms(chain_there)["total"][0])
         planning["offset"] = None if zero else {
             "at_command_u": np.asarray(recorded[0], dtype=np.float64).tolist(), "chain_error_to_rope_there": miss,
             "predicted_total_at_plan": p["predicted_total"]}
     if progress:
         shifted = "" if zero else (f" (+ the rope's offset under the recorded command, where the chain misses the "
                                    f"rope's state by {miss:.3f}: predicted {p['predicted_total']:.3f})")
-        progress(f"  trial 0 (plan on the model{'' if zero else ' and offset'}): model error "
+        progress(f"  trial 0 (plan on the model {'alone' if zero else 'and offset'}): model error "
                  f"{planning['model_total_at_start']:.3f} at the start -> {p['model_total']:.3f}{shifted} at "
                  f"{planning['distance_from_start']:.2f} from it (Euclidean, units of u; weight {opts['reg']:g} per "
                  f"unit squared), {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")

@@ -398,8 +398,9 @@ def run(args) -> int:
         start_record = {"path": args.start, "hit": bool(start_state.hit[0]),
                         "error": float(goal.terms(start_state)["total"][0]), "source": source}
         if not start_state.hit[0]:
-            progress(f"  the rope under the start command {args.start} never hits itself: no start pair, and trial "
-                     "1 is planned on the chain alone")
+            lost = (["no start pair"] if recorded else []) + (["no offset for trial 1"] if args.first_plan_offset ==
+                                                              "start" else [])
+            progress(f"  the rope under the start command {args.start} never hits itself: {' and '.join(lost)}")
     u0 = np.zeros(space.dim)
     if args.perturb > 0:
         u0 = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
@@ -593,6 +594,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
+                             "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
 
@@ -766,7 +768,10 @@ def _first_plan_offset(args, label: str) -> bool:
 
 
 def _check_first_plan_offset(args) -> None:
-    """--first-plan-offset start shifts trial 1's plan: refused where no run here plans it."""
+    """--first-plan-offset is none or start (a resumed run's settings bypass argparse), and start shifts trial 1's
+    plan: refused where no run here plans it."""
+    if args.first_plan_offset not in ("none", "start"):
+        raise InputError("--first-plan-offset", "first_plan_offset", f"{args.first_plan_offset!r} is not none or start")
     if args.first_plan_offset == "start" and not any(_plans_trial_one(args, label) for label in args.params):
         raise InputError("--first-plan-offset", "first_plan_offset", "shifts trial 1's plan, and no run here plans "
                                                                      "it (--no-plan-first, or --method qp)")

@@ -74,23 +74,24 @@ class Offset:
         self.centre, self.d = np.asarray(u, dtype=np.float64).copy(), np.asarray(d, dtype=np.float64).copy()
 
 
-def start_offset(model, u: np.ndarray, real_state: crit.CriticalStates) -> Offset | None:
-    """The offset that makes the chain reproduce the real rope's critical state under a recorded command u (the
-    start throw, before any trial): output space mapping's correction, constant in u, the contact place frozen at the
-    chain's there as the trials' offsets freeze it. None where the rope or the chain misses under u.
+def start_offset(model, u: np.ndarray, real_state: crit.CriticalStates) -> tuple[Offset | None, crit.CriticalStates]:
+    """(the offset that makes the chain reproduce the real rope's critical state under a recorded command u, the
+    chain's own state there): output space mapping's correction from the start throw, before any trial. Constant in
+    u, with the contact place frozen at the chain's there as the trials' offsets freeze it, so the predicted place is
+    the rope's under u wherever the chain goes. The offset is None where the rope or the chain misses under u.
 
-    Why a constant: the chain fitted at 10 links misses the rope's state by about as much near the start as near the
-    goal, and in the same direction; a plan that removes that miss lands nearer the goal than one on the chain alone
-    (README, "Trial 1 on the chain plus the start throw's offset")."""
+    A constant offset is exact under u; near it the prediction is off by the difference of the rope's and the chain's
+    sensitivity times the distance, where the chain alone is off by the whole miss. Measured on the fine rope and not
+    the default (README, "Trial 1 on the chain plus the start throw's offset")."""
     u = np.asarray(u, dtype=np.float64)
     st = model.states(u[None])
     d = (state_vector(real_state) - state_vector(st))[0]
     if not (st.hit[0] and real_state.hit[0] and np.all(np.isfinite(d))):
-        return None
+        return None, st
     offset = Offset.zero(u.size, d.size, u)
     offset.recentre(u, d)
     offset.model_place = st.s[0].copy()
-    return offset
+    return offset, st
 
 
 def predicted_states(model, U: np.ndarray, offset: Offset) -> tuple[crit.CriticalStates, crit.CriticalStates]:
