@@ -1,6 +1,7 @@
 """The correction campaign: every rope variant x seed, each with the renormalised-as-it-goes chain, the
 measured parameters and the parameters fitted once before the trials (`correct rope --params renormalised
-measured fitted`), one `correct rope` run per (variant, seed), one after the other (they share the CPU).
+measured fitted`: the issue's three arms; `correct rope`'s own default arm, renormalised-from-fitted, is named with
+--params), one `correct rope` run per (variant, seed), one after the other (they share the CPU).
 
     python examples/correct_campaign.py --out runs/campaign [--variants stiff soft ...] [--seeds 0 1 2]
         [--segments 10] [--engine newton] [--params renormalised measured fitted] [--workers 2] [--table-only]

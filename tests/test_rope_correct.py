@@ -682,6 +682,11 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
                       (["--max-radius", "7"], "(0, 6]"),
                       (["--min-radius", "0.5", "--params", "fitted"], "no run here has one"),
+                      # the default arm renormalises: options for fixed parameters alone are refused, not ignored
+                      (["--method", "qp"], "acts on fixed parameters, and every run here renormalises"),
+                      (["--first-step", "space-mapping"], "acts on fixed parameters, and every run here renormalises"),
+                      (["--method", "qp", "--params", "renormalised", "renormalised-from-fitted"],
+                       "every run here renormalises"),
                       (["--trust-region", "fixed", "--params", "renormalised", "--min-radius", "0.5"], "no run here"),
                       (["--trust-region", "adaptive", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--trust-region", "sometimes"], "invalid choice"),
@@ -1234,6 +1239,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
                                                               "--params", "measured", "renormalised"]))
     new = argparse.Namespace(**vars(parser.parse_args([])))  # left out: fixed for fixed parameters
     assert new.trust_region == "by-arm" and correct_cli._trust_rule(new, "fitted") == "fixed"
+    # the default arm renormalises from the fitted values, in the renormalised arms' adaptive trust region
+    assert new.params == ["renormalised-from-fitted"] and correct_cli._trust_rule(new, new.params[0]) == "adaptive"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
     assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
     # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own

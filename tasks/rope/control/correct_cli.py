@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", nargs="+", default=["renormalised-from-fitted"],
                    metavar="renormalised-from-fitted|renormalised|fitted|measured|FILE",
                    help="coarse models to steer with, each its own correction run: renormalised-from-fitted (the "
-                        "default, the best arm on held-out seeds: parameters refitted to the real trials after every "
+                        "default, the best arm on held-out newton seeds; on MuJoCo's rod measured or renormalised do "
+                        "better: parameters refitted to the real trials after every "
                         "trial, started from the values fitted to the rope's reference throws, prior at the measured "
                         "values; steps in a trust region), renormalised (the same, started at the measured values), "
                         "or fixed parameters stepped by --method: measured, fitted (once, to the rope's reference "
@@ -326,6 +327,7 @@ def run(args) -> int:
         raise InputError("--refit-generations", "refit_generations",
                          f"must be in [1, 1000], got {args.refit_generations}")
     check_first_step(args.first_step, args.method == "gn", args.linearise_at)
+    _check_fixed_parameter_options(args)
     args.start_pair = start_pair_for(args.start_pair, args.method)
     if not 3 <= args.segments <= 63:
         raise InputError("--segments", "segments", f"{args.segments} is outside [3, 63] (links of the coarse chain)")
@@ -679,6 +681,21 @@ def _trust_rule(args, label: str) -> str:
     if args.trust_region != "by-arm":
         return args.trust_region
     return "adaptive" if label.startswith("renormalised") else "fixed"
+
+
+def _check_fixed_parameter_options(args) -> None:
+    """--method qp and --first-step space-mapping act on fixed-parameter runs only (a renormalised run takes
+    Gauss-Newton steps under qp, and its refitted chain reproduces trial 1 at its own command, so space mapping's step
+    would not move): refused where every run here renormalises, as the default arm does."""
+    fixed = [label for label in args.params if not label.startswith("renormalised")]
+    if fixed:
+        return
+    for flag, key, given in (("--method qp", "method", args.method == "qp"),
+                             ("--first-step space-mapping", "first_step", args.first_step == "space-mapping")):
+        if given:
+            raise InputError(flag.split()[0], key, f"{flag} acts on fixed parameters, and every run here renormalises "
+                                                   f"({', '.join(args.params)}): add --params fitted, measured or a "
+                                                   "result.json")
 
 
 def _arm_method(args, label: str) -> tuple[str, str]:
