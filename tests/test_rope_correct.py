@@ -1153,7 +1153,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-offset",
                                                          "start"]))
     with pytest.raises(InputError, match="'by-method' is not none or start"):  # a saved value argparse never saw
-        correct_cli._check_first_plan_offset(argparse.Namespace(**(vars(args) | {"first_plan_offset": "by-method"})))
+        correct_cli._check_first_plan(argparse.Namespace(**(vars(args) | {"first_plan_offset": "by-method"})))
     with pytest.raises(InputError, match="other plans' weight"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-reg",
                                                          "0.01"]))

@@ -311,7 +311,6 @@ def run(args) -> int:
         raise InputError("--max-radius", "max_radius", f"must be in (0, 6], got {args.max_radius:g}")
     _check_step_options(args)
     _check_first_plan(args)
-    _check_first_plan_offset(args)
     arms = {label: _trust_options(args, label) for label in args.params}
     if args.trust_region != "by-arm" and not any(arms.values()):
         raise InputError("--trust-region", "trust_region", f"--method {args.method} with fixed parameters has no "
@@ -769,28 +768,24 @@ def _plans_trial_one(args, label: str) -> bool:
 
 
 def _check_first_plan(args) -> None:
-    """--first-plan-reg weighs trial 1's plan: refused where no run here plans it (checked before any real run)."""
-    if args.first_plan_reg in ("by-method", "as-plans"):
+    """--first-plan-reg (a number) and --first-plan-offset start act on trial 1's plan: refused where no run here plans
+    it (checked before any real run). --first-plan-offset is none or start: a resumed run's settings bypass argparse."""
+    if args.first_plan_offset not in ("none", "start"):
+        raise InputError("--first-plan-offset", "first_plan_offset", f"{args.first_plan_offset!r} is not none or start")
+    if any(_plans_trial_one(args, label) for label in args.params):
         return
-    if not any(_plans_trial_one(args, label) for label in args.params):
-        raise InputError("--first-plan-reg", "first_plan_reg", "weighs trial 1's plan, and no run here plans it "
-                                                               "(--no-plan-first, or --method qp)")
+    for flag, key, given, what in (
+            ("--first-plan-reg", "first_plan_reg", args.first_plan_reg not in ("by-method", "as-plans"), "weighs"),
+            ("--first-plan-offset", "first_plan_offset", args.first_plan_offset == "start", "shifts")):
+        if given:
+            raise InputError(flag, key, f"{what} trial 1's plan, and no run here plans it (--no-plan-first, or "
+                                        "--method qp)")
 
 
 def _first_plan_offset(args, label: str) -> bool:
     """Whether the run with parameters `label` plans trial 1 on the chain plus the start throw's offset: with start,
     wherever that run plans a trial 1."""
     return args.first_plan_offset == "start" and _plans_trial_one(args, label)
-
-
-def _check_first_plan_offset(args) -> None:
-    """--first-plan-offset is none or start (a resumed run's settings bypass argparse), and start shifts trial 1's
-    plan: refused where no run here plans it."""
-    if args.first_plan_offset not in ("none", "start"):
-        raise InputError("--first-plan-offset", "first_plan_offset", f"{args.first_plan_offset!r} is not none or start")
-    if args.first_plan_offset == "start" and not any(_plans_trial_one(args, label) for label in args.params):
-        raise InputError("--first-plan-offset", "first_plan_offset", "shifts trial 1's plan, and no run here plans "
-                                                                     "it (--no-plan-first, or --method qp)")
 
 
 def _check_step_options(args) -> None:
