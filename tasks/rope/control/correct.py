@@ -307,8 +307,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--method", "method", f"{method!r} is not 'gn', 'plan', 'qp' or 'renormalise'")
     if steps not in ("gn", "plan"):
         raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
-    if linearise_at not in ("matched", "trial"):
-        raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
+    if linearise_at not in ("matched", "trial", "best"):
+        raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched', 'trial' or 'best'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
     gn_steps = takes_gn_steps(method, steps)
@@ -807,16 +807,18 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             pred_state = model.states(u[None])
             trial.sensitivity = {"plan_evaluations": p["evaluations"], "why": "no critical state to step from"}
         else:
-            if renorm is not None or sens is None:
-                # one linearisation point for the whole run (the first trial that hit): the chain's sensitivity
-                # is rough from point to point, and moving the point swaps that roughness for another's
-                first = next(tr for tr in trials if tr.hit)
+            anchor = best if linearise_at == "best" else next(tr for tr in trials if tr.hit)
+            if renorm is not None or sens is None or (sens.anchor is not anchor):
+                # by default one linearisation point for the whole run (the first trial that hit): the chain's
+                # sensitivity is rough from point to point, and moving the point swaps that roughness for another's;
+                # "best" moves it to the best trial (the secant pairs are refitted to every new prior alike)
+                first = anchor
                 match = None
-                if linearise_at == "matched":
+                if linearise_at in ("matched", "best"):
                     match = gauss_newton.matched_command(model, rope_plan.state_vector(first.state)[0], w, first.u,
                                                          seed)
                 sens = gauss_newton.Sensitivity.of_chain(model, first.u if match is None else match.u)
-                sens.match = match
+                sens.match, sens.anchor = match, first
                 if progress and match is not None:
                     progress(f"    chain's sensitivity measured where it matches trial {first.index + 1}'s real state: "
                              f"misfit {match.misfit_at_trial:.3f} at its command -> {match.misfit:.3f}, "

@@ -62,10 +62,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "command (fixed parameters only; renormalised arms then take gn steps)")
     p.add_argument("--no-plan-first", action="store_true",
                    help="(gn, plan) run the start command as trial 1 instead of the model's own plan from it")
-    p.add_argument("--linearise-at", choices=("matched", "trial"), default="matched",
+    p.add_argument("--linearise-at", choices=("matched", "trial", "best"), default="matched",
                    help="(gn steps) measure the chain's sensitivity where the chain reproduces the first hit's real "
-                        "critical state (matched, space mapping's parameter extraction) or at that trial's own "
-                        "command (trial)")
+                        "critical state (matched, space mapping's parameter extraction), at that trial's own "
+                        "command (trial), or where it reproduces the best trial's state, measured again at every "
+                        "new best (best; measured, not the default)")
     p.add_argument("--first-step", choices=("gn", "space-mapping"), default="gn",
                    help="(gn steps, fixed parameters) trial 2 as a Gauss-Newton step (gn) or as space mapping's step: "
                         "the command moved by the offset of trial 1's match the other way (space-mapping)")

@@ -84,6 +84,7 @@ class Sensitivity:
     chain_rollouts: int = 0
     wall_s: float = 0.0
     match: Match | None = None  # where it was measured, when not at a trial's own command
+    anchor: object = None  # the trial whose state (or command) it was measured at
     pair_weights: list = field(default_factory=list)  # each secant pair's weight in the last ridge fit
     normal: np.ndarray | None = None  # (n, n) the last ridge fit's weight I + sum c_k du_k du_k^T / |du_k|^2
     ridge_weight: float = RIDGE
@@ -140,7 +141,8 @@ class Sensitivity:
                 "columns_not_central": [i for i, c in enumerate(self.columns) if c != "central"],
                 "relative_correction": float(np.linalg.norm(self.S - self.prior)
                                              / max(np.linalg.norm(self.prior), 1e-12))} | (
-            {} if self.match is None else self.match.record())
+            {} if self.match is None else self.match.record()) | (
+            {} if self.anchor is None else {"linearised_at_trial": int(self.anchor.index) + 1})
 
 
 def pair_weight(du: np.ndarray, locality: float | None) -> float:
