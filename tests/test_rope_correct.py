@@ -1123,6 +1123,30 @@ def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):
     assert np.isclose(np.linalg.norm(w[:, None] * (P - J)) / np.linalg.norm(w[:, None] * J), d)
 
 
+def test_linearise_at_best_follows_the_best_trial(problem):
+    """--linearise-at best: every step's sensitivity is measured where the chain matches the best trial's state at
+    that step (recorded as the trial it was linearised at, and reproduced here by matching that trial directly); the
+    default keeps trial 1's match for the whole run."""
+    space = CommandSpace(PATHS["flick"])
+    real = CoarseRope(problem, shifted(problem))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
+    model = CoarseModel(problem, problem.space.measured, space)
+    kw = dict(max_trials=5, tolerance=1e-6, method="gn", **FAST_PLAN)
+    best_run = correct(real, model, goal, np.zeros(space.dim), linearise_at="best", **kw)
+    first_run = correct(real, model, goal, np.zeros(space.dim), **kw)
+    assert all(t.sensitivity["linearised_at_trial"] == 1 for t in first_run["trials"][:-1])
+    w = secant.residual_weights(goal)
+    best, moved = None, 0
+    for t in best_run["trials"][:-1]:
+        if t.accepted:
+            best = t
+        assert t.sensitivity["linearised_at_trial"] == best.index + 1
+        moved += best.index > 0
+        match = secant.matched_command(model, state_vector(best.state)[0], w, best.u, 0)
+        assert np.allclose(t.sensitivity["linearised_at"], match.u)
+    assert moved >= 1, [t.total for t in best_run["trials"]]  # the best moved at least once, so the point did
+
+
 def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
     """--start-pair: the real rope's critical state under the start command, recorded before the trials, corrects
     the chain's sensitivity as a trial's pair would: after trial 1 the estimate predicts the change from trial 1 to
