@@ -415,60 +415,6 @@ def test_secant_locality_weighs_far_pairs_down_as_weighted_least_squares():
     assert np.allclose(mean.S @ e, 2.0) and np.allclose(local.S @ e, (1 + 3 / 16) / (1 + 1 / 16))
 
 
-def test_step_uncertainty_is_the_ridge_posteriors_covariance_scaled_by_the_priors_misfit():
-    """--step-objective expected. (1) The penalty's form against Monte Carlo of the model the ridge fit assumes:
-    true sensitivities drawn as prior + N(0, tau^2) per element, pairs observed with noise of variance weight * tau^2
-    per unit direction; the spread of (true - fitted) du over draws equals tau^2 weight du^T normal^-1 du, along an
-    explored and an unexplored direction alike. (2) Its scale is the prior's root-mean-square weighted misprediction
-    of the pairs per unit of u, computed here directly. (3) None before any pair."""
-    rng = np.random.default_rng(11)
-    m, n, weight, tau = 5, 4, 0.05, 0.7
-    prior = rng.normal(size=(m, n))
-    dus = [np.array([1.0, 0.0, 0.0, 0.0]) * 0.8, np.array([0.6, 0.8, 0.0, 0.0]) * 1.5]
-    assert secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * n).step_uncertainty(np.ones(m)) is None
-    probes = {"explored": np.array([1.0, 0.0, 0.0, 0.0]), "unexplored": np.array([0.0, 0.0, 1.0, 0.0])}
-    spread = {k: [] for k in probes}
-    for _ in range(4000):
-        true = prior + rng.normal(scale=tau, size=(m, n))
-        dzs = [true @ du + np.linalg.norm(du) * rng.normal(scale=tau * np.sqrt(weight), size=m) for du in dus]
-        sens = secant.Sensitivity(prior.copy(), prior.copy(), ["central"] * n)
-        sens.ridge(dus, dzs, weight=weight)
-        for k, d in probes.items():
-            spread[k].append((true - sens.S) @ d)
-    P_form = weight * np.linalg.inv(sens.normal)  # P / misfit^2: the same for every draw (the pairs' directions)
-    for k, d in probes.items():
-        mc = float(np.mean(np.sum(np.square(spread[k]), axis=1)))  # summed over the m rows
-        assert mc == pytest.approx(m * tau ** 2 * float(d @ P_form @ d), rel=0.05), k
-    assert probes["unexplored"] @ P_form @ probes["unexplored"] == pytest.approx(1.0)
-    assert probes["explored"] @ P_form @ probes["explored"] < 0.06
-    row_weights = rng.uniform(0.5, 2.0, size=m)
-    P, misfit = sens.step_uncertainty(row_weights)
-    direct = np.sqrt(np.mean([np.sum((row_weights * (dz - prior @ du) / np.linalg.norm(du)) ** 2)
-                              for du, dz in zip(dus, dzs)]))
-    assert misfit == pytest.approx(direct) and np.allclose(P, misfit ** 2 * P_form)
-    assert np.all(np.linalg.eigvalsh(P) > 0)
-
-
-def test_expected_step_prefers_the_direction_the_trials_explored():
-    """Two command directions whose effects the corrected model predicts alike, one explored by a secant pair and one
-    not: the mean step uses both equally; the expected step puts its length on the explored one, and predicts a
-    residual no smaller than the mean step's (it pays for certainty)."""
-    space = SimpleNamespace(lower=-np.full(3, 5.0), upper=np.full(3, 5.0))
-    S = np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    sens = secant.Sensitivity(S.copy(), S.copy(), ["central"] * 3)
-    du = np.array([0.5, 0.0, 0.0])
-    sens.ridge([du], [S @ du + np.array([0.3, 0.0])], weight=0.05)  # the prior was 0.6 per unit off along it
-    sens.S = S.copy()  # the mean model as above, so that only the objective differs
-    e = np.array([-1.0, 0.0])
-    mean_step = secant.qp_step(S, e, np.zeros(3), space, 2.0, 1e-6)
-    P, misfit = sens.step_uncertainty(np.ones(2))
-    assert misfit == pytest.approx(0.6)
-    expected_step = secant.qp_step(S, e, np.zeros(3), space, 2.0, 1e-6, P)
-    assert mean_step[0] == pytest.approx(mean_step[1], abs=1e-6) and mean_step[0] > 0.45
-    assert expected_step[0] > 5 * expected_step[1] > 0
-    assert np.linalg.norm(S @ expected_step + e) >= np.linalg.norm(S @ mean_step + e) - 1e-9
-
-
 def test_matched_command_is_where_the_chain_reproduces_a_state(problem):
     """Space mapping's extraction: given a state the chain makes under some command, started elsewhere, the match
     finds a command that reproduces it far better than the start does; given the chain's own state at the start,
@@ -706,11 +652,6 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="velocity_weight"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
-    for kw in ({"method": "plan", "step_objective": "expected"}, {"secant": False, "step_objective": "expected"},
-               {"step_objective": "mean-ish"}):
-        space = CommandSpace(PATHS["flick"])
-        with pytest.raises(InputError, match="step_objective"):
-            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
     for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0}, {"secant": False,
                                                                                      "secant_locality": 1.0},
                {"secant_locality": float("inf")}, {"secant_locality": "1"}):
@@ -734,9 +675,6 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--secant-locality", "1", "--no-secant"], "--no-secant uses none"),
-                      (["--step-objective", "expected", "--no-secant"], "--no-secant uses none"),
-                      (["--step-objective", "expected", "--method", "plan", "--params", "measured"], "--method plan"),
-                      (["--step-objective", "median"], "invalid choice"),
                       (["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
@@ -1123,30 +1061,6 @@ def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):
     assert np.isclose(np.linalg.norm(w[:, None] * (P - J)) / np.linalg.norm(w[:, None] * J), d)
 
 
-def test_linearise_at_best_follows_the_best_trial(problem):
-    """--linearise-at best: every step's sensitivity is measured where the chain matches the best trial's state at
-    that step (recorded as the trial it was linearised at, and reproduced here by matching that trial directly); the
-    default keeps trial 1's match for the whole run."""
-    space = CommandSpace(PATHS["flick"])
-    real = CoarseRope(problem, shifted(problem))
-    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
-    model = CoarseModel(problem, problem.space.measured, space)
-    kw = dict(max_trials=5, tolerance=1e-6, method="gn", **FAST_PLAN)
-    best_run = correct(real, model, goal, np.zeros(space.dim), linearise_at="best", **kw)
-    first_run = correct(real, model, goal, np.zeros(space.dim), **kw)
-    assert all(t.sensitivity["linearised_at_trial"] == 1 for t in first_run["trials"][:-1])
-    w = secant.residual_weights(goal)
-    best, moved = None, 0
-    for t in best_run["trials"][:-1]:
-        if t.accepted:
-            best = t
-        assert t.sensitivity["linearised_at_trial"] == best.index + 1
-        moved += best.index > 0
-        match = secant.matched_command(model, state_vector(best.state)[0], w, best.u, 0)
-        assert np.allclose(t.sensitivity["linearised_at"], match.u)
-    assert moved >= 1, [t.total for t in best_run["trials"]]  # the best moved at least once, so the point did
-
-
 def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
     """--start-pair: the real rope's critical state under the start command, recorded before the trials, corrects
     the chain's sensitivity as a trial's pair would: after trial 1 the estimate predicts the change from trial 1 to
@@ -1228,18 +1142,13 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg", "first_plan_offset",
-                                                             "step_objective")}
+                                                             "first_plan_reg", "first_plan_offset")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
     assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
     assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")  # as it ran
-    assert args.step_objective == "mean" and correct_cli._step_options(args, "fitted")["step_objective"] == "mean"
-    with pytest.raises(InputError, match="corrected model's mean"):
-        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--step-objective",
-                                                         "expected"]))
     with pytest.raises(InputError, match="on the chain alone"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-offset",
                                                          "start"]))
@@ -1274,8 +1183,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # and before --velocity-weight: its steps weighed the velocity rows as the others
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None,
-                                                         "step_objective": "mean"}
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
@@ -1292,8 +1200,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None,
-                                                               "step_objective": "mean"}
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None}
     # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
     # its --min-radius, where no arm used it, is dropped rather than refused
     for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):
@@ -1320,8 +1227,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for given in ([], ["--velocity-weight", ".5"]):
         args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
         correct_cli._restore_settings(args)
-        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None,
-                                                             "step_objective": "mean"}
+        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None}
     with pytest.raises(InputError, match="ran with 0.5"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
@@ -1336,8 +1242,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # the default arm renormalises from the fitted values, in the renormalised arms' adaptive trust region
     assert new.params == ["renormalised-from-fitted"] and correct_cli._trust_rule(new, new.params[0]) == "adaptive"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
-    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None,
-                                                        "step_objective": "mean"}  # by method
+    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
     # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own
     assert new.first_plan_reg == "by-method" and correct_cli._first_plan_reg(new, "fitted") is None
     as_plans = parser.parse_args(["--first-plan-reg", "as-plans", "--method", "plan"])
@@ -1470,13 +1375,3 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
     assert main(cmd + ["--out", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert "--fit-throws" in err and "none of the fit throws" in err and "never hits itself" in err
-
-
-def test_run_heading_names_the_step_objective():
-    from wrenorm.tasks.rope.control import correct_cli
-
-    region = {"rule": "adaptive", "min_radius": 0.25, "max_radius": 6.0}
-    mean = {"method": "renormalise", "gauss_newton": {"trust_region": region, "velocity_weight": 1.0}}
-    expected = {"method": "renormalise", "gauss_newton": mean["gauss_newton"] | {"step_objective": "expected"}}
-    assert correct_cli.run_method(mean) == "renormalise, trust radius 0.25-6"
-    assert correct_cli.run_method(expected) == "renormalise, trust radius 0.25-6, steps on the model's expected error"

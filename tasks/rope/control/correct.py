@@ -255,7 +255,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
             secant_locality: float | None = None, first_plan_reg: float | None = None,
-            first_plan_offset: tuple | None = None, step_objective: str = "mean") -> dict:
+            first_plan_offset: tuple | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -270,9 +270,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
-      step_objective "mean": each step minimises the corrected model's weighted residual; "expected": its
-      expectation under the model's uncertainty, which adds du^T P du (secant.Sensitivity.step_uncertainty: large
-      along command directions no secant pair explored, scaled by how wrong the chain's sensitivity was on the pairs).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
       secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
     first_plan_offset: (u, CriticalStates) the real rope's critical state under a command recorded before the
@@ -307,8 +304,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         raise InputError("--method", "method", f"{method!r} is not 'gn', 'plan', 'qp' or 'renormalise'")
     if steps not in ("gn", "plan"):
         raise InputError("--method", "steps", f"{steps!r} is not 'gn' or 'plan'")
-    if linearise_at not in ("matched", "trial", "best"):
-        raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched', 'trial' or 'best'")
+    if linearise_at not in ("matched", "trial"):
+        raise InputError("--linearise-at", "linearise_at", f"{linearise_at!r} is not 'matched' or 'trial'")
     if first_step not in ("gn", "space-mapping"):
         raise InputError("--first-step", "first_step", f"{first_step!r} is not 'gn' or 'space-mapping'")
     gn_steps = takes_gn_steps(method, steps)
@@ -349,14 +346,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                        f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
-    if step_objective not in ("mean", "expected"):
-        raise InputError("--step-objective", "step_objective", f"{step_objective!r} is not 'mean' or 'expected'")
-    if step_objective == "expected" and not gn_steps:
-        raise InputError("--step-objective", "step_objective", f"shapes Gauss-Newton steps; the {method} loop (steps "
-                                                               f"{steps}) has none")
-    if step_objective == "expected" and secant is False:
-        raise InputError("--step-objective", "step_objective", "expected weighs what the secant pairs showed of the "
-                                                               "chain's error, and --no-secant uses none")
     if gn_steps:
         if first_plan_reg is None:
             first_plan_reg = gauss_newton.FIRST_PLAN_REG
@@ -371,8 +360,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until, velocity_weight=float(velocity_weight),
                                secant_locality=None if secant_locality is None else float(secant_locality),
-                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset,
-                               step_objective=step_objective)
+                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -753,7 +741,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first", velocity_weight: float = 1.0,
                     secant_locality: float | None = None, first_plan_reg: float | None = None,
-                    first_plan_offset: tuple | None = None, step_objective: str = "mean") -> dict:
+                    first_plan_offset: tuple | None = None) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -807,18 +795,16 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             pred_state = model.states(u[None])
             trial.sensitivity = {"plan_evaluations": p["evaluations"], "why": "no critical state to step from"}
         else:
-            anchor = best if linearise_at == "best" else next(tr for tr in trials if tr.hit)
-            if renorm is not None or sens is None or (sens.anchor is not anchor):
-                # by default one linearisation point for the whole run (the first trial that hit): the chain's
-                # sensitivity is rough from point to point, and moving the point swaps that roughness for another's;
-                # "best" moves it to the best trial (the secant pairs are refitted to every new prior alike)
-                first = anchor
+            if renorm is not None or sens is None:
+                # one linearisation point for the whole run (the first trial that hit): the chain's sensitivity
+                # is rough from point to point, and moving the point swaps that roughness for another's
+                first = next(tr for tr in trials if tr.hit)
                 match = None
-                if linearise_at in ("matched", "best"):
+                if linearise_at == "matched":
                     match = gauss_newton.matched_command(model, rope_plan.state_vector(first.state)[0], w, first.u,
                                                          seed)
                 sens = gauss_newton.Sensitivity.of_chain(model, first.u if match is None else match.u)
-                sens.match, sens.anchor = match, first
+                sens.match = match
                 if progress and match is not None:
                     progress(f"    chain's sensitivity measured where it matches trial {first.index + 1}'s real state: "
                              f"misfit {match.misfit_at_trial:.3f} at its command -> {match.misfit:.3f}, "
@@ -834,20 +820,12 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 if progress:
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
-                uncertainty = sens.step_uncertainty(rows * w) if step_objective == "expected" else None
-                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows,
-                                                     None if uncertainty is None else uncertainty[0])
-                if step_objective == "expected":
-                    # None before the first pair: that step is the mean model's
-                    step_objective_record = {"prior_misfit_per_unit": None if uncertainty is None
-                                             else uncertainty[1]}
+                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             floor = gauss_newton.floor_record(goal, best.state, sens.S, best.u,
                                               gauss_newton.model_floor(goal, best.state, sens.S, w, e_best, best.u,
                                                                        space, rows, also=(u,)))
             trial.sensitivity = sens.record() | {"step": step, "model_floor": floor}
-            if step == "gauss-newton" and step_objective == "expected":
-                trial.sensitivity["step_objective"] = step_objective_record
         predicted = float(goal.terms(pred_state)["total"][0])
         if best.hit:
             plan_radius = trust.radius
@@ -868,7 +846,6 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,
-                         "step_objective": step_objective,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "secant_locality": secant_locality if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

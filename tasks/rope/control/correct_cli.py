@@ -62,11 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "command (fixed parameters only; renormalised arms then take gn steps)")
     p.add_argument("--no-plan-first", action="store_true",
                    help="(gn, plan) run the start command as trial 1 instead of the model's own plan from it")
-    p.add_argument("--linearise-at", choices=("matched", "trial", "best"), default="matched",
+    p.add_argument("--linearise-at", choices=("matched", "trial"), default="matched",
                    help="(gn steps) measure the chain's sensitivity where the chain reproduces the first hit's real "
-                        "critical state (matched, space mapping's parameter extraction), at that trial's own "
-                        "command (trial), or where it reproduces the best trial's state, measured again at every "
-                        "new best (best; measured, not the default)")
+                        "critical state (matched, space mapping's parameter extraction) or at that trial's own "
+                        "command (trial)")
     p.add_argument("--first-step", choices=("gn", "space-mapping"), default="gn",
                    help="(gn steps, fixed parameters) trial 2 as a Gauss-Newton step (gn) or as space mapping's step: "
                         "the command moved by the offset of trial 1's match the other way (space-mapping)")
@@ -117,11 +116,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
                         "none (default): every pair alike")
-    p.add_argument("--step-objective", choices=("mean", "expected"), default="mean",
-                   help="(gn steps) what each Gauss-Newton step minimises: mean (default), the corrected model's "
-                        "weighted residual; expected, its expectation under the model's uncertainty, which costs a "
-                        "step along command directions no secant pair explored as much as the chain's sensitivity "
-                        "mispredicted the pairs (measured, not the default)")
     p.add_argument("--first-plan-reg", type=first_plan_reg_arg, default="by-method",
                    help="weight of the squared distance (units of u) from the start command in trial 1's plan on the "
                         "chain: the chain reproduces the goal about as well along a long stretch of commands, and "
@@ -481,8 +475,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
-                     "step_objective": args.step_objective, "first_plan_reg": args.first_plan_reg,
-                     "first_plan_offset": args.first_plan_offset,
+                     "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
@@ -566,9 +559,7 @@ def run_method(r: dict) -> str:
     radius = (f"fixed at {region['max_radius']:g}" if region["rule"] == "fixed"
               else f"{region['min_radius']:g}-{region['max_radius']:g}")
     weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
-    objective = (r.get("gauss_newton") or {}).get("step_objective", "mean")
-    return (f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
-            + ("" if objective == "mean" else f", steps on the model's {objective} error"))
+    return f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
 
 
 def report_markdown(result: dict) -> str:
@@ -602,7 +593,6 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
-                             "step_objective": ("mean", "stepped on the corrected model's mean"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
                              "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
@@ -801,17 +791,12 @@ def _first_plan_offset(args, label: str) -> bool:
 def _check_step_options(args) -> None:
     """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton, the locality only
     with secant pairs (checked before any real run)."""
-    if args.step_objective not in ("mean", "expected"):
-        raise InputError("--step-objective", "step_objective", f"{args.step_objective!r} is not mean or expected")
-    for flag, key, given in (("--secant-locality", "secant_locality", args.secant_locality != "none"),
-                             ("--step-objective", "step_objective", args.step_objective != "mean")):
-        if args.secant is False and given:
-            raise InputError(flag, key, "weighs what the secant pairs show, and --no-secant uses none")
+    if args.secant is False and args.secant_locality != "none":
+        raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
-                             ("--secant-locality", "secant_locality", args.secant_locality != "none"),
-                             ("--step-objective", "step_objective", args.step_objective != "mean")):
+                             ("--secant-locality", "secant_locality", args.secant_locality != "none")):
         if given:
             raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
                                         f"{args.method})")
@@ -824,8 +809,7 @@ def _step_options(args, label: str) -> dict:
     if not takes_gn_steps(*_arm_method(args, label)):
         return {}
     return {"velocity_weight": _velocity_weight(args),
-            "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality),
-            "step_objective": args.step_objective}
+            "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 
 def _adapts(arms: dict) -> bool:

@@ -84,11 +84,7 @@ class Sensitivity:
     chain_rollouts: int = 0
     wall_s: float = 0.0
     match: Match | None = None  # where it was measured, when not at a trial's own command
-    anchor: object = None  # the trial whose state (or command) it was measured at
     pair_weights: list = field(default_factory=list)  # each secant pair's weight in the last ridge fit
-    normal: np.ndarray | None = None  # (n, n) the last ridge fit's weight I + sum c_k du_k du_k^T / |du_k|^2
-    ridge_weight: float = RIDGE
-    prior_misfits: list = field(default_factory=list)  # (c_k, (dz_k - prior du_k) / |du_k|): the prior on each pair
 
     @classmethod
     def of_chain(cls, model, u: np.ndarray, step: float = GN_FD_STEP) -> Sensitivity:
@@ -105,7 +101,7 @@ class Sensitivity:
         With one pair and weight -> 0 this is Broyden's update of the prior."""
         n = self.prior.shape[1]
         A, B = weight * np.eye(n), weight * self.prior
-        self.pairs, self.pair_weights, self.prior_misfits = 0, [], []
+        self.pairs, self.pair_weights = 0, []
         for du, dz in zip(dus, dzs):
             norm2 = float(du @ du)
             if norm2 > 0 and np.all(np.isfinite(dz)):
@@ -114,26 +110,7 @@ class Sensitivity:
                 B = B + c * np.outer(dz, du) / norm2
                 self.pairs += 1
                 self.pair_weights.append(c)
-                self.prior_misfits.append((c, (dz - self.prior @ du) / np.sqrt(norm2)))
         self.S = np.linalg.solve(A.T, B.T).T
-        self.normal, self.ridge_weight = A, weight
-
-    def step_uncertainty(self, row_weights: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """(P, misfit): the expected squared error, in the step's weighted rows, that the corrected sensitivity's
-        uncertainty adds to a step du: du^T P du (step objective "expected"). The ridge fit is the posterior mean of a
-        model in which the rope's sensitivity is the prior's plus independent errors, each pair's directional
-        derivative known `weight` times as well as the prior's; the covariance of what it predicts for a step du
-        is then misfit^2 weight du^T normal^-1 du: misfit^2 |du|^2 along directions no pair explored, about weight
-        times that along those the pairs did. misfit is not chosen: it is the root-mean-square weighted error with
-        which the prior predicted the pairs per unit of u, so the penalty is as large as the chain's sensitivity has
-        shown itself wrong in this run. None before the first pair."""
-        if self.normal is None or not self.prior_misfits:
-            return None
-        c = np.array([ck for ck, _ in self.prior_misfits])
-        misfit2 = float(np.sum(c * np.array([np.sum((row_weights * r) ** 2) for _, r in self.prior_misfits]))
-                        / np.sum(c))
-        P = misfit2 * self.ridge_weight * np.linalg.inv(self.normal)
-        return 0.5 * (P + P.T), float(np.sqrt(misfit2))
 
     def record(self) -> dict:
         return {"chain_rollouts": self.chain_rollouts, "chain_wall_s": self.wall_s, "secant_pairs": self.pairs,
@@ -141,8 +118,7 @@ class Sensitivity:
                 "columns_not_central": [i for i, c in enumerate(self.columns) if c != "central"],
                 "relative_correction": float(np.linalg.norm(self.S - self.prior)
                                              / max(np.linalg.norm(self.prior), 1e-12))} | (
-            {} if self.match is None else self.match.record()) | (
-            {} if self.anchor is None else {"linearised_at_trial": int(self.anchor.index) + 1})
+            {} if self.match is None else self.match.record())
 
 
 def pair_weight(du: np.ndarray, locality: float | None) -> float:
@@ -219,18 +195,15 @@ def space_mapping_step(match: Match, space) -> tuple[np.ndarray, float]:
     return space.limit_step(match.trial_u, match.trial_u - match.u)
 
 
-def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG,
-            penalty: np.ndarray | None = None) -> np.ndarray:
-    """du minimising |F du + e|^2 + du^T penalty du + lam |du|^2 inside the box and the trust radius,
-    lam = reg mean diag(F^T F)."""
+def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG) -> np.ndarray:
+    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius, lam = reg mean diag(F^T F)."""
     from scipy.optimize import lsq_linear
 
     n = u.shape[0]
     scale = float(np.mean(np.sum(F * F, axis=0)))
     lam = reg * (scale if scale > 0 else 1.0)
-    extra = [] if penalty is None else [np.linalg.cholesky(penalty + 1e-12 * np.trace(penalty) * np.eye(n)).T]
-    A = np.concatenate([F, *extra, np.sqrt(lam) * np.eye(n)])
-    b = np.concatenate([-e, *[np.zeros(n)] * len(extra), np.zeros(n)])
+    A = np.concatenate([F, np.sqrt(lam) * np.eye(n)])
+    b = np.concatenate([-e, np.zeros(n)])
     lo = np.maximum(space.lower - u, -radius)
     hi = np.minimum(space.upper - u, radius)
     hi = np.maximum(hi, lo + 1e-12)  # lsq_linear needs lo < hi
@@ -246,14 +219,12 @@ def step_row_weights(goal: crit.Target, velocity_weight: float) -> np.ndarray:
 
 
 def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
-            reg: float = GN_REG, rows: np.ndarray | None = None,
-            penalty: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+            reg: float = GN_REG, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale; `rows`
-    (step_row_weights) scales each row of the least-squares problem; `penalty` (Sensitivity.step_uncertainty, in
-    those rows) adds the expected error of the sensitivity's uncertainty (step objective "expected")."""
+    (step_row_weights) scales each row of the least-squares problem."""
     if rows is not None:
         w, e_best = rows * w, rows * e_best
-    du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg, penalty)
+    du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg)
     return space.limit_step(u_best, du)
 
 
