@@ -932,6 +932,18 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
         assert expected in last, r.stderr
 
 
+def _script_module(name: str):
+    """A script of examples/diagnostics imported as a module."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "diagnostics" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_path):
     """The step-prediction diagnosis on a run whose every prediction came true scores each block's correlation 1;
     shuffling the predictions across trials breaks it; runs it cannot score are refused in one line."""
@@ -966,9 +978,11 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
 
     r = scored(tmp_path / "true")
     assert r.returncode == 0, r.stderr
-    cells = [line.split("|")[3].strip() for line in r.stdout.splitlines() if line.startswith("| best error")]
+    cells = [line.split("|")[3].strip() for line in r.stdout.splitlines() if line.startswith("| best error")][:8]
     assert len(cells) == 8 and sum(c == "1.00" for c in cells) >= 6 and set(cells) <= {"1.00", "nan"}, r.stdout
     assert "No step recorded the corrected model's floor" in r.stdout
+    along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:]
+    assert len(along) == 2 and all(row[2].strip() == row[3].strip() == "1.00" for row in along), r.stdout
     # each step's floor, recorded with the trial before it, set to 0.6 of the best error then: the table says 0.60
     with_floor, best = [], np.inf
     for t in trials:
@@ -983,8 +997,16 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     shuffled = [t | {"predicted_state": trials[(i + 5) % len(trials)]["predicted_state"]}
                 for i, t in enumerate(trials)]
     r = scored(tmp_path / "shuffled", trials=shuffled)
-    assert r.returncode == 0 and not set(line.split("|")[3].strip() for line in r.stdout.splitlines()
-                                         if line.startswith("| best error")) <= {"1.00", "nan"}, r.stdout
+    assert r.returncode == 0 and not set([line.split("|")[3].strip() for line in r.stdout.splitlines()
+                                          if line.startswith("| best error")][:8]) <= {"1.00", "nan"}, r.stdout
+    along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:10]
+    assert all(float(row[3]) < 0.99 for row in along), r.stdout
+    # the rope moved half as far as predicted, straight along it, from a best whose residual the step would cancel:
+    # half the predicted change made, at no angle, and twice the step would have been best
+    diag = _script_module("step_prediction")
+    p = np.array([0.3, -0.4, 0.1])
+    assert diag.along_the_step(-p, p, 0.5 * p) == pytest.approx({"projection": 0.5, "cosine": 1.0, "best_length": 2.0})
+    assert diag.along_the_step(-p, p, np.array([0.4, 0.3, 0.0]))["cosine"] == pytest.approx(0.0)
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
                                ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),
@@ -1040,13 +1062,7 @@ def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):
     """rope_sensitivity_prior's bound (parameters whose sensitivity lies closest to a given one): handed the
     sensitivity of a chain with known parameters, it must find parameters whose sensitivity is that one, from the
     measured values that are far from it."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "examples" / "diagnostics" / "rope_sensitivity_prior.py"
-    spec = importlib.util.spec_from_file_location("rope_sensitivity_prior", path)
-    diag = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(diag)
+    diag = _script_module("rope_sensitivity_prior")
     space = CommandSpace(PATHS["flick"])
     u = np.zeros(space.dim)
     goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))

@@ -7,6 +7,10 @@ or a renormalised arm of it), whose prediction is the linear model's, not the pl
 Runs that recorded the corrected model's floor (secant.model_floor: the least error the linear model predicted for
 any command in the box when the step was planned) get a second table: the floor against the best error, the step's
 prediction and the rope's answer, and which terms the floor keeps (README, "What the steps can still reach").
+Every run gets a third table: the rope's change of the weighted residual against the predicted change as vectors
+(how much of the predicted change it made along it, and at what angle), and the length along the step that would
+have left the least residual had the rope answered in proportion along it (1: the step as taken; README, "Three
+more changes to the default arm").
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
@@ -100,12 +104,15 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
         if (best is not None and best["self_collision"] and t["self_collision"]
                 and (t.get("predicted_state") or {}).get("self_collision")):
             predicted = goal.terms(_state(t["predicted_state"]))
+            r_best, r_predicted, r_actual = (goal.residual(_state(x))[0] for x in (
+                best["measured_state"], t["predicted_state"], t["measured_state"]))
             rows.append({"best": best["error"], "accepted": bool(t["accepted"]), "error": t["error"],
                          "predicted": float(predicted["total"][0]), "tolerance": float(r["tolerance"]),
                          "floor": None if floor is None else floor["error"],
                          "floor_terms": None if floor is None else {k: goal.weights[k] * floor["terms"][k]
                                                                     for k in TERMS},
                          "best_terms": {k: goal.weights[k] * best["terms"][k] for k in TERMS}}
+                        | along_the_step(r_best, r_predicted - r_best, r_actual - r_best)
                         | {f"{k}_actual": goal.weights[k] * (t["terms"][k] - best["terms"][k]) for k in TERMS}
                         | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
                            for k in TERMS})
@@ -113,6 +120,31 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
             best = t
         floor = (t.get("next_step") or {}).get("model_floor")  # the floor when the next trial was planned
     return rows
+
+
+def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray) -> dict:
+    """The rope's change of the weighted residual (actual) against the change the step predicted: the share of the
+    predicted length it made along it (projection), the cosine between them, and the multiple of the step that
+    would have minimised |r_best + a actual| had the rope answered in proportion along the step (best_length)."""
+    pp, aa = float(predicted @ predicted), float(actual @ actual)
+    if pp == 0 or aa == 0:
+        return {"projection": np.nan, "cosine": np.nan, "best_length": np.nan}
+    return {"projection": float(actual @ predicted) / pp, "cosine": float(actual @ predicted) / np.sqrt(pp * aa),
+            "best_length": -float(r_best @ actual) / aa}
+
+
+def along_table(rows: list[dict]) -> str:
+    lines = ["| steps | rope's change along the predicted one / predicted (median) | cosine (median) | best length "
+             "along the step, 1 = as taken: median (quartiles) |", "|---|---|---|---|"]
+    for label, keep in STAGES:
+        sub = [x for x in rows if keep(x["best"]) and np.isfinite(x["cosine"])]
+        if not sub:
+            lines.append(f"| {label}: 0 | | | |")
+            continue
+        q = np.percentile([x["best_length"] for x in sub], [25, 50, 75])
+        lines.append(f"| {label}: {len(sub)} | {np.median([x['projection'] for x in sub]):.2f} | "
+                     f"{np.median([x['cosine'] for x in sub]):.2f} | {q[1]:.2f} ({q[0]:.2f}-{q[2]:.2f}) |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict]) -> str:
@@ -160,6 +192,8 @@ def main(argv=None) -> int:
     if not rows:
         _fail("no step to score: every run ended at trial 1 or never hit after it")
     print(table(rows))
+    print("\nThe rope's change of the weighted residual against the step's prediction, as vectors:\n")
+    print(along_table(rows))
     if any(x["floor"] is not None for x in rows):
         print("\nWhat the corrected model said any command in the box could still reach (its floor), per step:\n")
         print(floor_table(rows))
