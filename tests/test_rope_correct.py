@@ -945,8 +945,10 @@ def _script_module(name: str):
 
 
 def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_path):
-    """The step-prediction diagnosis on a run whose every prediction came true scores each block's correlation 1;
-    shuffling the predictions across trials breaks it; runs it cannot score are refused in one line."""
+    """The step-prediction diagnosis on a run whose every prediction came true scores each block's correlation 1,
+    and its table of changes as vectors the share 1 at cosine 1; shuffling the predictions across trials breaks both;
+    a rope that makes half of each predicted change shows the share 0.5 at cosine 1 and the best step lengths
+    computed independently; runs it cannot score are refused in one line."""
     import subprocess
     import sys
     from pathlib import Path
@@ -956,13 +958,14 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     script = Path(__file__).resolve().parents[1] / "examples" / "diagnostics" / "step_prediction.py"
     goal = crit.Target.from_reference(load_reference(builtin_reference_path("flick_high", "default")))
     rng = np.random.default_rng(5)
-    g, trials, best = goal.state, [], np.inf
+    g, trials, states, best = goal.state, [], [], np.inf
     for k, scale in enumerate(np.geomspace(1.0, 0.05, 14)):
         place = np.clip(g.s + scale * rng.normal(0, 0.05, 2), 0, 1)
         st = crit.CriticalStates(g.pos + scale * rng.normal(0, 0.04, g.pos.shape),
                                  g.vel + scale * rng.normal(0, 1.0, g.vel.shape),
                                  g.time * (1 + scale * rng.normal(0, 0.05)), place, np.ones(1, bool), np.zeros(1))
         terms = {key: float(v[0]) for key, v in goal.terms(st).items()}
+        states.append(st)
         trials.append({"trial": k + 1, "error": terms["total"], "accepted": terms["total"] < best,
                        "self_collision": True, "terms": terms, "measured_state": state_record(st),
                        "predicted_state": state_record(st)})
@@ -1001,12 +1004,38 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
                                           if line.startswith("| best error")][:8]) <= {"1.00", "nan"}, r.stdout
     along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:10]
     assert all(float(row[3]) < 0.99 for row in along), r.stdout
+    # a rope that makes half of every predicted change, straight along it: the share 0.50 at cosine 1.00, and the
+    # best length per step as computed here from the residuals themselves
+    half, best_state, best_error, lengths = [], None, np.inf, []
+    for k, st in enumerate(states):
+        made = st if best_state is None else crit.CriticalStates(
+            *(b + 0.5 * (p - b) for b, p in ((best_state.pos, st.pos), (best_state.vel, st.vel),
+                                               (best_state.time, st.time), (best_state.s, st.s))),
+            np.ones(1, bool), np.zeros(1))
+        terms = {key: float(v[0]) for key, v in goal.terms(made).items()}
+        if best_state is not None:
+            r_best = goal.residual(best_state)[0]
+            change = goal.residual(made)[0] - r_best
+            lengths.append((best_error, -float(r_best @ change) / float(change @ change)))
+        half.append({"trial": k + 1, "error": terms["total"], "accepted": terms["total"] < best_error,
+                     "self_collision": True, "terms": terms, "measured_state": state_record(made),
+                     "predicted_state": state_record(st)})
+        if terms["total"] < best_error:
+            best_state, best_error = made, terms["total"]
+    r = scored(tmp_path / "half", trials=half)
+    along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:10]
+    assert r.returncode == 0 and all(row[2].strip() == "0.50" and row[3].strip() == "1.00" for row in along), r.stdout
+    for row, keep in zip(along, (lambda b: b > 0.1, lambda b: b <= 0.1)):
+        mine = [a for b, a in lengths if keep(b)]
+        assert int(row[1].split(":")[1]) == len(mine) and float(row[4].split()[0]) == pytest.approx(
+            np.median(mine), abs=0.006), (row, mine)
     # the rope moved half as far as predicted, straight along it, from a best whose residual the step would cancel:
     # half the predicted change made, at no angle, and twice the step would have been best
     diag = _script_module("step_prediction")
     p = np.array([0.3, -0.4, 0.1])
     assert diag.along_the_step(-p, p, 0.5 * p) == pytest.approx({"projection": 0.5, "cosine": 1.0, "best_length": 2.0})
     assert diag.along_the_step(-p, p, np.array([0.4, 0.3, 0.0]))["cosine"] == pytest.approx(0.0)
+    assert all(np.isnan(v) for v in diag.along_the_step(-p, p, np.zeros(3)).values())  # no change: no direction
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
                                ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),

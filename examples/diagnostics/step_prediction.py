@@ -7,10 +7,10 @@ or a renormalised arm of it), whose prediction is the linear model's, not the pl
 Runs that recorded the corrected model's floor (secant.model_floor: the least error the linear model predicted for
 any command in the box when the step was planned) get a second table: the floor against the best error, the step's
 prediction and the rope's answer, and which terms the floor keeps (README, "What the steps can still reach").
-Every run gets a third table: the rope's change of the weighted residual against the predicted change as vectors
-(how much of the predicted change it made along it, and at what angle), and the length along the step that would
-have left the least residual had the rope answered in proportion along it (1: the step as taken; README, "Three
-more changes to the default arm").
+A second table, printed before the floors' and pooled over every run named, sets the rope's change of the weighted
+residual against the predicted change as vectors: how much of the predicted change it made along it, at what angle,
+and the multiple of the step that would have left the least squared weighted residual had the rope answered in
+proportion along it (1: the step as taken; README, "Three more changes to the default arm").
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
@@ -124,16 +124,21 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
 
 def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray) -> dict:
     """The rope's change of the weighted residual (actual) against the change the step predicted: the share of the
-    predicted length it made along it (projection), the cosine between them, and the multiple of the step that
-    would have minimised |r_best + a actual| had the rope answered in proportion along the step (best_length)."""
+    predicted length it made along it (projection), the cosine between them, and the multiple a of the step that
+    would have minimised |r_best + a actual|^2 had the rope answered in proportion along it (best_length; the least
+    squares of the step's own problem, not the observable's sum of block norms). A change below 1e-9 of the best
+    residual's length, predicted or made, has no direction: all three are NaN and along_table leaves the step out."""
     pp, aa = float(predicted @ predicted), float(actual @ actual)
-    if pp == 0 or aa == 0:
+    tiny = 1e-18 * max(float(r_best @ r_best), 1e-300)
+    if pp <= tiny or aa <= tiny:
         return {"projection": np.nan, "cosine": np.nan, "best_length": np.nan}
     return {"projection": float(actual @ predicted) / pp, "cosine": float(actual @ predicted) / np.sqrt(pp * aa),
             "best_length": -float(r_best @ actual) / aa}
 
 
 def along_table(rows: list[dict]) -> str:
+    """Per stage (best error above or below 0.1), the medians of along_the_step over the steps that have one; the
+    step count says how many did."""
     lines = ["| steps | rope's change along the predicted one / predicted (median) | cosine (median) | best length "
              "along the step, 1 = as taken: median (quartiles) |", "|---|---|---|---|"]
     for label, keep in STAGES:
