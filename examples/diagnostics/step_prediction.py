@@ -103,9 +103,10 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
                   "state's error to this goal (another goal throw than the run's?)")
         if (best is not None and best["self_collision"] and t["self_collision"]
                 and (t.get("predicted_state") or {}).get("self_collision")):
-            predicted = goal.terms(_state(t["predicted_state"]))
-            r_best, r_predicted, r_actual = (goal.residual(_state(x))[0] for x in (
-                best["measured_state"], t["predicted_state"], t["measured_state"]))
+            predicted_state = _state(t["predicted_state"])
+            predicted = goal.terms(predicted_state)
+            r_best, r_predicted, r_actual = (goal.residual(st)[0] for st in (
+                _state(best["measured_state"]), predicted_state, _state(t["measured_state"])))
             rows.append({"best": best["error"], "accepted": bool(t["accepted"]), "error": t["error"],
                          "predicted": float(predicted["total"][0]), "tolerance": float(r["tolerance"]),
                          "floor": None if floor is None else floor["error"],

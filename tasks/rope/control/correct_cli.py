@@ -686,8 +686,7 @@ def _check_fixed_parameter_options(args) -> None:
     """--method qp and --first-step space-mapping act on fixed-parameter runs only (a renormalised run takes
     Gauss-Newton steps under qp, and its refitted chain reproduces trial 1 at its own command, so space mapping's step
     would not move): refused where every run here renormalises, as the default arm does."""
-    fixed = [label for label in args.params if not label.startswith("renormalised")]
-    if fixed:
+    if any(not label.startswith("renormalised") for label in args.params):
         return
     for flag, key, given in (("--method qp", "method", args.method == "qp"),
                              ("--first-step space-mapping", "first_step", args.first_step == "space-mapping")):
