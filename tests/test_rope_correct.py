@@ -415,61 +415,6 @@ def test_secant_locality_weighs_far_pairs_down_as_weighted_least_squares():
     assert np.allclose(mean.S @ e, 2.0) and np.allclose(local.S @ e, (1 + 3 / 16) / (1 + 1 / 16))
 
 
-def _line_space(n):
-    """A command box of +-5 per component with no hand limits."""
-    return SimpleNamespace(lower=-np.full(n, 5.0), upper=np.full(n, 5.0), limit_step=lambda u, du: (u + du, 1.0))
-
-
-def test_error_step_minimises_the_sum_of_group_norms_where_least_squares_does_not():
-    """--step-objective error, analytically: one command component, a group of two rows 1 + du and a group of one row
-    3 - du. The observable's error sqrt(2) |1 + du| + |3 - du| falls toward du = -1 (slope sqrt(2) - 1 > 0 between
-    -1 and 3), where it is 4; the least-squares step minimises 2 (1 + du)^2 + (3 - du)^2 at du = 1/3 (error 4.78).
-    Inside a radius of 0.5 the error step stops at the edge, -0.5; the least-squares step is inside it."""
-    goal = SimpleNamespace(error_groups=[slice(0, 2), slice(2, 3)])
-    S, w, e = np.array([[1.0], [1.0], [-1.0]]), np.ones(3), np.array([1.0, 1.0, 3.0])
-    space = _line_space(1)
-    u0 = np.zeros(1)
-    u, scale, how = secant.error_step(goal, S, w, e, u0, space, 5.0, reg=1e-9)
-    assert how == "error" and scale == 1.0 and u[0] == pytest.approx(-1.0, abs=1e-5)
-    assert secant.gn_step(S, w, e, u0, space, 5.0, reg=1e-9)[0][0] == pytest.approx(1 / 3, abs=1e-6)
-    assert secant.error_step(goal, S, w, e, u0, space, 0.5, reg=1e-9)[0][0] == pytest.approx(-0.5, abs=1e-6)
-    assert secant.gn_step(S, w, e, u0, space, 0.5, reg=1e-9)[0][0] == pytest.approx(1 / 3, abs=1e-6)
-    # the row weights scale the groups: the first group weighed 0.5 makes its norm's slope 0.71 < 1, so the error
-    # falls toward du = 3 instead, the second group's kink
-    rows = np.array([0.5, 0.5, 1.0])
-    assert secant.error_step(goal, S, w, e, u0, space, 5.0, reg=1e-9, rows=rows)[0][0] == pytest.approx(3.0, abs=1e-5)
-
-
-def test_error_step_is_the_minimum_inside_the_box_and_radius():
-    """Random problems with the observable's five groups: no command sampled inside the box and radius has a lower
-    objective than the error step (the sum of group norms plus the Levenberg term), and its predicted error is no
-    higher than the least-squares step's. The Levenberg term is the least-squares step's, lam / (2 |e|)."""
-    rng = np.random.default_rng(5)
-    groups = [slice(0, 6), slice(6, 12), slice(12, 13), slice(13, 14), slice(14, 15)]
-    goal = SimpleNamespace(error_groups=groups)
-    n, radius, reg = 4, 0.6, secant.GN_REG
-    space = _line_space(n)
-    for _ in range(5):
-        S, e, w = rng.normal(size=(15, n)), rng.normal(size=15), rng.uniform(0.5, 2.0, size=15)
-        u0 = rng.uniform(-4.8, 4.8, size=n)  # near the box's edge in some components
-        F = w[:, None] * S
-        mu = reg * float(np.mean(np.sum(F * F, axis=0))) / (2 * np.linalg.norm(e))
-
-        def error(du, e=e, F=F):
-            r = e + F @ du
-            return sum(np.linalg.norm(r[g]) for g in groups)
-
-        u, _, how = secant.error_step(goal, S, w, e, u0, space, radius, reg)
-        du = u - u0
-        lo, hi = np.maximum(space.lower - u0, -radius), np.minimum(space.upper - u0, radius)
-        assert np.all(du >= lo - 1e-9) and np.all(du <= hi + 1e-9)
-        samples = rng.uniform(lo, hi, size=(4000, n))
-        found = error(du) + mu * du @ du
-        assert min(error(d) + mu * d @ d for d in samples) >= found - 1e-7
-        assert error(du) <= error(secant.gn_step(S, w, e, u0, space, radius, reg)[0] - u0) + 1e-9
-        assert how in ("error", "least squares")
-
-
 def test_matched_command_is_where_the_chain_reproduces_a_state(problem):
     """Space mapping's extraction: given a state the chain makes under some command, started elsewhere, the match
     finds a command that reproduces it far better than the start does; given the chain's own state at the start,
@@ -580,24 +525,6 @@ def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
     renorm = correct(ShiftedCommand(), model, goal, np.zeros(space.dim), max_trials=2, tolerance=1e-6,
                      method="renormalise", first_step="space-mapping", refit_generations=2, **FAST_PLAN)
     assert renorm["first_step"] == renorm["trials"][0].sensitivity["step"] == "gauss-newton"
-
-
-def test_error_objective_steps_predict_no_worse_than_least_squares_from_the_same_trial(problem):
-    """--step-objective error in a whole loop: trial 1 and the chain's sensitivity are the same as with least
-    squares (same seed), so trial 2's predicted error is no higher than the least-squares step's; the run records
-    the objective and how each step was solved."""
-    space = CommandSpace(PATHS["flick"])
-    real = CoarseRope(problem, shifted(problem))
-    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
-    kw = {"max_trials": 2, "tolerance": 1e-6, "method": "gn", **FAST_PLAN}
-    runs = {objective: correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
-                               step_objective=objective, **kw) for objective in ("least-squares", "error")}
-    ls, err = runs["least-squares"], runs["error"]
-    assert np.array_equal(ls["trials"][0].u, err["trials"][0].u)
-    assert err["gauss_newton"]["step_objective"] == "error" and ls["gauss_newton"]["step_objective"] == "least-squares"
-    assert err["trials"][0].sensitivity["step_solved_by"] in ("error", "least squares")
-    assert "step_solved_by" not in ls["trials"][0].sensitivity
-    assert err["trials"][1].predicted_total <= ls["trials"][1].predicted_total + 1e-9
 
 
 def test_qp_correction_still_improves(problem):
@@ -725,11 +652,6 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="velocity_weight"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
-    for kw in ({"method": "plan", "step_objective": "error"}, {"step_objective": "mean"},
-               {"step_objective": "Error"}):
-        space = CommandSpace(PATHS["flick"])
-        with pytest.raises(InputError, match="step_objective"):
-            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
     for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0}, {"secant": False,
                                                                                      "secant_locality": 1.0},
                {"secant_locality": float("inf")}, {"secant_locality": "1"}):
@@ -753,8 +675,6 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--secant-locality", "near"], "neither a finite number > 0 nor none"),
                       (["--secant-locality", "1", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--secant-locality", "1", "--no-secant"], "--no-secant uses none"),
-                      (["--step-objective", "error", "--method", "plan", "--params", "measured"], "--method plan"),
-                      (["--step-objective", "expected"], "invalid choice"),
                       (["--velocity-weight", "-0.5"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
@@ -1267,19 +1187,13 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg", "first_plan_offset",
-                                                             "step_objective")}
+                                                             "first_plan_reg", "first_plan_offset")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
     assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
     assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")  # as it ran
-    assert args.step_objective == "least-squares"
-    assert correct_cli._step_options(args, "fitted")["step_objective"] == "least-squares"
-    with pytest.raises(InputError, match="least-squares residual"):
-        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--step-objective",
-                                                         "error"]))
     with pytest.raises(InputError, match="on the chain alone"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--first-plan-offset",
                                                          "start"]))
@@ -1314,8 +1228,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # and before --velocity-weight: its steps weighed the velocity rows as the others
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None,
-                                                         "step_objective": "least-squares"}
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
@@ -1332,8 +1245,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None,
-                                                               "step_objective": "least-squares"}
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None}
     # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
     # its --min-radius, where no arm used it, is dropped rather than refused
     for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):
@@ -1360,8 +1272,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for given in ([], ["--velocity-weight", ".5"]):
         args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
         correct_cli._restore_settings(args)
-        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None,
-                                                             "step_objective": "least-squares"}
+        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None}
     with pytest.raises(InputError, match="ran with 0.5"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
@@ -1376,8 +1287,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # the default arm renormalises from the fitted values, in the renormalised arms' adaptive trust region
     assert new.params == ["renormalised-from-fitted"] and correct_cli._trust_rule(new, new.params[0]) == "adaptive"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
-    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None,
-                                                        "step_objective": "least-squares"}  # by method
+    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
     # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own
     assert new.first_plan_reg == "by-method" and correct_cli._first_plan_reg(new, "fitted") is None
     as_plans = parser.parse_args(["--first-plan-reg", "as-plans", "--method", "plan"])
@@ -1510,13 +1420,3 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
     assert main(cmd + ["--out", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert "--fit-throws" in err and "none of the fit throws" in err and "never hits itself" in err
-
-
-def test_run_heading_names_the_step_objective():
-    from wrenorm.tasks.rope.control import correct_cli
-
-    region = {"rule": "adaptive", "min_radius": 0.25, "max_radius": 6.0}
-    mean = {"method": "renormalise", "gauss_newton": {"trust_region": region, "velocity_weight": 1.0}}
-    error = {"method": "renormalise", "gauss_newton": mean["gauss_newton"] | {"step_objective": "error"}}
-    assert correct_cli.run_method(mean) == "renormalise, trust radius 0.25-6"
-    assert correct_cli.run_method(error) == "renormalise, trust radius 0.25-6, steps on the predicted error"

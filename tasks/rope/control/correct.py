@@ -255,7 +255,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
             secant_locality: float | None = None, first_plan_reg: float | None = None,
-            first_plan_offset: tuple | None = None, step_objective: str = "least-squares") -> dict:
+            first_plan_offset: tuple | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
@@ -270,9 +270,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
-      step_objective "least-squares": each Gauss-Newton step minimises the corrected model's weighted residual,
-      the sum of squares; "error": the observable's error it predicts, the sum of the groups' norms
-      (secant.error_step).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
       secant.FIRST_PLAN_REG where Gauss-Newton steps follow, else the loop's plans' own (`reg` for the plan loop).
     first_plan_offset: (u, CriticalStates) the real rope's critical state under a command recorded before the
@@ -349,12 +346,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                        f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
-    if step_objective not in STEP_OBJECTIVES:
-        raise InputError("--step-objective", "step_objective", f"{step_objective!r} is not one of "
-                                                               f"{', '.join(STEP_OBJECTIVES)}")
-    if step_objective != "least-squares" and not gn_steps:
-        raise InputError("--step-objective", "step_objective", f"shapes Gauss-Newton steps; the {method} loop (steps "
-                                                               f"{steps}) has none")
     if gn_steps:
         if first_plan_reg is None:
             first_plan_reg = gauss_newton.FIRST_PLAN_REG
@@ -369,8 +360,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until, velocity_weight=float(velocity_weight),
                                secant_locality=None if secant_locality is None else float(secant_locality),
-                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset,
-                               step_objective=step_objective)
+                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset)
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -496,9 +486,6 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         "best_u": best.u,
         "trials": trials,
     }
-
-
-STEP_OBJECTIVES = ("least-squares", "error")  # what each Gauss-Newton step minimises (correct())
 
 
 def _check_loop_number(value, flag: str, key: str, positive: bool, applies: bool, why_not: str) -> None:
@@ -754,7 +741,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first", velocity_weight: float = 1.0,
                     secant_locality: float | None = None, first_plan_reg: float | None = None,
-                    first_plan_offset: tuple | None = None, step_objective: str = "least-squares") -> dict:
+                    first_plan_offset: tuple | None = None) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -833,18 +820,12 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 if progress:
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
-                if step_objective == "error":
-                    u, scale_used, solved_by = gauss_newton.error_step(goal, sens.S, w, e_best, best.u, space,
-                                                                       trust.radius, reg, rows)
-                else:
-                    u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows)
+                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             floor = gauss_newton.floor_record(goal, best.state, sens.S, best.u,
                                               gauss_newton.model_floor(goal, best.state, sens.S, w, e_best, best.u,
                                                                        space, rows, also=(u,)))
             trial.sensitivity = sens.record() | {"step": step, "model_floor": floor}
-            if step == "gauss-newton" and step_objective == "error":
-                trial.sensitivity["step_solved_by"] = solved_by  # "least squares" where the search found no better
         predicted = float(goal.terms(pred_state)["total"][0])
         if best.hit:
             plan_radius = trust.radius
@@ -865,7 +846,6 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,
-                         "step_objective": step_objective,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "secant_locality": secant_locality if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

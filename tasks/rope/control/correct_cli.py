@@ -17,7 +17,7 @@ SYSTEM = "rope"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP, STEP_OBJECTIVES
+    from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
     from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
@@ -116,11 +116,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
                         "none (default): every pair alike")
-    p.add_argument("--step-objective", choices=STEP_OBJECTIVES, default="least-squares",
-                   help="(gn steps) what each Gauss-Newton step minimises in the corrected linear model: "
-                        "least-squares (default), the weighted residual's sum of squares; error, the observable's "
-                        "error it predicts (the sum of the shape, velocity, time and place norms that accepts "
-                        "trials); measured, not the default")
     p.add_argument("--first-plan-reg", type=first_plan_reg_arg, default="by-method",
                    help="weight of the squared distance (units of u) from the start command in trial 1's plan on the "
                         "chain: the chain reproduces the goal about as well along a long stretch of commands, and "
@@ -480,8 +475,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
-                     "step_objective": args.step_objective, "first_plan_reg": args.first_plan_reg,
-                     "first_plan_offset": args.first_plan_offset,
+                     "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
                      "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
@@ -565,9 +559,7 @@ def run_method(r: dict) -> str:
     radius = (f"fixed at {region['max_radius']:g}" if region["rule"] == "fixed"
               else f"{region['min_radius']:g}-{region['max_radius']:g}")
     weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
-    objective = (r.get("gauss_newton") or {}).get("step_objective", "least-squares")
-    return (f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
-            + ("" if objective == "least-squares" else f", steps on the predicted {objective}"))
+    return f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
 
 
 def report_markdown(result: dict) -> str:
@@ -601,7 +593,6 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
-                             "step_objective": ("least-squares", "stepped on the least-squares residual"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
                              "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
@@ -797,20 +788,14 @@ def _first_plan_offset(args, label: str) -> bool:
 
 
 def _check_step_options(args) -> None:
-    """--velocity-weight, --secant-locality and --step-objective are given only where an arm steps by Gauss-Newton,
-    the locality only with secant pairs (checked before any real run)."""
-    from wrenorm.tasks.rope.control.correct import STEP_OBJECTIVES
-
-    if args.step_objective not in STEP_OBJECTIVES:
-        raise InputError("--step-objective", "step_objective", f"{args.step_objective!r} is not one of "
-                                                               f"{', '.join(STEP_OBJECTIVES)}")
+    """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton, the locality only
+    with secant pairs (checked before any real run)."""
     if args.secant is False and args.secant_locality != "none":
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
-                             ("--secant-locality", "secant_locality", args.secant_locality != "none"),
-                             ("--step-objective", "step_objective", args.step_objective != "least-squares")):
+                             ("--secant-locality", "secant_locality", args.secant_locality != "none")):
         if given:
             raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
                                         f"{args.method})")
@@ -823,8 +808,7 @@ def _step_options(args, label: str) -> dict:
     if not takes_gn_steps(*_arm_method(args, label)):
         return {}
     return {"velocity_weight": _velocity_weight(args),
-            "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality),
-            "step_objective": args.step_objective}
+            "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 
 def _adapts(arms: dict) -> bool:

@@ -249,18 +249,32 @@ class Floor:
     solver_message: str
 
 
-def min_sum_of_norms(F: np.ndarray, e: np.ndarray, groups: list, lo: np.ndarray, hi: np.ndarray, du0: np.ndarray,
-                     mu: float = 0.0):
-    """du minimising sum_g |e_g + F_g du| + mu |du|^2 inside lo <= du <= hi, from du0: convex with kinks where a
-    group's norm reaches 0, where the minimum usually lies (a gradient method stops at them), so it is solved as the
-    smooth convex program min sum t_g + mu |du|^2, t_g >= |e_g + F_g du| (SLSQP on its epigraph). scipy's result
-    (x may be NaN where it failed)."""
+def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, w: np.ndarray,
+                e_best: np.ndarray, u_best: np.ndarray, space, rows: np.ndarray | None = None,
+                also: tuple = ()) -> Floor:
+    """The command inside the command box whose error the linear model predicts least: what the corrected model
+    says any command can still reach, with neither trust radius nor hand limits (which only shorten a step). A
+    step predicted no better than this is limited by the model, not by the trust radius (README, "What the steps
+    can still reach").
+
+    The predicted error is a sum of norms of linear functions of the command (Target.error_groups: |e_g + F_g du|
+    with F = W S), convex with kinks where a term reaches 0, where the floor usually lies (a gradient method stops
+    at them). So it is solved as the smooth convex program min sum t_g, t_g >= |e_g + F_g du|, inside the box
+    (SLSQP), from the step's least-squares solution without a radius (with the step's row weights `rows`); the
+    result (when finite), that start and the commands in `also` (the step taken) are scored by the observable and
+    the best kept, so a failed search falls back to them rather than to something worse."""
     from scipy.optimize import minimize
 
-    n, G = len(du0), len(groups)
+    F = w[:, None] * S
+    n = len(u_best)
+    lo, hi = space.lower - u_best, space.upper - u_best
+    groups = goal.error_groups
+    G = len(groups)
+    r_rows, e_rows = (w, e_best) if rows is None else (rows * w, rows * e_best)
+    du_ls = qp_step(r_rows[:, None] * S, e_rows, u_best, space, np.inf, FLOOR_REG)
 
     def norms(du):
-        r = e + F @ du
+        r = e_best + F @ du
         return [r[g] for g in groups], np.array([np.sqrt(r[g] @ r[g] + 1e-24) for g in groups])
 
     def constraint(x):
@@ -274,71 +288,17 @@ def min_sum_of_norms(F: np.ndarray, e: np.ndarray, groups: list, lo: np.ndarray,
         J[:, n:] = np.eye(G)
         return J
 
-    x0 = np.concatenate([du0, norms(du0)[1] * (1 + 1e-6)])
-    return minimize(lambda x: float(np.sum(x[n:]) + mu * x[:n] @ x[:n]), x0,
-                    jac=lambda x: np.concatenate([2 * mu * x[:n], np.ones(G)]),
-                    method="SLSQP", bounds=list(zip(lo, hi)) + [(0.0, None)] * G,
-                    constraints=[{"type": "ineq", "fun": constraint, "jac": constraint_jacobian}],
-                    options={"maxiter": 500, "ftol": 1e-12})
-
-
-def model_floor(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, w: np.ndarray,
-                e_best: np.ndarray, u_best: np.ndarray, space, rows: np.ndarray | None = None,
-                also: tuple = ()) -> Floor:
-    """The command inside the command box whose error the linear model predicts least: what the corrected model
-    says any command can still reach, with neither trust radius nor hand limits (which only shorten a step). A
-    step predicted no better than this is limited by the model, not by the trust radius (README, "What the steps
-    can still reach").
-
-    The predicted error is a sum of norms of linear functions of the command (Target.error_groups: |e_g + F_g du|
-    with F = W S), solved by min_sum_of_norms inside the box from the step's least-squares solution without a
-    radius (with the step's row weights `rows`); the result (when finite), that start and the commands in `also`
-    (the step taken) are scored by the observable and the best kept, so a failed search falls back to them rather
-    than to something worse."""
-    F = w[:, None] * S
-    n = len(u_best)
-    lo, hi = space.lower - u_best, space.upper - u_best
-    r_rows, e_rows = (w, e_best) if rows is None else (rows * w, rows * e_best)
-    du_ls = qp_step(r_rows[:, None] * S, e_rows, u_best, space, np.inf, FLOOR_REG)
-    found = min_sum_of_norms(F, e_best, goal.error_groups, lo, hi, du_ls)
+    x0 = np.concatenate([du_ls, norms(du_ls)[1] * (1 + 1e-6)])
+    found = minimize(lambda x: float(np.sum(x[n:])), x0, jac=lambda x: np.concatenate([np.zeros(n), np.ones(G)]),
+                     method="SLSQP", bounds=list(zip(lo, hi)) + [(0.0, None)] * G,
+                     constraints=[{"type": "ineq", "fun": constraint, "jac": constraint_jacobian}],
+                     options={"maxiter": 500, "ftol": 1e-12})
     searched = np.all(np.isfinite(found.x))
     candidates = [du_ls] + ([np.clip(found.x[:n], lo, hi)] if searched else []) + [np.asarray(u) - u_best for u in also]
     names = ["least squares"] + (["search"] if searched else []) + ["step"] * len(also)
     errors = predicted_errors(goal, best_state, S, np.stack(candidates))
     best = int(np.nanargmin(errors))
     return Floor(u_best + candidates[best], names[best], int(found.status), str(found.message))
-
-
-def error_step(goal: crit.Target, S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space,
-               radius: float, reg: float = GN_REG,
-               rows: np.ndarray | None = None) -> tuple[np.ndarray, float, str]:
-    """The trust-region step on the observable's own error (step objective "error"): du minimising the linear
-    model's predicted error sum_g |rows_g (e_g + F_g du)| (the sum of group norms that accepts trials and judges
-    runs, where the least-squares step minimises the sum of their squares) inside the box and the radius, plus the
-    least-squares step's Levenberg term at the same relative size: lam / (2 |rows e_best|) |du|^2, since near
-    |r| = |e| the norm |r| changes as |r|^2 / (2 |e|). From the least-squares step, which is kept when the search
-    fails or predicts no lower objective. The feasible command (hand limits), its step scale, and which it was."""
-    r_w, r_e = (w, e_best) if rows is None else (rows * w, rows * e_best)
-    F = r_w[:, None] * S
-    du_ls = qp_step(F, r_e, u_best, space, radius, reg)
-    scale = float(np.mean(np.sum(F * F, axis=0)))
-    mu = reg * (scale if scale > 0 else 1.0) / (2.0 * max(float(np.linalg.norm(r_e)), 1e-12))
-    lo = np.maximum(space.lower - u_best, -radius)
-    hi = np.maximum(np.minimum(space.upper - u_best, radius), lo)
-    groups = goal.error_groups
-
-    def objective(du):
-        r = r_e + F @ du
-        return float(sum(np.linalg.norm(r[g]) for g in groups) + mu * du @ du)
-
-    found = min_sum_of_norms(F, r_e, groups, lo, hi, du_ls, mu)
-    du, how = du_ls, "least squares"
-    if np.all(np.isfinite(found.x)):
-        searched = np.clip(found.x[:len(u_best)], lo, hi)
-        if objective(searched) < objective(du_ls):
-            du, how = searched, "error"
-    u, scale_used = space.limit_step(u_best, du)
-    return u, scale_used, how
 
 
 def floor_record(goal: crit.Target, best_state: crit.CriticalStates, S: np.ndarray, u_best: np.ndarray,
