@@ -10,7 +10,7 @@ prediction and the rope's answer, and which terms the floor keeps (README, "What
 A second table, printed before the floors' and pooled over every run named, sets the rope's change of the weighted
 residual against the predicted change as vectors: how much of the predicted change it made along it, at what angle,
 and the multiple of the step that would have left the least squared weighted residual had the rope answered in
-proportion along it (1: the step as taken; README, "Three more changes to the default arm").
+proportion along it (1: the step as taken; README, "More changes to the default arm").
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
