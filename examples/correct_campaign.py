@@ -1,10 +1,13 @@
-"""The correction campaign: every rope variant x seed, each with the renormalised-as-it-goes chain, the
-measured parameters and the parameters fitted once before the trials (`correct rope --params renormalised
-measured fitted`: the issue's three arms; `correct rope`'s own default arm, renormalised-from-fitted, is named with
---params), one `correct rope` run per (variant, seed), one after the other (they share the CPU).
+"""The correction campaign: every rope variant x seed, each with the chain renormalised as it goes (`correct
+rope`'s default arm, started from the values fitted to the rope's reference throws), the measured parameters and the
+parameters fitted once before the trials (`correct rope --params renormalised-from-fitted measured fitted`: the
+issue's three arms; `renormalised`, the renormalised arm started from the measured values, which the README names
+for MuJoCo's rod, is named with --params), one `correct rope` run per (variant, seed), one after the other (they
+share the CPU).
 
     python examples/correct_campaign.py --out runs/campaign [--variants stiff soft ...] [--seeds 0 1 2]
-        [--segments 10] [--engine newton] [--params renormalised measured fitted] [--workers 2] [--table-only]
+        [--segments 10] [--engine newton] [--params renormalised-from-fitted measured fitted] [--workers 2]
+        [--table-only]
 
 Each run goes to OUT/<variant>-s<seed>/ (a finished run is kept, an interrupted one continues with
 --resume), its command line and wall time to OUT/campaign.json, and the table to OUT/campaign.md:
@@ -143,7 +146,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--segments", type=int, default=10)
     ap.add_argument("--engine", default="newton")
-    ap.add_argument("--params", nargs="+", default=["renormalised", "measured", "fitted"])
+    ap.add_argument("--params", nargs="+", default=["renormalised-from-fitted", "measured", "fitted"],
+                    help="the arms, each a `correct rope --params` value (default: the issue's three, the renormalised "
+                         "one started from the fitted values as `correct rope` is)")
     ap.add_argument("--workers", type=int, default=1,
                     help="correct rope processes at once (each uses one core; wall times then share the machine)")
     ap.add_argument("--table-only", action="store_true", help="rebuild the table from finished runs")

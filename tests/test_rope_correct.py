@@ -1045,6 +1045,30 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
         assert r.returncode == 2 and expected in r.stderr.strip().splitlines()[-1], r.stderr
 
 
+def test_the_campaign_compares_the_issues_three_arms_by_default(tmp_path):
+    """Without --params the campaign's arms are the issue's three with the renormalised one as `correct rope` runs it
+    (started from the fitted values): a table over finished runs has those columns, in that order."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    arms = ("renormalised-from-fitted", "measured", "fitted")
+    run = {"success": True, "trials_to_tolerance": 2, "best_error": 0.04,
+           "trials": [{"error": e, "accepted": True} for e in (0.3, 0.04)]}
+    (tmp_path / "stiff-s0").mkdir()
+    (tmp_path / "stiff-s0" / "correct.json").write_text(json.dumps({"max_trials": 10, "tolerance": 0.05,
+                                                                    "runs": {a: run for a in arms},
+                                                                    "settings": {"seed": 0}}))
+    r = subprocess.run([sys.executable, str(examples / "correct_campaign.py"), "--out", str(tmp_path), "--variants",
+                        "stiff", "--seeds", "0", "--table-only"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "| rope | seed | renormalised-from-fitted | measured | fitted | wall (min) |" in (tmp_path /
+                                                                                        "campaign.md").read_text()
+    assert list(json.loads((tmp_path / "campaign.json").read_text())["summary"]) == list(arms)
+
+
 def test_the_campaign_table_keeps_every_runs_trials(tmp_path):
     """--table-only over finished runs: the counts follow the runs' trials, campaign.json keeps those trials, and
     the table says which settings differ between its runs."""
