@@ -95,18 +95,18 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
     if not isinstance(r.get("tolerance"), (int, float)):
         _fail(f"{folder}/correct.json: tolerance: {r.get('tolerance')!r}, not a number (the floor is judged by it)")
     goal = goal_of(folder, r)
-    rows, best, floor = [], None, None
+    rows, best, best_state, floor = [], None, None, None
     for t in run["trials"]:
-        if t["self_collision"] and not np.isclose(float(goal.terms(_state(t["measured_state"]))["total"][0]),
-                                                  t["error"], rtol=1e-4, atol=1e-6):
+        state = _state(t["measured_state"]) if t["self_collision"] else None
+        if state is not None and not np.isclose(float(goal.terms(state)["total"][0]), t["error"], rtol=1e-4,
+                                                atol=1e-6):
             _fail(f"{folder}/correct.json: runs.{arm}: trial {t['trial']}'s stored error {t['error']:.4f} is not its "
                   "state's error to this goal (another goal throw than the run's?)")
         if (best is not None and best["self_collision"] and t["self_collision"]
                 and (t.get("predicted_state") or {}).get("self_collision")):
             predicted_state = _state(t["predicted_state"])
             predicted = goal.terms(predicted_state)
-            r_best, r_predicted, r_actual = (goal.residual(st)[0] for st in (
-                _state(best["measured_state"]), predicted_state, _state(t["measured_state"])))
+            r_best, r_predicted, r_actual = (goal.residual(st)[0] for st in (best_state, predicted_state, state))
             rows.append({"best": best["error"], "accepted": bool(t["accepted"]), "error": t["error"],
                          "predicted": float(predicted["total"][0]), "tolerance": float(r["tolerance"]),
                          "floor": None if floor is None else floor["error"],
@@ -118,7 +118,7 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
                         | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
                            for k in TERMS})
         if t["accepted"]:
-            best = t
+            best, best_state = t, state
         floor = (t.get("next_step") or {}).get("model_floor")  # the floor when the next trial was planned
     return rows
 

@@ -569,9 +569,8 @@ def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int
     planning = {"model_total_at_start": _model_total(model, goal, u0), "model_total_at_plan": p["model_total"],
                 "evaluations": p["evaluations"], "wall_s": p["wall_s"], "reg": opts["reg"],
                 "distance_from_start": float(np.linalg.norm(u - u0))}
-    if not zero:
-        to_rope = crit.Target(recorded[1], goal.length, goal.speed, dict(goal.weights))
-        miss = float(to_rope.terms(chain_there)["total"][0])
+    miss = None if zero else float(
+        crit.Target(recorded[1], goal.length, goal.speed, dict(goal.weights)).terms(chain_there)["total"][0])
     if recorded is not None:  # None: a recording was given and gave no offset
         planning["offset"] = None if zero else {"at_command_u": np.asarray(recorded[0], dtype=np.float64).tolist(),
                                                 "chain_error_to_rope_there": miss,
