@@ -33,15 +33,12 @@ def test_kill_9_then_resume_matches_uninterrupted_run(tmp_path):
     env = dict(os.environ, WRENORM_TEST_SLOW_GENERATION="0.4")
     proc = subprocess.Popen([sys.executable, "-m", "wrenorm", *FIT, "--out", str(out)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    state = out / "search_state.json"
+    log = out / "search_log.jsonl"
     deadline = time.time() + 120
     gens = 0
     while time.time() < deadline:
-        if state.exists():
-            try:
-                gens = len(json.loads(state.read_text())["history"])
-            except Exception:
-                gens = 0
+        if log.exists():
+            gens = log.read_text().count("\n") - 1  # lines after the header
             if gens >= 4:
                 break
         time.sleep(0.1)
@@ -51,6 +48,20 @@ def test_kill_9_then_resume_matches_uninterrupted_run(tmp_path):
     assert not (out / "result.json").exists()  # nothing left looking complete
     assert main([*FIT, "--out", str(out), "--resume"]) == 0
     assert _fitted(out) == _fitted(ref)
+
+
+def test_resume_drops_a_torn_last_line_and_matches_the_uninterrupted_run(tmp_path):
+    """What a kill in the middle of appending a generation leaves: the log up to generation 5 and half a line."""
+    ref, out = tmp_path / "ref", tmp_path / "torn"
+    assert main([*FIT, "--out", str(ref)]) == 0
+    assert main([*FIT, "--out", str(out)]) == 0
+    (out / "result.json").unlink()
+    lines = (out / "search_log.jsonl").read_text().splitlines(keepends=True)
+    assert len(lines) == 1 + 25 and all(line.endswith("\n") for line in lines)
+    (out / "search_log.jsonl").write_text("".join(lines[:6]) + lines[6][: len(lines[6]) // 2])
+    assert main([*FIT, "--out", str(out), "--resume"]) == 0
+    assert _fitted(out) == _fitted(ref)
+    assert (out / "search_log.jsonl").read_text() == (ref / "search_log.jsonl").read_text()
 
 
 def test_existing_run_is_not_overwritten_without_force(tmp_path, capsys):
@@ -68,9 +79,9 @@ def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
     assert "no such run folder" in capsys.readouterr().err
     out = tmp_path / "run"
     assert main([*FIT, "--out", str(out)]) == 0
-    (out / "search_state.json").unlink()
+    (out / "search_log.jsonl").unlink()
     assert main([*FIT, "--out", str(out), "--resume"]) == 2
-    assert "search_state.json" in capsys.readouterr().err
+    assert "search_log.jsonl" in capsys.readouterr().err
 
 
 def test_every_candidate_blowing_up_says_so():

@@ -88,14 +88,19 @@ def test_tampered_state_is_refused_in_one_line(tmp_path, capsys):
     out = tmp_path / "run"
     cmd = [*PD, "--search", "cmaes", "--generations", "4", "--out", str(out)]
     assert main(cmd) == 0
-    state = json.loads((out / "search_state.json").read_text())
-    state["search"]["told"][0][1]["candidates"] = "f" * 16
-    (out / "search_state.json").write_text(json.dumps(state))
+    log = out / "search_log.jsonl"
+    lines = log.read_text().splitlines()
+    generation = json.loads(lines[2])
+    generation["told"][0][1] = "f" * 16  # search 0's candidates in generation 1
+    log.write_text("\n".join([*lines[:2], json.dumps(generation), *lines[3:]]) + "\n")
     assert main([*cmd, "--resume"]) == 2
-    _one_line_error(capsys, "search_state.json", "other candidates")
-    (out / "search_state.json").write_text("{not json")
+    _one_line_error(capsys, "search_log.jsonl", "other candidates")
+    log.write_text("\n".join([*lines[:2], "{not json", *lines[3:]]) + "\n")
     assert main([*cmd, "--resume"]) == 2
-    _one_line_error(capsys, "search_state.json")
+    _one_line_error(capsys, "search_log.jsonl", "line 3")
+    log.write_text("{not json\n")
+    assert main([*cmd, "--resume"]) == 2
+    _one_line_error(capsys, "search_log.jsonl", "line 1")
 
 
 def _numeric_options(system: str) -> list[tuple[str, object]]:
@@ -203,9 +208,9 @@ def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path):
     env = dict(os.environ, RERUN_ANALYTICS="0", WRENORM_TEST_SLOW_GENERATION="0.05")
     proc = subprocess.Popen([sys.executable, "-m", "wrenorm", *args], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    state = out / "search_state.json"
+    log = out / "search_log.jsonl"
     deadline = time.time() + 120
-    while time.time() < deadline and not state.exists():
+    while time.time() < deadline and not log.exists():
         time.sleep(0.05)
     time.sleep(0.3)
     proc.send_signal(signal.SIGINT)
@@ -213,10 +218,10 @@ def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path):
     rc = proc.wait(timeout=30)
     assert rc == 130 and time.time() - t0 < 1.5 + 0.5  # the watchdog's second, plus interpreter exit
     assert "--resume" in proc.stderr.read()
-    history = json.loads(state.read_text())["history"]
-    assert 0 < len(history) < 400
+    generations = log.read_text().count("\n") - 1  # lines after the header
+    assert 0 < generations < 400
     assert main([*args[:-2], "--generations", "400", "--quiet", "--resume", "--out", str(out)]) == 0
-    assert json.loads((out / "result.json").read_text())["search"]["generations"] >= len(history)
+    assert json.loads((out / "result.json").read_text())["search"]["generations"] >= generations
 
 
 def test_os_errors_are_one_line(tmp_path, capsys):

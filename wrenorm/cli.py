@@ -210,7 +210,7 @@ def command_line(args) -> str:
 
 
 def cmd_fit(args) -> int:
-    from .fit import FitSettings, run_fits
+    from .fit import STATE_FILE, FitSettings, run_fits
     from .results import versions
     from .runfolder import prepare_out
 
@@ -226,7 +226,7 @@ def cmd_fit(args) -> int:
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
                            polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
-                      state="search_state.json", inputs=_inputs(args), command=f"fit {args.system}")
+                      state=STATE_FILE, inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:
         print(f"wrenorm fit {args.system}: writing {out}", file=sys.stderr)
     identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),

@@ -109,6 +109,7 @@ class BatchedCMAES:
             self.searches.append(Search(seed, x0.copy()))
             self._told.append([])
         self._asked: list[tuple[int, np.ndarray]] = []
+        self.last_told: list[tuple[int, str, list]] = []  # (search, candidates' digest, losses) of the last tell
 
     # ------------------------------------------------------------------ loop
     @property
@@ -145,6 +146,7 @@ class BatchedCMAES:
             li = losses[o:o + len(X)]
             o += len(X)
             self._tell_one(k, X, li)
+        self.last_told = [(k, *self._told[k][-1]) for k, _ in self._asked]
         self._asked = []
 
     def _tell_one(self, k: int, X: np.ndarray, losses: np.ndarray) -> None:
@@ -174,9 +176,13 @@ class BatchedCMAES:
         return float(self.es[k].sigma)
 
     # ------------------------------------------------------------------ plain-format state
+    @property
+    def seeds(self) -> list[int]:
+        return [s.seed for s in self.searches]
+
     def state(self) -> dict:
         """Everything needed to continue bit-identically, as plain JSON-able data."""
-        return {"schema": STATE_SCHEMA, "seeds": [s.seed for s in self.searches],
+        return {"schema": STATE_SCHEMA, "seeds": self.seeds,
                 "told": [[{"candidates": d, "losses": li} for d, li in told] for told in self._told]}
 
     def replay(self, state: dict, source: str = "search state") -> None:

@@ -24,7 +24,7 @@ from .restarts import identifiability_restarts, spread_of_optima
 from .results import SCHEMA, versions, write_json
 from .uncertainty import uncertainty
 
-STATE_FILE = "search_state.json"
+STATE_FILE = "search_log.jsonl"
 
 
 @dataclass(frozen=True)
