@@ -85,6 +85,34 @@ def test_replayed_state_continues_bit_identically_and_refuses_other_settings():
         make().replay({"schema": "something else"})
 
 
+def test_population_wide_bound_transform_asks_exactly_what_pycma_asks(monkeypatch):
+    """BatchedCMAES maps a whole population into the box at once (wrenorm.cmaes._ask); pycma's own ask maps one
+    candidate at a time. Same seeds, a start near the box's corner and a wide step, so that most candidates are
+    folded back: every candidate and every search's best must agree to the bit."""
+    from wrenorm import cmaes
+
+    def run(ask):
+        monkeypatch.setattr(cmaes, "_ask", ask)
+        es = BatchedCMAES(np.array([[0.02, 0.97, 0.5, 0.5], [0.9, 0.1, 0.05, 0.95]]), 0.6, [0, -1, 0, 2], [1, 1, 3, 4],
+                          [11, 12], 12, 25)
+        asked = []
+        while not es.done:
+            X = es.ask()
+            asked.append(X)
+            es.tell(_sphere(X - 0.3))
+        return asked, es.finish()
+
+    fast, fast_end = run(cmaes._ask)
+    slow, slow_end = run(lambda es: np.asarray(es.ask()))
+    assert len(fast) == len(slow) == 25
+    assert all(np.array_equal(a, b) for a, b in zip(fast, slow))
+    X = np.concatenate(slow)
+    near_a_bound = (X - np.array([0, -1, 0, 2]) < 0.05) | (np.array([1, 1, 3, 4]) - X < 0.05)
+    assert near_a_bound.mean() > 0.05  # the box's quadratic margins are in play
+    for a, b in zip(fast_end, slow_end):
+        assert a.best_loss == b.best_loss and np.array_equal(a.best_x, b.best_x)
+
+
 def test_width_is_set_by_the_device_kind_never_its_size():
     from wrenorm.cli import search_width
     from wrenorm.system import get

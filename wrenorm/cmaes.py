@@ -63,6 +63,51 @@ class Search:
     failed: bool = False  # a whole generation blew up: the search stopped there
 
 
+def _bounded(tf, Y: np.ndarray) -> np.ndarray:
+    """pycma's linear-quadratic box transformation (`BoxConstraintsLinQuadTransformation.__call__`) on every row of
+    Y at once: the same element-wise steps in the same order, so bit-identical to pycma's row-by-row call (tested),
+    which costs ~40 us a row in numpy call overhead (2.8 s of a 32-search rope fit on an H100)."""
+    if len(tf._lb) != Y.shape[1]:
+        tf.initialize(Y.shape[1])
+    lb, ub, al, au = (np.broadcast_to(a, Y.shape) for a in (tf._lb, tf._ub, tf._al, tf._au))
+    y = np.array(Y, dtype=float)
+    idx = (y < lb - 2 * al - (ub - lb) / 2.0) | (y > ub + 2 * au + (ub - lb) / 2.0)
+    if idx.any():
+        r = 2 * (ub[idx] - lb[idx] + al[idx] + au[idx])
+        start = lb[idx] - 2 * al[idx] - (ub[idx] - lb[idx]) / 2.0
+        y[idx] -= r * ((y[idx] - start) // r)
+    idx = y > ub + au
+    y[idx] -= 2 * (y[idx] - ub[idx] - au[idx])
+    idx = y < lb - al
+    y[idx] += 2 * (lb[idx] - al[idx] - y[idx])
+    idx = y < lb + al
+    y[idx] = lb[idx] + (y[idx] - (lb[idx] - al[idx])) ** 2 / 4 / al[idx]
+    idx = y > ub - au
+    y[idx] = ub[idx] - (y[idx] - (ub[idx] + au[idx])) ** 2 / 4 / au[idx]
+    return y
+
+
+def _ask(es) -> np.ndarray:
+    """es.ask() with the bound transform applied to the whole population at once. pycma's ask is: sample genotypes,
+    map each into the box, remember each phenotype's genotype for `tell`; this does the same steps, and falls back
+    to es.ask() where the search is set up otherwise than BatchedCMAES sets it (a coordinate transformation, another
+    boundary handler) or pycma's internals differ from the version this was written against (4.x)."""
+    handler = getattr(es, "boundary_handler", None)
+    tf = getattr(handler, "bounds_tf", None)
+    if not (getattr(es.gp, "isidentity", False) and all(hasattr(tf, a) for a in ("_lb", "_ub", "_al", "_au"))
+            and hasattr(es, "sent_solutions") and hasattr(es, "timer" if es.countiter else "countiter")):
+        return np.asarray(es.ask())
+    if es.countiter == 0:
+        es.timer = import_cma().utilities.utils.ElapsedWCTime()
+    else:
+        _ = es.timer.tic  # a property that restarts pycma's clock, as its ask does
+    geno = es.ask_geno()
+    pheno = _bounded(tf, np.asarray(geno))
+    for g, x in zip(geno, pheno):
+        es.sent_solutions.insert(x, geno=g, iteration=es.countiter)
+    return pheno
+
+
 def _digest(x: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(x, dtype=np.float64).tobytes()).hexdigest()[:16]
 
@@ -126,7 +171,7 @@ class BatchedCMAES:
         return max(s.generations for s in self.searches)
 
     def ask(self) -> np.ndarray:
-        self._asked = [(k, np.asarray(self.es[k].ask())) for k in self.active]
+        self._asked = [(k, _ask(self.es[k])) for k in self.active]
         if not self._asked:
             return np.zeros((0, self.dim))
         return np.concatenate([X[:, :self.dim] for _, X in self._asked])
