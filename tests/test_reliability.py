@@ -79,7 +79,10 @@ def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
     assert "no such run folder" in capsys.readouterr().err
     out = tmp_path / "run"
     assert main([*FIT, "--out", str(out)]) == 0
-    (out / "search_log.jsonl").unlink()
+    (out / "search_log.jsonl").rename(out / "search_state.json")  # what an earlier wrenorm left
+    assert main([*FIT, "--out", str(out), "--resume"]) == 2
+    assert "earlier wrenorm" in capsys.readouterr().err
+    (out / "search_state.json").unlink()
     assert main([*FIT, "--out", str(out), "--resume"]) == 2
     assert "search_log.jsonl" in capsys.readouterr().err
 

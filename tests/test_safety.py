@@ -95,6 +95,10 @@ def test_tampered_state_is_refused_in_one_line(tmp_path, capsys):
     log.write_text("\n".join([*lines[:2], json.dumps(generation), *lines[3:]]) + "\n")
     assert main([*cmd, "--resume"]) == 2
     _one_line_error(capsys, "search_log.jsonl", "other candidates")
+    generation["told"][0][0] = -1  # a search that does not exist
+    log.write_text("\n".join([*lines[:2], json.dumps(generation), *lines[3:]]) + "\n")
+    assert main([*cmd, "--resume"]) == 2
+    _one_line_error(capsys, "search_log.jsonl", "search -1")
     log.write_text("\n".join([*lines[:2], "{not json", *lines[3:]]) + "\n")
     assert main([*cmd, "--resume"]) == 2
     _one_line_error(capsys, "search_log.jsonl", "line 3")
@@ -210,7 +214,7 @@ def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path):
                             stderr=subprocess.PIPE, text=True)
     log = out / "search_log.jsonl"
     deadline = time.time() + 120
-    while time.time() < deadline and not log.exists():
+    while time.time() < deadline and not (log.exists() and log.read_text().count("\n") >= 2):  # a generation done
         time.sleep(0.05)
     time.sleep(0.3)
     proc.send_signal(signal.SIGINT)

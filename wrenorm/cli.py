@@ -225,6 +225,10 @@ def cmd_fit(args) -> int:
     searches, popsize = search_width(system, device, args.searches, args.popsize, len(problems[0].space.free))
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
                            polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
+    if args.resume and args.out and (Path(args.out) / "search_state.json").exists() and not any(
+            Path(args.out).glob(f"**/{STATE_FILE}")):
+        raise InputError(str(Path(args.out) / "search_state.json"), "--resume", "was saved by an earlier wrenorm (one "
+                         f"state rewritten every generation, before {STATE_FILE}); it cannot be continued: run again")
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
                       state=STATE_FILE, inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:

@@ -91,11 +91,17 @@ def _ask(es) -> np.ndarray:
     """es.ask() with the bound transform applied to the whole population at once. pycma's ask is: sample genotypes,
     map each into the box, remember each phenotype's genotype for `tell`; this does the same steps, and falls back
     to es.ask() where the search is set up otherwise than BatchedCMAES sets it (a coordinate transformation, another
-    boundary handler) or pycma's internals differ from the version this was written against (4.x)."""
+    boundary handler, integer variables), on a pycma other than 4.x (written against 4.5), or where an attribute it
+    uses is missing."""
     handler = getattr(es, "boundary_handler", None)
     tf = getattr(handler, "bounds_tf", None)
-    if not (getattr(es.gp, "isidentity", False) and all(hasattr(tf, a) for a in ("_lb", "_ub", "_al", "_au"))
-            and hasattr(es, "sent_solutions") and hasattr(es, "timer" if es.countiter else "countiter")):
+    countiter = getattr(es, "countiter", None)
+    if not (str(getattr(import_cma(), "__version__", "")).startswith("4.")
+            and getattr(getattr(es, "gp", None), "isidentity", False)
+            and all(hasattr(tf, a) for a in ("_lb", "_ub", "_al", "_au", "initialize"))
+            and not (getattr(es, "opts", None) or {}).get("integer_variables")
+            and hasattr(es, "sent_solutions") and hasattr(es, "ask_geno")
+            and isinstance(countiter, int) and (countiter == 0 or hasattr(es, "timer"))):
         return np.asarray(es.ask())
     if es.countiter == 0:
         es.timer = import_cma().utilities.utils.ElapsedWCTime()

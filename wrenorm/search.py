@@ -121,7 +121,7 @@ def cmaes(
         history = _resume(checkpoint, es, saved)
         _progress(f"resuming {problem.task} search at generation {len(history)}", quiet)
     elif checkpoint:
-        _start_log(checkpoint, saved | {"seeds": es.seeds}, [])
+        _start_log(checkpoint, saved | {"seeds": es.seeds})
     bar = Progress(generations, f"{problem.task} cmaes", quiet, unit="gen", done=len(history))
     while not es.done:
         U = es.ask()
@@ -169,13 +169,11 @@ def _line(obj) -> str:
     return json.dumps(jsonable(obj), allow_nan=False) + "\n"
 
 
-def _start_log(checkpoint, header: dict, generations: list[dict]) -> None:
-    """The search log, written whole and atomically: a header naming the run (free parameters, settings, the
-    searches' seeds), then one line per generation. Each later generation is appended (`_append_generation`): a
-    state rewritten whole every generation grows with the run, and re-serialising it took 2/3 of a 32-search
-    rope fit on an H100."""
-    write_atomic(checkpoint, "".join(_line(x) for x in [{"schema": LOG_SCHEMA} | header, *generations]),
-                 durable=False)
+def _start_log(checkpoint, header: dict) -> None:
+    """A new search log, written atomically: its header line naming the run (free parameters, settings, the
+    searches' seeds). Each generation is then appended (`_append_generation`): a state rewritten whole every
+    generation grows with the run, and re-serialising it took 2/3 of a 32-search rope fit on an H100."""
+    write_atomic(checkpoint, _line({"schema": LOG_SCHEMA} | header), durable=False)
 
 
 def _append_generation(checkpoint, told: list, record: dict) -> None:
@@ -221,11 +219,15 @@ def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
     try:
         for g in generations:
             for k, digest, losses in g["told"]:
+                if not 0 <= int(k) < len(told):
+                    raise ValueError(f"search {k} of {len(told)}")
                 told[int(k)].append({"candidates": digest, "losses": losses})
     except (IndexError, TypeError, ValueError) as e:
         raise InputError(str(checkpoint), "told", f"is not a wrenorm search log of this run ({e})") from None
     es.replay({"schema": STATE_SCHEMA, "seeds": header.get("seeds"), "told": told}, str(checkpoint))
-    _start_log(checkpoint, {k: v for k, v in header.items() if k != "schema"}, generations)
+    data = Path(checkpoint).read_bytes()
+    if not data.endswith(b"\n"):  # a torn last line: cut it, so that the next generation starts a line of its own
+        os.truncate(checkpoint, data.rfind(b"\n") + 1)
     return [g["record"] for g in generations]
 
 
@@ -235,7 +237,7 @@ def check_resume(checkpoint, problem: Problem, settings: dict, resume: bool) -> 
     saved = {"free": problem.space.free_names, "settings": settings}
     if resume and Path(checkpoint).exists():
         _read_log(checkpoint, saved)
-    _start_log(checkpoint, saved, [])
+    _start_log(checkpoint, saved)
 
 
 def restarts(problem: Problem, seeds: list[int], popsize: int = 16, generations: int = 60, sigma0: float = 0.2,
