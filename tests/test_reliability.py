@@ -85,6 +85,25 @@ def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
     (out / "search_state.json").unlink()
     assert main([*FIT, "--out", str(out), "--resume"]) == 2
     assert "search_log.jsonl" in capsys.readouterr().err
+    (out / "sub").mkdir()  # an earlier multi-problem fit kept its state in a sub-run's folder
+    (out / "sub" / "search_state.json").write_text("{}")
+    assert main([*FIT, "--out", str(out), "--resume"]) == 2
+    assert "earlier wrenorm" in capsys.readouterr().err
+
+
+def test_resume_reads_a_log_with_crlf_line_ends_and_a_lone_cr_tail(tmp_path):
+    """Line ends as a text editor or a copy might leave them: each line is the bytes up to a newline, and a last
+    line without one (here a lone carriage return at its end) is a torn tail, cut before the resumed run appends."""
+    ref, out = tmp_path / "ref", tmp_path / "crlf"
+    assert main([*FIT, "--out", str(ref)]) == 0
+    assert main([*FIT, "--out", str(out)]) == 0
+    (out / "result.json").unlink()
+    lines = (out / "search_log.jsonl").read_text().splitlines()
+    (out / "search_log.jsonl").write_bytes(("\r\n".join(lines[:5]) + "\r\n" + lines[5] + "\r").encode())
+    assert main([*FIT, "--out", str(out), "--resume"]) == 0
+    assert _fitted(out) == _fitted(ref)
+    parsed = [[json.loads(line) for line in (d / "search_log.jsonl").read_text().splitlines()] for d in (out, ref)]
+    assert parsed[0] == parsed[1]  # every generation on disk once, in order
 
 
 def test_every_candidate_blowing_up_says_so():

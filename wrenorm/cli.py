@@ -209,6 +209,21 @@ def command_line(args) -> str:
     return "python -m wrenorm " + shlex.join(argv)
 
 
+def _refuse_earlier_state(args, state_file: str) -> None:
+    """A fit folder saved before the search log (its state rewritten whole every generation, `search_state.json`, in
+    the folder or a sub-run's) cannot be continued: say so, rather than that no state was found."""
+    from .runfolder import _is_run
+
+    out = Path(args.out) if args.resume and args.out else None
+    if out is None or not out.is_dir() or not _is_run(out):
+        return
+    folders = [out, *sorted(d for d in out.iterdir() if d.is_dir())]
+    earlier = [d / "search_state.json" for d in folders if (d / "search_state.json").is_file()]
+    if earlier and not any((d / state_file).is_file() for d in folders):
+        raise InputError(str(earlier[0]), "--resume", "was saved by an earlier wrenorm (one state rewritten every "
+                         f"generation, before {state_file}); it cannot be continued: run again")
+
+
 def cmd_fit(args) -> int:
     from .fit import STATE_FILE, FitSettings, run_fits
     from .results import versions
@@ -225,10 +240,7 @@ def cmd_fit(args) -> int:
     searches, popsize = search_width(system, device, args.searches, args.popsize, len(problems[0].space.free))
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
                            polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
-    if args.resume and args.out and (Path(args.out) / "search_state.json").exists() and not any(
-            Path(args.out).glob(f"**/{STATE_FILE}")):
-        raise InputError(str(Path(args.out) / "search_state.json"), "--resume", "was saved by an earlier wrenorm (one "
-                         f"state rewritten every generation, before {STATE_FILE}); it cannot be continued: run again")
+    _refuse_earlier_state(args, STATE_FILE)
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
                       state=STATE_FILE, inputs=_inputs(args), command=f"fit {args.system}")
     if not args.quiet:

@@ -189,7 +189,7 @@ def _read_log(checkpoint, saved: dict) -> tuple[dict, list[dict]]:
     dropped; any other line that is not a generation is refused."""
     src = str(checkpoint)
     try:
-        lines = Path(checkpoint).read_text().split("\n")
+        lines = Path(checkpoint).read_bytes().decode("utf-8").split("\n")  # the bytes `_resume` cuts at
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(src, "file", f"cannot be read as a search log: {e}") from None
     rows = []
@@ -212,8 +212,8 @@ def _read_log(checkpoint, saved: dict) -> tuple[dict, list[dict]]:
 
 
 def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
-    """Replay the logged generations into `es` (bit-identical, see wrenorm.cmaes), rewrite the log without a
-    torn tail, and return the generations' records."""
+    """Replay the logged generations into `es` (bit-identical, see wrenorm.cmaes), cut a torn last line from the
+    log, and return the generations' records."""
     header, generations = _read_log(checkpoint, saved)
     told = [[] for _ in es.searches]
     try:
