@@ -122,6 +122,30 @@ def test_every_candidate_blowing_up_says_so():
         search.cmaes(Exploding(100.0), generations=3, quiet=True)
 
 
+def test_the_search_times_its_evaluations_apart_from_its_own_work(tmp_path):
+    """search_evaluating_s (result.json timing) is the time spent in the batched evaluations: with every evaluation
+    made 20 ms slower it grows by at least 20 ms a generation, and it stays within the search's wall time."""
+    from wrenorm import search
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    class Slow(PDProblem):
+        def errors(self, values, conditions):
+            time.sleep(0.02)
+            return super().errors(values, conditions)
+
+        def residuals(self, values, conditions):  # what the search's loss reads for a least-squares problem
+            time.sleep(0.02)
+            return super().residuals(values, conditions)
+
+    t = time.perf_counter()
+    slow = search.cmaes(Slow(100.0), generations=10, quiet=True)
+    wall = time.perf_counter() - t
+    assert 10 * 0.02 <= slow.evaluation_s < wall
+    assert main([*FIT, "--out", str(tmp_path / "a")]) == 0
+    timing = json.loads((tmp_path / "a" / "result.json").read_text())["timing"]
+    assert 0 < timing["search_evaluating_s"] < timing["search_s"]
+
+
 def test_blowups_are_counted_not_fatal():
     from wrenorm import search
     from wrenorm.tasks.pd.problem import PDProblem

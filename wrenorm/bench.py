@@ -100,7 +100,8 @@ def bench_fits(device: str, tasks: list[str]) -> list[dict]:
         rows.append(row)
         t = row.get("timing") or {}
         _log(f"fit {task}: {row['wall_seconds']:6.1f} s" + (
-            f" (start-up {t.get('start_up_s', 0):.2f}, search {t.get('search_s', 0):.2f}, validation "
+            f" (start-up {t.get('start_up_s', 0):.2f}, search {t.get('search_s', 0):.2f} (evaluating "
+            f"{t.get('search_evaluating_s') or 0:.2f}), validation "
             f"{t.get('validation_s', 0):.2f}, writing {t.get('writing_s', 0):.2f})" if row["ok"] else
             f"  FAILED: {row.get('error')}"))
     return rows
@@ -122,11 +123,13 @@ def _table(res: dict) -> str:
         lines += [f"CPU vs CUDA on the same inputs: {json.dumps(res['parity'])}", ""]
     if res.get("fits"):
         lines += ["Default fits, whole processes (warm kernel cache); the fit's own split of its time:", "",
-                  "| command | wall s | start-up | search | validation | writing | candidates | held-out error |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| command | wall s | start-up | search | of it evaluating | validation | writing | candidates | "
+                  "held-out error |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for r in res["fits"]:
             t = r.get("timing") or {}
-            cells = [f"{t.get(k, float('nan')):.2f}" for k in ("start_up_s", "search_s", "validation_s", "writing_s")]
+            cells = [f"{t.get(k) if t.get(k) is not None else float('nan'):.2f}"
+                     for k in ("start_up_s", "search_s", "search_evaluating_s", "validation_s", "writing_s")]
             lines.append(f"| `{r['command']}` | {r['wall_seconds']:.2f}{'' if r['ok'] else ' (failed)'} | "
                          + " | ".join(cells) + f" | {r.get('candidates', '')} | {r.get('held_out_error', '')} |")
         lines.append("")

@@ -86,6 +86,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     saved = asdict(settings) | (identity or {})
     jac, history, methods = None, {}, []
     first_generation = []  # seconds from the process's start to the first evaluated generation
+    t_evaluating = None  # of the search, the CMA-ES's batched evaluations (the rest is its own host work)
     if settings.method.startswith("cmaes"):
         res = searches.cmaes(
             problem, seed=settings.seed, popsize=settings.popsize, generations=settings.generations,
@@ -93,6 +94,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             searches=settings.searches, settings=saved,
             on_generation=lambda rec: first_generation or first_generation.append(process_age()))
         history["cmaes"], methods = res.history, ["cmaes"]
+        t_evaluating = res.evaluation_s
     else:
         searches.check_resume(out / STATE_FILE, problem, saved, resume)
     if settings.method.endswith("least-squares"):
@@ -193,11 +195,15 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         _record(problem, out, result, history, fitted, measured, quiet)
     _plot(out, problem, history, fitted, measured)
     result["wall_seconds"] = time.perf_counter() - t0
-    result["timing"] = {"start_up_s": t_start, "search_s": t_search, "validation_s": t_write - t_validate,
+    result["timing"] = {"start_up_s": t_start, "search_s": t_search, "search_evaluating_s": t_evaluating,
+                        "validation_s": t_write - t_validate,
                         "writing_s": time.perf_counter() - t_write, "uncertainty_s": t_validate - t0 - t_search,
                         "first_generation_after_process_start_s": first_generation[0] if first_generation else None,
                         "meaning": "start_up_s: from the process's start to the fit's start (interpreter, imports, "
-                                   "building the problem: references, kernels); the rest in the fit's order"}
+                                   "building the problem: references, kernels); the rest in the fit's order; "
+                                   "search_evaluating_s: of search_s, the CMA-ES's batched evaluations (rollouts "
+                                   "and observable, on the device where there is one), the rest being its own host "
+                                   "work (pycma, the search log)"}
     if command:
         result["command"] = command
     write_json(out / "result.json", result)

@@ -43,6 +43,7 @@ class SearchResult:
     blowups: int = 0
     stop: str = ""
     seed: int | None = None
+    evaluation_s: float = 0.0  # of the search's wall time, the batched evaluations' (rollouts, observable, device)
 
 
 def mean_loss(problem: Problem, values: np.ndarray, conditions) -> tuple[np.ndarray, np.ndarray]:
@@ -123,10 +124,13 @@ def cmaes(
     elif checkpoint:
         _start_log(checkpoint, saved | {"seeds": es.seeds})
     bar = Progress(generations, f"{problem.task} cmaes", quiet, unit="gen", done=len(history))
+    evaluation_s = 0.0
     while not es.done:
         U = es.ask()
         values = space.from_unit(U)
+        t_eval = time.perf_counter()
         loss = objective(problem, values)
+        evaluation_s += time.perf_counter() - t_eval
         es.tell(loss)
         rec = _generation_record(es, values, loss)
         history.append(rec)
@@ -150,7 +154,7 @@ def cmaes(
                                  for s in found]
     return SearchResult("cmaes", space.from_unit(best.best_x), best.best_loss, history,
                         sum(s.evaluations for s in es.searches), sum(s.blowups for s in es.searches), best.stop,
-                        best.seed)
+                        best.seed, evaluation_s)
 
 
 def _generation_record(es: BatchedCMAES, values: np.ndarray, loss: np.ndarray) -> dict:
