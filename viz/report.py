@@ -204,10 +204,11 @@ def _run_info(r: dict, folder: Path | None) -> str:
     t = r.get("timing") or {}
     if r.get("wall_seconds") is not None:
         rows.append(["wall time of the fit", f"{r['wall_seconds']:.2f} s"])
-    for k in ("start_up_s", "search_s", "search_evaluating_s", "validation_s", "uncertainty_s", "writing_s"):
+    labels = {"start_up_s": "start up", "search_s": "search", "search_evaluating_s": "of the search: evaluating",
+              "validation_s": "validation", "uncertainty_s": "uncertainty", "writing_s": "writing"}
+    for k, label in labels.items():
         if t.get(k) is not None:
-            rows.append([k.removesuffix("_s").replace("_", " ").replace("search evaluating", "of the search: "
-                                                                                      "evaluating"), f"{t[k]:.2f} s"])
+            rows.append([label, f"{t[k]:.2f} s"])
     rows.append(["versions", ", ".join(f"{k} {v}" for k, v in (r.get("versions") or {}).items())])
     if folder is not None:
         files = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))

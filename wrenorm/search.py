@@ -187,13 +187,14 @@ def _append_generation(checkpoint, told: list, record: dict) -> None:
         f.write(_line({"told": [list(t) for t in told], "record": record}))
 
 
-def _read_log(checkpoint, saved: dict) -> tuple[dict, list[dict]]:
+def _read_log(checkpoint, saved: dict) -> tuple[dict, list[dict], int | None]:
     """The header and the generations of a run in progress, after checking that it was made with the same
-    parameter set and settings as this run (naming the first that differs). A last line cut short by a kill is
-    dropped; any other line that is not a generation is refused."""
+    parameter set and settings as this run (naming the first that differs), and where a last line cut short by a
+    kill begins (None if there is none): it is dropped; any other line that is not a generation is refused."""
     src = str(checkpoint)
     try:
-        lines = Path(checkpoint).read_bytes().decode("utf-8").split("\n")  # the bytes `_resume` cuts at
+        data = Path(checkpoint).read_bytes()
+        lines = data.decode("utf-8").split("\n")  # split on the bytes a torn tail is cut at
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(src, "file", f"cannot be read as a search log: {e}") from None
     rows = []
@@ -212,13 +213,13 @@ def _read_log(checkpoint, saved: dict) -> tuple[dict, list[dict]]:
     for i, g in enumerate(generations):
         if not (isinstance(g, dict) and isinstance(g.get("told"), list) and isinstance(g.get("record"), dict)):
             raise InputError(src, f"line {i + 2}", "is not a generation of this search (told, record)")
-    return header, generations
+    return header, generations, None if data.endswith(b"\n") else data.rfind(b"\n") + 1
 
 
 def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
     """Replay the logged generations into `es` (bit-identical, see wrenorm.cmaes), cut a torn last line from the
     log, and return the generations' records."""
-    header, generations = _read_log(checkpoint, saved)
+    header, generations, torn_at = _read_log(checkpoint, saved)
     told = [[] for _ in es.searches]
     try:
         for g in generations:
@@ -229,9 +230,8 @@ def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
     except (IndexError, TypeError, ValueError) as e:
         raise InputError(str(checkpoint), "told", f"is not a wrenorm search log of this run ({e})") from None
     es.replay({"schema": STATE_SCHEMA, "seeds": header.get("seeds"), "told": told}, str(checkpoint))
-    data = Path(checkpoint).read_bytes()
-    if not data.endswith(b"\n"):  # a torn last line: cut it, so that the next generation starts a line of its own
-        os.truncate(checkpoint, data.rfind(b"\n") + 1)
+    if torn_at is not None:  # cut the torn line, so that the next generation starts a line of its own
+        os.truncate(checkpoint, torn_at)
     return [g["record"] for g in generations]
 
 
