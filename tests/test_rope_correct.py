@@ -598,6 +598,22 @@ def test_parameters_file_errors(problem, tmp_path):
     with pytest.raises(InputError, match="not readable JSON"):
         (tmp_path / "x.json").write_text("{")
         parameters_from_file(tmp_path / "x.json", problem)
+    # a resolution that is not an object, a fit at another time step or constraint-pass count, and a parameter the
+    # file fitted that the correction's chain holds fixed: each refused, naming the field
+    for resolution, field in (("10", "resolution"), ({"segments": 10, "dt": 0.002}, "resolution.dt"),
+                              ({"segments": 10, "iterations": 1}, "resolution.iterations")):
+        bad.write_text(json.dumps({"task": "rope", "resolution": resolution, "parameters": good}))
+        with pytest.raises(InputError, match=field.replace(".", r"\.")):
+            parameters_from_file(bad, problem)
+    frozen = next(p.name for p in problem.space.parameters if p.frozen)
+    bad.write_text(json.dumps({"task": "rope", "resolution": dict(problem.resolution),
+                               "parameters": good | {frozen: {"fitted": 0.1, "frozen": False}}}))
+    with pytest.raises(InputError, match=f"parameters.{frozen}"):
+        parameters_from_file(bad, problem)
+    bad.write_text(json.dumps({"task": "rope", "resolution": dict(problem.resolution),
+                               "parameters": good | {frozen: {"fitted": 0.1, "frozen": True}}}))
+    assert np.isclose(parameters_from_file(bad, problem)[problem.space.index("bend_stiffness")],
+                      1.1 * problem.space["bend_stiffness"].measured)
 
 
 def test_cli_bad_input_exits_2(tmp_path, capsys):
@@ -607,7 +623,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert "variant" in capsys.readouterr().err
     for bad, word in ((["--engine", "bullet"], "engine"), (["--prior-scale", "-1"], "prior_scale"),
                       (["--decay", "1.5"], "decay"), (["--params", "measured", "measured"], "repeated"),
-                      (["--segments", "2"], "segments"), (["--method", "newton"], "--method")):
+                      (["--segments", "2"], "segments"), (["--method", "newton"], "--method"),
+                      (["--tolerance", "inf"], "tolerance"), (["--reg", "inf"], "reg"), (["--radius", "inf"], "radius"),
+                      (["--perturb", "nan"], "perturb"), (["--perturb", "-1"], "perturb"),
+                      (["--fit-generations", "0"], "fit_generations")):
         assert main(["correct", "rope", "--out", str(tmp_path / "o")] + bad) == 2
         err = capsys.readouterr().err
         assert word in err and len(err.strip().splitlines()) == 1, err

@@ -248,3 +248,6 @@ def test_reference_rope_never_replaces_a_file_without_force(tmp_path, capsys):
     _one_line_error(capsys, str(precious), "--force")
     assert main(["reference", "rope", "--out", str(tmp_path / "x.csv")]) == 2
     _one_line_error(capsys, ".npz")
+    # a place it cannot write is found before the throw is simulated, not after
+    assert main(["reference", "rope", "--out", str(precious / "sub" / "x.npz")]) == 2
+    _one_line_error(capsys, "not a writable folder")

@@ -128,6 +128,10 @@ def test_bad_train_labels(rates, train, problem):
 def test_loader_errors_name_file_field_problem(tmp_path, rates):
     with pytest.raises(InputError, match="directory not found"):
         sd.load_dir(tmp_path / "missing")
+    (tmp_path / "markers_f1_00.csv").write_text("x\n")
+    with pytest.raises(InputError, match="is a file"):
+        sd.load_dir(tmp_path / "markers_f1_00.csv")
+    (tmp_path / "markers_f1_00.csv").unlink()
     with pytest.raises(InputError, match="no markers_f"):
         sd.load_dir(tmp_path)
 
@@ -147,6 +151,14 @@ def test_loader_errors_name_file_field_problem(tmp_path, rates):
     with pytest.raises(InputError) as e:
         sd.load_dir(nan)
     assert "markers_f1_00.csv" in str(e.value) and e.value.field == "row 11 column 4" and "NaN" in e.value.problem
+
+    # a second cut out of the clip: no time column says so, only the head's jump between the frames either side
+    gap = tmp_path / "gap"
+    gap.mkdir()
+    np.savetxt(gap / "markers_f1_00.csv", np.delete(good, np.s_[100:160], axis=0), delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(gap)
+    assert "markers_f1_00.csv" in str(e.value) and e.value.field == "rows 100-101" and "jumps" in e.value.problem
 
     short = tmp_path / "short"
     short.mkdir()

@@ -177,6 +177,18 @@ def test_columns_written_x_then_y_are_refused_naming_the_layout(tmp_path, rates)
         assert "x0, y0, x1, y1, ..., x8, y8" in e.value.problem
 
 
+def test_tail_markers_out_of_order_are_refused(tmp_path, rates):
+    """Two tail markers' columns swapped: the loader kept the markers that lie one behind another and dropped the
+    others in silence (the fit then saw two tail markers fewer); now the marker ahead of its place is named."""
+    px = rates[1].markers.copy()
+    px[:, [4, 6]] = px[:, [6, 4]]
+    _write_pixels(tmp_path, rates[1], markers=px)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_00.csv" in e.value.source and e.value.field == "tail marker 5", e.value
+    assert "head to tail" in e.value.problem
+
+
 # --- 4. tracking dropouts ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("marker", [1, 8])

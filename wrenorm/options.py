@@ -56,8 +56,13 @@ def range_text(lo=None, hi=None, lo_open: bool = False) -> str:
     return f"<= {_fmt(hi)}" if hi is not None else "any"
 
 
+class _GivenList(list):
+    """A list given on the command line, as against the option's default, which a second use replaces."""
+
+
 class _ListAction(argparse.Action):
-    """nargs='+' whose items may also be comma-separated; every item parsed by `item`; no repeats."""
+    """nargs='+' whose items may also be comma-separated; every item parsed by `item`; no repeats. Given twice
+    (`--reference a.npz --reference b.npz`) the lists join: argparse's plain nargs would keep only the last."""
 
     def __init__(self, *args, item=str, unique=True, **kw):
         self.item, self.unique = item, unique
@@ -76,10 +81,13 @@ class _ListAction(argparse.Action):
                     parser.error(f"argument {option_string}: {e}")
         if not out:
             parser.error(f"argument {option_string}: needs at least one value")
+        earlier = getattr(namespace, self.dest, None)
+        if isinstance(earlier, _GivenList):
+            out = earlier + out
         if self.unique and len(set(out)) != len(out):
             seen = [x for i, x in enumerate(out) if x in out[:i]]
             parser.error(f"argument {option_string}: repeated value {_fmt(seen[0])}")
-        setattr(namespace, self.dest, out)
+        setattr(namespace, self.dest, _GivenList(out))
 
 
 def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=None, integer: bool = False,

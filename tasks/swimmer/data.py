@@ -38,6 +38,8 @@ MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
 MAX_REPEATED_FRAMES = 0.2  # share of frames equal to the previous one; tracked video never repeats exactly
+TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
+MAX_HEAD_JUMP = 10.0  # x the median frame-to-frame head step: the built-in clips reach 2.9, a second cut out 47
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.5, 1.0)  # outside: flagged (a frame rate off by 2x lands at 0.375 or 1.5)
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
@@ -97,6 +99,7 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=1)
+    _check_jumps(path, markers)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
     return markers * (HEAD_MARKER_DISTANCE / head_px)
 
@@ -124,6 +127,20 @@ def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
         raise InputError(str(path), "rows", f"{int(repeated.sum())} of {len(markers)} frames ({100 * share:.0f} %) "
                          "repeat the previous frame exactly: duplicated frames; remove the copies and give the "
                          "clip's true frame rate with --fps")
+
+
+def _check_jumps(path: Path, markers: np.ndarray) -> None:
+    """Rows are frames at one rate with no time column, so frames cut out of a clip leave only a jump of the head:
+    read through, the clip swims that far in one frame and its speed comes out too high (a second cut from the
+    1.00 Hz clip: +36 %)."""
+    head = 0.5 * (markers[:, 0] + markers[:, 1])
+    step = np.linalg.norm(np.diff(head, axis=0), axis=1)
+    typical = float(np.median(step))
+    if typical > 0 and step.max() > MAX_HEAD_JUMP * typical:
+        frame = int(np.argmax(step))
+        raise InputError(str(path), f"rows {frame + 1}-{frame + 2}", f"the head jumps {step[frame] / typical:.0f} x "
+                         f"its median frame-to-frame step between frames {frame + 1} and {frame + 2}: frames missing "
+                         "or a tracking jump; give the clip without gaps")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
@@ -168,7 +185,8 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
     path = Path(path)
     fps = check_fps(fps)
     if not path.is_dir():
-        raise InputError(str(path), "--data", "directory not found")
+        raise InputError(str(path), "--data", "is a file: name the folder that holds the markers_f*.csv clips"
+                         if path.exists() else "directory not found")
     by_kind: dict[tuple[str, float], Path] = {}
     for f in sorted(path.iterdir()):
         got = _label_of(f)
@@ -288,7 +306,7 @@ def yaw_amplitude(markers: np.ndarray, freq: float, fps: float = FPS) -> float:
     return float(np.hypot(coef[2], coef[3]))
 
 
-def tail_markers(local: np.ndarray, min_gap: float = 0.005) -> list[int]:
+def tail_markers(local: np.ndarray, min_gap: float = TAIL_MARKER_MIN_GAP) -> list[int]:
     """Tail markers (2..8) that track distinct points: mean x increasing by >= min_gap.
 
     Some videos lose tail markers onto one point (label 2.25: markers 4-7 coincide); those
@@ -312,6 +330,15 @@ def analyse(rate: Rate) -> Rate:
                          f"only {len(keep)} of the tail markers 2-8 lie one behind another along the body (3 needed): "
                          "markers lost onto one point, or columns not written x0, y0, x1, y1, ..., x8, y8 (head "
                          "markers 0 and 1 first, tail last)")
+    mean_x = local[:, :, 0].mean(axis=0)
+    ahead = [i for i in range(3, N_MARKERS) if mean_x[i] < mean_x[2:i].max() - TAIL_MARKER_MIN_GAP]
+    if ahead:
+        # markers lost onto one point lie together (label 2.25's 4-7), but one that lies clearly ahead of a marker
+        # written before it is a column order error, and tail_markers would drop it in silence
+        i = ahead[0]
+        raise InputError(rate.source or rate.name, f"tail marker {i}",
+                         f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
+                         "along the body: tail markers 2-8 must be written head to tail")
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     rate.speed = measured_speed(rate.markers, rate.fps)
     head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])

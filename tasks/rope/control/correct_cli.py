@@ -287,10 +287,17 @@ def run(args) -> int:
     args.device = _device(args.device)
     if not 1 <= args.max_trials <= 100:
         raise InputError("--max-trials", "max_trials", f"{args.max_trials} is outside [1, 100]")
-    if not args.tolerance > 0:
-        raise InputError("--tolerance", "tolerance", f"must be > 0, got {args.tolerance}")
-    if not ((args.radius is None or args.radius > 0) and args.fd_step > 0 and (args.reg is None or args.reg >= 0)):
-        raise InputError("--radius/--fd-step/--reg", "value", "radius and fd-step must be > 0, reg >= 0")
+    if not (np.isfinite(args.tolerance) and args.tolerance > 0):
+        raise InputError("--tolerance", "tolerance", f"must be a finite number > 0, got {args.tolerance}")
+    for flag, value, zero_allowed in (("--radius", args.radius, False), ("--fd-step", args.fd_step, False),
+                                      ("--reg", args.reg, True)):
+        if value is not None and not (np.isfinite(value) and (value >= 0 if zero_allowed else value > 0)):
+            raise InputError(flag, flag[2:].replace("-", "_"),
+                             f"must be a finite number {'>=' if zero_allowed else '>'} 0, got {value}")
+    if not (np.isfinite(args.perturb) and args.perturb >= 0):
+        raise InputError("--perturb", "perturb", f"must be a finite number >= 0 (units of u), got {args.perturb}")
+    if not 1 <= args.fit_generations <= 1000:
+        raise InputError("--fit-generations", "fit_generations", f"must be in [1, 1000], got {args.fit_generations}")
     if not (4 <= args.popsize <= 4096 and 1 <= args.generations <= 1000):
         raise InputError("--popsize/--generations", "value", "need popsize in [4, 4096] and generations in [1, 1000]")
     if args.seed < 0:

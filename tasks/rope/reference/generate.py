@@ -247,15 +247,27 @@ SAME_RECORDING_TOLERANCE = 1e-6  # m: far below any tracker's precision, far abo
 def same_recording(a: RopeReference, b: RopeReference) -> bool:
     """Whether two references hold one recording: the same samples missing and every marker within 1 um, after the
     loader has moved each horizontal origin to its hand (so a copy moved in x, y is the same recording, whatever its
-    clock or file name). Not found: a copy rounded to float32 and moved tens of metres (it differs by a few um)."""
-    if a.markers.shape != b.markers.shape:
+    clock or file name). Not found: a copy rounded to float32 and moved tens of metres (it differs by a few um).
+    Marker sets of different sizes are one recording when the hand and every marker at an arc length both files
+    hold (at least two) agree so: the same throw cut to fewer markers."""
+    if a.markers.shape[0] != b.markers.shape[0]:
         return False
-    missing = [np.zeros(r.markers.shape[:2], bool) if r.missing is None else np.asarray(r.missing, bool)
-               for r in (a, b)]
+    if a.markers.shape == b.markers.shape and np.array_equal(a.marker_arclength, b.marker_arclength):
+        ia = ib = np.arange(a.markers.shape[1])
+    else:
+        hand = [np.asarray(r.hand, np.float64) for r in (a, b)]
+        if hand[0].shape != hand[1].shape or np.any(np.abs(hand[0] - hand[1]) > SAME_RECORDING_TOLERANCE):
+            return False
+        close = np.abs(np.asarray(a.marker_arclength)[:, None] - np.asarray(b.marker_arclength)[None]) <= 1e-9
+        ia, ib = np.nonzero(close)
+        if len(ia) < 2:
+            return False
+    missing = [(np.zeros(r.markers.shape[:2], bool) if r.missing is None else np.asarray(r.missing, bool))[:, i]
+               for r, i in ((a, ia), (b, ib))]
     if not np.array_equal(*missing):
         return False
     seen = ~missing[0]
-    diff = np.abs(np.asarray(a.markers, np.float64)[seen] - np.asarray(b.markers, np.float64)[seen])
+    diff = np.abs(np.asarray(a.markers, np.float64)[:, ia][seen] - np.asarray(b.markers, np.float64)[:, ib][seen])
     return bool(np.all(diff <= SAME_RECORDING_TOLERANCE))
 
 
@@ -550,6 +562,11 @@ def run_reference(args) -> int:
         raise InputError(str(out), "--out", "is a folder; give the .npz file to write")
     if out.exists() and not getattr(args, "force", False):
         raise InputError(str(out), "--out", "exists; --force replaces it")
+    folder = out.absolute().parent
+    while not folder.exists():  # missing folders are made when the file is written
+        folder = folder.parent
+    if not (folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)):  # found before the simulation, not after it
+        raise InputError(str(out), "--out", f"cannot write there: {folder} is not a writable folder")
     engine = getattr(args, "engine", "newton")
     quiet = getattr(args, "quiet", False)
     if not quiet:
