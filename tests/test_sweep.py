@@ -1,12 +1,15 @@
 """Sweeps (issue #21): a bad spec is one line and exit 2 before Ray starts; cells run as Ray tasks on a local Ray with
 2 CPUs and give the table; a failing cell is recorded and the others go on; a lost worker is recorded; a sweep
 killed with SIGKILL resumes to the same table, running only the missing cells; every cell's result equals what
-`fit` writes for the same options and seed."""
+`fit` writes for the same options and seed. Bad inputs (issue: sweep inputs): a spec not in UTF-8, or with a
+byte-order mark; a file or folder a cell is given that does not exist; a cell failing on a malformed file."""
+import codecs
 import contextlib
 import csv
 import io
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +24,7 @@ from wrenorm.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 VOLATILE_RESULT = {"wall_seconds", "timing", "command"}  # what differs between two runs of the same fit
+ROPE_NPZ = ROOT / "wrenorm" / "data" / "rope_default_flick.npz"  # a good rope reference
 
 # 6 cells: restarts = 1 is refused by `fit` itself (not by the parser), so two cells fail and two succeed; the slow
 # generations (a test hook of the engine) keep cells running long enough to kill the sweep or a worker mid-way
@@ -145,6 +149,84 @@ def test_a_spec_expands_into_cells_with_the_tasks_own_command_lines(tmp_path):
     assert last.argv == ("fit", "swimmer", "--no-record", "--train", "0.5", "2.25", "--virtual-mass", "--seed", "5")
     assert last.id == "007_train-0.5,2.25_virtual-mass-True_seed-5"
     assert "--out" in first.command("DIR/cells/x")
+
+
+def test_a_spec_not_in_utf8_is_one_line_naming_the_byte_and_exit_2(tmp_path, capsys):
+    spec = tmp_path / "spec.toml"
+    spec.write_bytes('task = "fit pd"  # café\n'.encode("latin-1"))  # 0xe9 at offset 22
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("wrenorm: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{spec}: encoding: " in err and "byte 0xe9 at offset 22 (line 1, column 23)" in err, err
+    assert not out.exists()
+
+
+def test_a_spec_with_a_byte_order_mark_reads_as_one_without(tmp_path):
+    from wrenorm.sweep.spec import load
+
+    text = 'task = "fit pd"\n[axes]\nf-sim = [100, 200]\n'
+    (tmp_path / "bom.toml").write_bytes(codecs.BOM_UTF8 + text.encode())
+    bom, plain = load(tmp_path / "bom.toml"), load(_write(tmp_path, text))
+    assert len(bom.cells) == 2 and [c.argv for c in bom.cells] == [c.argv for c in plain.cells]
+    assert bom.text == text  # DIR/spec.toml, what --resume reads
+
+
+@pytest.mark.parametrize("text, key, cells, given, problem", [
+    ('task = "fit rope"\n[axes]\nreference = [["{good}"], ["{tmp}/nosuch.npz"]]', "axes.reference",
+     "cell 001_reference-", "--reference {tmp}/nosuch.npz", "does not exist"),
+    ('task = "fit rope"\nseeds = [0, 1]\n[axes]\nreference = [["nosuch.npz"]]', "axes.reference",
+     "cell 000_reference-nosuch.npz_seed-0 and 1 more", "--reference nosuch.npz", "does not exist (relative to {tmp}"),
+    ('task = "fit rope"\n[options]\nvalidate = ["{good}", "{tmp}"]', "options.validate", "every cell",
+     "--validate {tmp}", "is a folder, not a file"),
+    ('task = "fit pd"\n[options]\nreference = "{tmp}/log.csv"', "options.reference", "every cell",
+     "--reference {tmp}/log.csv", "does not exist"),
+    ('task = "fit swimmer"\n[options]\ndata = "{good}"', "options.data", "every cell", "--data {good}",
+     "is a file, not a folder"),
+    ('task = "correct rope"\n[options]\nparams = ["measured", "{tmp}/result.json"]', "options.params",
+     "every cell", "--params {tmp}/result.json", "does not exist"),
+])
+def test_a_file_a_cell_is_given_that_does_not_exist_is_refused_before_anything_runs(
+        tmp_path, capsys, monkeypatch, text, key, cells, given, problem):
+    """Which options take files or folders is read from the commands' own parsers (metavar FILE or DIR)."""
+    monkeypatch.chdir(tmp_path)
+    fill = {"good": ROPE_NPZ, "tmp": tmp_path}
+    spec = _write(tmp_path, text.format(**fill))
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("wrenorm: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{spec}: {key}: {cells}" in err and f"{given.format(**fill)}: {problem.format(**fill)}" in err, err
+    assert not out.exists()
+
+
+def test_files_and_folders_that_exist_and_labels_pass_the_check(tmp_path, monkeypatch):
+    from wrenorm.sweep.spec import load
+
+    monkeypatch.chdir(tmp_path)  # relative paths: from the folder the sweep starts in
+    shutil.copy(ROPE_NPZ, tmp_path / "a.npz")
+    (tmp_path / "clips").mkdir()
+    for text in (f'task = "fit rope"\n[axes]\nreference = [["a.npz"], ["{ROPE_NPZ}"]]',
+                 'task = "fit swimmer"\n[options]\ndata = "clips"',
+                 'task = "correct rope"\n[options]\nparams = ["measured", "fitted", "a.npz"]'):
+        assert load(_write(tmp_path, text)).cells, text
+
+
+def test_a_failed_cell_records_the_warnings_that_name_the_file_and_why(tmp_path):
+    """`fit rope` leaves a malformed reference out with a warning, then fails with "all left out (warnings above)":
+    the cell's error (what sweep.csv shows) carries the warning, not only its log."""
+    from wrenorm.sweep.cell import WARNINGS_KEPT, _error_line, run_cell
+
+    bad = tmp_path / "trunc.npz"
+    bad.write_bytes(ROPE_NPZ.read_bytes()[:1000])
+    res = run_cell(["fit", "rope", "--no-record", "--reference", str(bad), "--seed", "0"], str(tmp_path / "sweep"),
+                   "000_x", token="t")
+    assert res["rc"] == 2 and res["result"] is None
+    assert f"warning: {bad}: file: is not a readable .npz archive" in res["error"], res["error"]
+    assert "no usable fit reference remains" in res["error"] and "\n" not in res["error"]
+    log = "".join(f"wrenorm: warning: w{i}\n" for i in range(WARNINGS_KEPT + 2)) + "wrenorm: error: x: y: z\n"
+    assert _error_line(log, 2) == "; ".join(["2 earlier warnings in the cell's log",
+                                             *(f"warning: w{i}" for i in range(2, WARNINGS_KEPT + 2)), "x: y: z"])
 
 
 def test_progress_is_a_plain_line_off_a_terminal_and_nothing_when_quiet():
@@ -305,6 +387,23 @@ def test_a_lost_worker_is_recorded_and_the_other_cells_go_on(tmp_path):
     assert [r["status"] for r in rows].count("failed") == 1 and [r["status"] for r in rows].count("done") == 2
     lost = next(r for r in rows if r["status"] == "failed")
     assert "worker lost" in lost["error"], lost
+
+
+def test_a_cell_failing_on_a_malformed_file_names_it_in_the_table_and_the_others_go_on(tmp_path):
+    _ray()
+    bad = tmp_path / "trunc.npz"
+    bad.write_bytes(ROPE_NPZ.read_bytes()[:1000])  # exists, so the spec passes; its cell fails
+    spec = _write(tmp_path, f'task = "fit rope"\n[options]\ngenerations = 2\nno-record = true\n'
+                            f'[axes]\nreference = [["{ROPE_NPZ}"], ["{bad}"]]\n')
+    out = tmp_path / "out"
+    proc = _sweep(spec, out)
+    assert proc.returncode == 3, proc.stderr
+    rows = _rows(out)
+    assert [r["status"] for r in rows] == ["done", "failed"]
+    reason = f"{bad}: file: is not a readable .npz archive"
+    assert reason in rows[1]["error"], rows[1]
+    assert reason in json.loads((out / "sweep.json").read_text())["cells"][1]["error"]
+    assert reason in proc.stdout  # the summary at the end
 
 
 def test_a_sweep_joins_a_running_cluster_with_address(tmp_path):

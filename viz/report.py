@@ -13,6 +13,7 @@ import math
 import re
 from pathlib import Path
 
+from wrenorm.errors import InputError
 from wrenorm.results import write_atomic
 
 REPORT_FILE = "report.html"
@@ -369,19 +370,127 @@ def render(result: dict, folder: Path | None = None) -> str:
     return page(f"{task} fit", fit_body(result, folder, system))
 
 
-def write_report(folder: Path, result: dict | None = None) -> Path:
-    """Write FOLDER/report.html from `result` (default: the folder's result.json or flow.json)."""
-    folder = Path(folder)
-    if result is None:
-        for name in RESULT_FILES:
-            if (folder / name).exists():
-                result = json.loads((folder / name).read_text())
-                break
-        else:
-            from wrenorm.errors import InputError
+# ------------------------------------------------------------------------------- a result read back from disk
 
-            raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: not a finished run "
-                                                         "folder")
+_FIT_NEEDS = {"parameters": dict, "loss": dict, "validation": dict, "resolution": dict}
+_FIT_OPTIONAL = {"uncertainty": dict, "search": dict, "train": list, "warnings": list, "restarts": dict,
+                 "searches_spread": dict, "timing": dict, "versions": dict}
+
+
+def _json_kind(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true/false"
+    return {dict: "an object", list: "a list", str: "a string"}.get(type(v), "a number")
+
+
+def _field(r: dict, key: str, kind: type, src: str, where: str = "", required: bool = True):
+    """r[key] if it is a `kind` (null or absent allowed unless required); an InputError naming the field if not."""
+    if key not in r or (r[key] is None and not required):
+        if required:
+            raise InputError(src, where + key, "missing: the report needs it")
+        return None
+    if not isinstance(r[key], kind):
+        want = "a number" if isinstance(kind, tuple) else _json_kind(kind())
+        raise InputError(src, where + key, f"is {_json_kind(r[key])}, expected {want}")
+    return r[key]
+
+
+def _check_parameters(params: dict, src: str, where: str) -> None:
+    if not params:
+        raise InputError(src, where + "parameters", "is empty: a fit has at least one parameter")
+    for name, p in params.items():
+        if not isinstance(p, dict):
+            raise InputError(src, f"{where}parameters.{name}", f"is {_json_kind(p)}, expected an object")
+        for key in ("measured", "fitted"):  # null: a non-finite value as results.jsonable writes it (shown as –)
+            if key not in p:
+                raise InputError(src, f"{where}parameters.{name}.{key}", "missing: the report needs it")
+            if p[key] is not None and (isinstance(p[key], bool) or not isinstance(p[key], (int, float))):
+                raise InputError(src, f"{where}parameters.{name}.{key}", f"is {_json_kind(p[key])}, expected a number")
+
+
+def _check_fit(r, src: str, where: str = "") -> None:
+    if not isinstance(r, dict):
+        raise InputError(src, where.rstrip(".") or "top level", f"is {_json_kind(r)}, expected an object")
+    for key, kind in _FIT_NEEDS.items():
+        _field(r, key, kind, src, where)
+    for key, kind in _FIT_OPTIONAL.items():
+        _field(r, key, kind, src, where, required=False)
+    _check_parameters(r["parameters"], src, where)
+    _field(r["validation"], "conditions", dict, src, where + "validation.", required=False)
+
+
+def check_result(result, src: str) -> None:
+    """Refuse (InputError naming the file and the field) a result the report cannot be made from: not a JSON
+    object, a field it needs missing or of the wrong kind, or an unknown system."""
+    from wrenorm.system import systems
+
+    if not isinstance(result, dict):
+        raise InputError(src, "top level", f"is {_json_kind(result)}, expected an object (a run's result)")
+    schema = _field(result, "schema", str, src, required=False)
+    if schema is not None and not re.fullmatch(r"wrenorm\.\w+/\d+", schema):
+        raise InputError(src, "schema", f"{schema!r} is not a wrenorm result's (wrenorm.<kind>/<version>)")
+    key = "task" if "task" in result or "system" not in result else "system"
+    task = _field(result, key, str, src)
+    if task not in systems():
+        raise InputError(src, key, f"{task!r} is not a system of this wrenorm ({', '.join(systems())})")
+    kind = (schema or "").removeprefix("wrenorm.").split("/")[0]
+    if kind not in ("result", "flow", ""):
+        return  # a system's own run (sensitivity, correction): its sections read what they need
+    if "points" in result:
+        points = _field(result, "points", list, src)
+        if not points:
+            raise InputError(src, "points", "is empty: a flow has at least one resolution")
+        for i, p in enumerate(points):
+            where = f"points[{i}]."
+            if not isinstance(p, dict):
+                raise InputError(src, where.rstrip("."), f"is {_json_kind(p)}, expected an object")
+            _field(p, "resolution", dict, src, where)
+            _field(_field(p, "loss", dict, src, where), "fitted", (int, float), src, where + "loss.", required=False)
+            _check_parameters(_field(p, "parameters", dict, src, where), src, where)
+    elif "runs" in result:
+        runs = _field(result, "runs", list, src)
+        if not runs:
+            raise InputError(src, "runs", "is empty: a fit at several resolutions has at least one")
+        for i, r in enumerate(runs):
+            _check_fit(r, src, f"runs[{i}].")
+    else:
+        _check_fit(result, src)
+
+
+def load_result(folder: Path) -> tuple[dict, Path]:
+    """The folder's result (result.json, flow.json, ...) and its path, checked by `check_result`."""
+    for name in RESULT_FILES:
+        if (folder / name).exists():
+            path = folder / name
+            break
+    else:
+        raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: not a finished run folder")
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise InputError(str(path), "file", "is not UTF-8 text (not a result written by wrenorm)") from None
+    except json.JSONDecodeError as e:
+        raise InputError(str(path), f"line {e.lineno} column {e.colno}", f"not valid JSON ({e.msg}): truncated or "
+                                                                         "edited?") from None
+    check_result(result, str(path))
+    return result, path
+
+
+def write_report(folder: Path, result: dict | None = None) -> Path:
+    """Write FOLDER/report.html from `result` (default: the folder's result.json or flow.json, checked)."""
+    folder = Path(folder)
+    if result is not None:
+        text = render(result, folder)
+    else:
+        result, source = load_result(folder)
+        try:
+            text = render(result, folder)
+        except (AttributeError, KeyError, TypeError, IndexError, ValueError) as e:
+            # what check_result does not look at, laid out otherwise than wrenorm writes it: a line, not a traceback
+            raise InputError(str(source), "contents", f"not laid out as wrenorm writes a result "
+                                                      f"({e.__class__.__name__}: {e})") from None
     path = folder / REPORT_FILE
-    write_atomic(path, render(result, folder))
+    write_atomic(path, text)
     return path

@@ -346,7 +346,29 @@ def cmd_view(args) -> int:
 
     files = [str(rrd)] + ([str(p) for p in sorted(run.glob("*/recording.rrd"))] if run.is_dir() else [])
     files = [f for f in files if Path(f).exists()]
+    for f in files:
+        _check_recording(Path(f))
     return subprocess.call([sys.executable, "-m", "rerun", *files])
+
+
+RRD_MAGIC = b"RRF2"  # the first bytes of a Rerun recording (rerun-sdk 0.41's encoder; RRF0/RRF1: older Rerun,
+# a later digit: a later format, left to the viewer)
+
+
+def _check_recording(path: Path) -> None:
+    """Refuse, before the viewer starts, a file that is not a Rerun recording this rerun-sdk reads."""
+    if not path.is_file():
+        raise InputError(str(path), "recording", "is not a file")
+    with open(path, "rb") as f:
+        head = f.read(len(RRD_MAGIC))
+    if head in (b"RRF0", b"RRF1"):
+        raise InputError(str(path), "recording", f"written by an older Rerun ({head.decode()}) that this rerun-sdk "
+                                                 "cannot read: run the fit again to record it")
+    if head[:3] == RRD_MAGIC[:3] and len(head) == len(RRD_MAGIC):  # this version's or a later one: the viewer says
+        return
+    start = f"starts with {head!r}" if head else "is empty"
+    raise InputError(str(path), "recording", f"not a Rerun recording (.rrd files start with {RRD_MAGIC.decode()!r}; "
+                                             f"this one {start})")
 
 
 def _dispatch(args) -> int:

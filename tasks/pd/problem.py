@@ -177,6 +177,7 @@ def continuous_reference(cmd: Command, J: float, KP: float, KD: float, times: np
 # ---- measured logs -------------------------------------------------------------------
 
 LOG_COLUMNS = ("time", "q", "q_d", "qd_d")
+MAX_GAP_STEPS = 5.0  # the longest time step a log may have, in median steps (load_log says why)
 
 
 @dataclass
@@ -189,13 +190,15 @@ class MeasuredLog:
 
 
 def load_log(path: str | Path) -> MeasuredLog:
-    """A measured joint log: CSV with header columns time, q, q_d, qd_d (SI units, rad, rad/s)."""
+    """A measured joint log: CSV with header columns time, q, q_d, qd_d (SI units, rad, rad/s), sampled at a
+    steady rate (a hole of more than MAX_GAP_STEPS median steps is refused)."""
     path = Path(path)
     src = str(path)
     if not path.is_file():
         raise InputError(src, "file", "does not exist or is not a file")
     try:
-        with open(path, newline="") as f:
+        # utf-8-sig: spreadsheet exports start with a byte-order mark, which is no part of the first column's name
+        with open(path, newline="", encoding="utf-8-sig") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(src, "file", f"cannot be read as CSV text ({e.__class__.__name__})") from None
@@ -205,6 +208,9 @@ def load_log(path: str | Path) -> MeasuredLog:
     missing = [c for c in LOG_COLUMNS if c not in header]
     if missing:
         raise InputError(src, "header", f"missing column(s) {missing}; need {list(LOG_COLUMNS)}, got {header}")
+    for c in LOG_COLUMNS:
+        if header.count(c) > 1:
+            raise InputError(src, c, f"column appears {header.count(c)} times in the header: which one is meant?")
     idx = [header.index(c) for c in LOG_COLUMNS]
     data = []
     for line, row in enumerate(rows[1:], start=2):
@@ -233,6 +239,14 @@ def load_log(path: str | Path) -> MeasuredLog:
         hint = " (milliseconds? seconds expected)" if step >= 0.1 or span > 3600.0 else ""
         raise InputError(src, "time", f"sample step {step:g} s over {span:g} s is outside a joint log's range "
                                       f"(step 1e-5..0.1 s, at most an hour){hint}")
+    # A steady logger's steps differ from its median by rounding and jitter (well under 2x), and a dropped sample
+    # or two makes 2-3x; more than MAX_GAP_STEPS medians without a sample is rows lost (cut out, a logger stall),
+    # which the interpolation would bridge with a motion nobody measured.
+    gap = int(np.argmax(dt))
+    if dt[gap] > MAX_GAP_STEPS * step:
+        raise InputError(src, "time", f"no sample for {dt[gap]:g} s after time {t[gap]:g} s (data row {gap + 1}), "
+                                      f"{dt[gap] / step:.0f} times the median step {step:g} s: rows missing? (give "
+                                      "a log without holes, or cut it at the gap)")
     for j, name in enumerate(LOG_COLUMNS[1:], start=1):
         if np.ptp(arr[:, j]) == 0.0 and name != "qd_d":
             raise InputError(src, name, f"never changes (constant {arr[0, j]:g}): nothing to fit")

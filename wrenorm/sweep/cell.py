@@ -20,6 +20,7 @@ from pathlib import Path
 
 TOKEN_FILE = ".wrenorm-sweep"
 RESULT_FILES = {"fit": "result.json", "flow": "flow.json"}  # any other command: <verb>.json (correct.json)
+WARNINGS_KEPT = 5  # a failed cell's last warnings that its recorded error carries
 
 
 def result_file(verb: str) -> str:
@@ -44,11 +45,17 @@ def _threads(cpus: int) -> None:
 
 
 def _error_line(log: str, rc: int) -> str:
+    """The cell's error as sweep.csv records it: its command's last error line, after the warnings printed before
+    it (the last WARNINGS_KEPT). Those name the file left out and why, where the error may only say "warnings
+    above": the log they are in is not what a reader of the table sees."""
     lines = [ln.strip() for ln in log.splitlines() if ln.strip()]
     for prefix, keep in (("wrenorm: error: ", ""), ("wrenorm: fit failed: ", "fit failed: ")):
-        hit = [ln for ln in lines if ln.startswith(prefix)]
+        hit = [i for i, ln in enumerate(lines) if ln.startswith(prefix)]
         if hit:
-            return keep + hit[-1][len(prefix):]
+            warnings = [ln[len("wrenorm: "):] for ln in lines[:hit[-1]] if ln.startswith("wrenorm: warning: ")]
+            more = len(warnings) - WARNINGS_KEPT
+            return "; ".join([*([f"{more} earlier warnings in the cell's log"] if more > 0 else []),
+                              *warnings[-WARNINGS_KEPT:], keep + lines[hit[-1]][len(prefix):]])
     return lines[-1] if lines else f"exit code {rc}"
 
 

@@ -15,14 +15,18 @@
 Option names may use "-" or "_" (`f-sim`, `f_sim`); an option that takes several values takes a list (and an axis
 of it a list of lists). `--out`, `--seed`, `--device`, `--resume`, `--force` and `--quiet` belong to the sweep.
 Every cell's command line is checked with the task's own parser before anything runs: an unknown task or option,
-a value out of range, an axis with repeated values is one line naming the key and the problem (exit 2).
+a value out of range, an axis with repeated values is one line naming the key and the problem (exit 2); so is a file
+or folder a cell is given (an option whose metavar says FILE or DIR) that does not exist or cannot be read. The spec
+is UTF-8 (a byte-order mark is fine).
 """
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import io
 import itertools
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -157,9 +161,17 @@ def load(path: str | Path) -> Spec:
     """Read, check and expand a spec; every problem is an InputError naming the key (the CLI: one line, exit 2)."""
     path = Path(path)
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as e:
         raise InputError(path, "spec", f"cannot be read: {e.strerror or e}") from None
+    body = data.removeprefix(codecs.BOM_UTF8)  # what editors on Windows write first: a mark, not a statement
+    try:  # TOML is UTF-8; newlines as a text-mode read gives them
+        text = body.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")
+    except UnicodeDecodeError as e:
+        at = e.start + len(data) - len(body)  # in the file, the mark included
+        line, column = data.count(b"\n", 0, at) + 1, at - data.rfind(b"\n", 0, at)
+        raise InputError(path, "encoding", f"not UTF-8 (TOML must be): byte 0x{data[at]:02x} at offset {at} (line "
+                                           f"{line}, column {column}): {e.reason}; save the file as UTF-8") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -224,7 +236,72 @@ def load(path: str | Path) -> Spec:
             spec.cells.append(Cell(index=index, id=cid, axes=values, seed=seed,
                                    argv=(*head, *fixed, *words, "--seed", str(seed))))
             index += 1
+    _check_paths(spec, parser)
     return spec
+
+
+def _path_kind(action: argparse.Action) -> tuple[str | None, set]:
+    """Whether an option reads a file or a folder, from its own definition: its metavar names FILE (`FILE.csv`) or
+    DIR. The metavar's other words (`measured|fitted|FILE`) are labels it takes instead of a path. Returns ("file" |
+    "folder" | None, labels). (Not type=Path alone: that may be a folder the command writes.)"""
+    words = action.metavar.split("|") if isinstance(action.metavar, str) else []
+    holders = [w.split(".")[0] for w in words if w.split(".")[0].isupper()]
+    labels = {w for w in words if not w.split(".")[0].isupper()}
+    if any(h.startswith("FILE") for h in holders):
+        return "file", labels
+    if any(h.startswith("DIR") for h in holders):
+        return "folder", labels
+    return None, labels
+
+
+def _path_problem(p: Path, kind: str) -> str | None:
+    """Why a cell could not read p as the option's file or folder (None: it can)."""
+    try:
+        if not p.exists():
+            return "does not exist" + ("" if p.is_absolute() else f" (relative to {Path.cwd()}, where the sweep "
+                                                                   "starts)")
+        if kind == "file" and p.is_dir():
+            return "is a folder, not a file"
+        if kind == "folder" and not p.is_dir():
+            return "is a file, not a folder"
+        if p.is_dir():
+            with os.scandir(p) as entries:
+                next(entries, None)
+        else:
+            with open(p, "rb") as f:
+                f.read(1)
+    except OSError as e:
+        return f"cannot be read: {e.strerror or e}"
+    except ValueError as e:  # a NUL in the name
+        return f"is not a usable path: {e}"
+    return None
+
+
+def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
+    """Every file and folder the spec gives a cell can be read, checked before any cell runs: a missing one would
+    otherwise start Ray, fail each of its cells and be named only in their logs."""
+    given = [("options", key, [value]) for key, value in spec.options.items()]
+    given += [("axes", key, values) for key, values in spec.axes.items()]
+    for table, key, values in given:
+        action = _action(parser, key)
+        kind, labels = _path_kind(action)
+        if kind is None:
+            continue
+        where, flag = f"{table}.{key}", next(f for f in action.option_strings if f.startswith("--"))
+        for value in values:
+            for v in value if isinstance(value, list) else [value]:
+                text = _scalar(v, where, spec.path)
+                problem = None if text in labels else _path_problem(Path(text), kind)
+                if problem:
+                    raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
+
+
+def _whose(spec: Spec, table: str, key: str, value) -> str:
+    """The cells that get this value of the key."""
+    if table == "options":
+        return "every cell"
+    cells = [c.id for c in spec.cells if c.axes[key] == value]
+    return f"cell {cells[0]}" + (f" and {len(cells) - 1} more" if len(cells) > 1 else "")
 
 
 def _check_key(parser, key: str, where: str, path: Path, task: str) -> argparse.Action:

@@ -1,0 +1,64 @@
+"""PD log CSVs as spreadsheets and loggers leave them: a byte-order mark is read past; a column named twice and a
+hole in the sample times are refused in one line naming the file, the column and the problem."""
+import numpy as np
+import pytest
+
+from wrenorm.cli import main
+from wrenorm.errors import InputError
+from wrenorm.tasks.pd.problem import MAX_GAP_STEPS, load_log
+
+T = np.arange(0, 4.0, 0.001)
+
+
+def _write(path, t=T, header="time,q,q_d,qd_d", extra=None, prefix=b""):
+    cols = [t, 0.3 * np.sin(2 * t), 0.3 * np.sin(2 * t + 0.1), 0.6 * np.cos(2 * t + 0.1)]
+    if extra is not None:
+        cols.append(extra(t))
+    body = "\n".join([header] + [",".join(f"{x:.9g}" for x in row) for row in np.stack(cols, 1)]) + "\n"
+    path.write_bytes(prefix + body.encode())
+    return path
+
+
+def test_a_byte_order_mark_is_read_past(tmp_path):
+    plain = load_log(_write(tmp_path / "plain.csv"))
+    bom = load_log(_write(tmp_path / "bom.csv", prefix=b"\xef\xbb\xbf"))
+    for a, b in ((plain.time, bom.time), (plain.q, bom.q), (plain.q_d, bom.q_d), (plain.qd_d, bom.qd_d)):
+        assert np.array_equal(a, b)
+
+
+def test_a_column_named_twice_is_refused(tmp_path):
+    f = _write(tmp_path / "dup.csv", header="time,q,q_d,qd_d,q", extra=lambda t: 0 * t)
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.source == str(f) and e.value.field == "q" and "2 times" in e.value.problem
+
+
+def test_an_unused_extra_column_is_still_fine(tmp_path):
+    assert len(load_log(_write(tmp_path / "extra.csv", header="time,q,q_d,qd_d,torque", extra=np.cos)).time) == len(T)
+
+
+def test_a_hole_in_the_sample_times_is_refused_with_where_and_how_long(tmp_path):
+    keep = np.r_[0:2000, 3500:len(T)]  # 1.5 s of rows cut out after t = 1.999 s
+    f = _write(tmp_path / "gap.csv", t=T[keep])
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.source == str(f) and e.value.field == "time"
+    assert "1.999" in e.value.problem and "1.501 s" in e.value.problem, e.value.problem
+
+
+@pytest.mark.parametrize("dropped", [1, 3])
+def test_a_few_dropped_samples_and_jitter_still_load(tmp_path, dropped):
+    rng = np.random.default_rng(0)
+    t = T + rng.uniform(-2e-4, 2e-4, len(T))  # jitter of a fifth of a step
+    keep = np.r_[0:1000, 1000 + dropped:len(T)]
+    assert np.max(np.diff(t[keep])) < MAX_GAP_STEPS * 0.001
+    log = load_log(_write(tmp_path / "jitter.csv", t=t[keep]))
+    assert len(log.time) == len(keep)
+
+
+def test_the_fit_refuses_a_log_with_a_hole_in_one_line(tmp_path, capsys):
+    f = _write(tmp_path / "gap.csv", t=np.r_[T[:2000], T[3500:]])
+    assert main(["fit", "pd", "--quiet", "--no-record", "--reference", str(f), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(f) in err[0] and "time" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "r" / "result.json").exists()

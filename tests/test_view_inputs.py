@@ -1,0 +1,110 @@
+"""`view`: a run folder's result that the report cannot be made from, or a file that is not a Rerun recording, is
+refused in one line naming the file and the field (exit 2), before any page is written or any viewer starts."""
+import json
+
+import pytest
+
+from wrenorm.cli import main
+
+
+def _fit(**over) -> dict:
+    r = {"schema": "wrenorm.result/1", "task": "pd", "resolution": {"f_sim": 100.0}, "train": ["a"], "seed": 0,
+         "parameters": {"J": {"measured": 0.05, "fitted": 0.0525, "bounds": [0.01, 0.25], "std": 1e-4,
+                              "frozen": False},
+                        "K_P": {"measured": 20.0, "fitted": 20.0, "bounds": [5, 80], "std": None, "frozen": True}},
+         "loss": {"measured": 1.0, "fitted": 0.5, "meaning": "m"},
+         "validation": {"verdict": "absorbed", "tolerance": 0.1,
+                        "conditions": {"held": {"measured_error": 0.2, "fitted_error": 0.01}}},
+         "uncertainty": {"method": "gauss-newton"}, "search": {"methods": ["cmaes"], "evaluations": 10}}
+    r.update(over)
+    return r
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    return err[0]
+
+
+def test_a_well_formed_result_still_makes_its_report(tmp_path):
+    (tmp_path / "result.json").write_text(json.dumps(_fit()))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    assert "<b>absorbed</b>" in (tmp_path / "report.html").read_text()
+
+
+@pytest.mark.parametrize("text,field", [
+    (json.dumps(_fit(), indent=2)[:300], "line "),  # truncated: not valid JSON, where it stops
+    ("[]", "top level"),
+    (json.dumps(_fit(parameters=[1, 2])), "parameters"),
+    (json.dumps({"task": "rope"}), "parameters"),  # nothing the report needs
+    (json.dumps({k: v for k, v in _fit().items() if k != "validation"}), "validation"),
+    (json.dumps(_fit(task="nosuchsystem")), "task"),
+    (json.dumps({k: v for k, v in _fit().items() if k != "task"}), "task"),
+    (json.dumps(_fit(parameters={"J": 0.05})), "parameters.J"),
+    (json.dumps(_fit(parameters={"J": {"measured": 0.05, "fitted": "0.05"}})), "parameters.J.fitted"),
+    (json.dumps(_fit(parameters={"J": {"measured": 0.05}})), "parameters.J.fitted"),
+    (json.dumps(_fit(parameters={})), "parameters"),
+    (json.dumps(_fit(loss=3)), "loss"),
+    (json.dumps(_fit(uncertainty=[1])), "uncertainty"),
+    (json.dumps(_fit(schema=7)), "schema"),
+    (json.dumps({"schema": "wrenorm.result/1", "task": "pd", "runs": [_fit(), {"task": "pd"}]}), "runs[1].parameters"),
+    (json.dumps({"schema": "wrenorm.flow/1", "task": "pd", "points": []}), "points"),
+    (json.dumps({"schema": "wrenorm.flow/1", "task": "pd", "points": [{"resolution": {}, "loss": {}}]}),
+     "points[0].parameters"),
+    # a part check_result does not look at, laid out otherwise: still one line naming the file
+    (json.dumps(_fit(validation={"conditions": {"held": 5}})), "contents"),
+])
+def test_a_result_the_report_cannot_be_made_from_is_one_line_exit_2(tmp_path, capsys, text, field):
+    (tmp_path / "result.json").write_text(text)
+    assert main(["view", str(tmp_path), "--report"]) == 2
+    err = _one_line(capsys)
+    assert str(tmp_path / "result.json") in err and f": {field}" in err, err
+    assert not (tmp_path / "report.html").exists()  # no page from a result it cannot stand behind
+
+
+def test_a_result_that_is_not_text_is_refused(tmp_path, capsys):
+    (tmp_path / "result.json").write_bytes(b"\xff\xfe\x00binary")
+    assert main(["view", str(tmp_path), "--report"]) == 2
+    assert str(tmp_path / "result.json") in _one_line(capsys)
+
+
+# ------------------------------------------------------------------------------------------ the recording
+
+@pytest.fixture
+def viewer(monkeypatch):
+    """The Rerun viewer, replaced: the files it would have been handed."""
+    import subprocess
+
+    calls = []
+    monkeypatch.setattr(subprocess, "call", lambda argv, *a, **k: calls.append(argv[3:]) or 0)
+    return calls
+
+
+def test_a_recording_goes_to_the_viewer(tmp_path, viewer):
+    rrd = tmp_path / "recording.rrd"
+    rrd.write_bytes(b"RRF2" + bytes(60))
+    assert main(["view", str(tmp_path)]) == 0
+    assert viewer == [[str(rrd)]]
+
+
+@pytest.mark.parametrize("name,data,needle", [
+    ("rope.npz", b"PK\x03\x04" + bytes(60), "not a Rerun recording"),
+    ("x.rrd", b"", "empty"),
+    ("old.rrd", b"RRF1" + bytes(60), "older Rerun"),
+])
+def test_a_file_that_is_not_a_recording_never_reaches_the_viewer(tmp_path, capsys, viewer, name, data, needle):
+    f = tmp_path / name
+    f.write_bytes(data)
+    assert main(["view", str(f)]) == 2
+    err = _one_line(capsys)
+    assert str(f) in err and "recording" in err and needle in err, err
+    assert viewer == []
+
+
+def test_a_run_folder_with_one_bad_recording_is_refused(tmp_path, capsys, viewer):
+    (tmp_path / "recording.rrd").write_bytes(b"RRF2" + bytes(60))
+    (tmp_path / "f_sim100").mkdir()
+    (tmp_path / "f_sim100" / "recording.rrd").write_text("not a recording")
+    assert main(["view", str(tmp_path)]) == 2
+    assert str(tmp_path / "f_sim100" / "recording.rrd") in _one_line(capsys)
+    assert viewer == []
