@@ -112,6 +112,24 @@ def test_occlusion_near_the_event_is_bridged_and_flagged(tmp_path):
     assert long.event is None and "missing for longer" in long.problem
 
 
+def test_frames_cut_out_before_the_event_are_flagged(tmp_path):
+    """Frames cut out of a recording whose clock was then made uniform again: nothing in the file says so but the
+    markers' jump, and the contact comes early by the frames lost; used, flagged, and the jump named."""
+    ref = load_reference(DATA / "mujoco_default_flick_wide.npz")
+    whole = critical(ref)
+    assert whole.event is not None and "jump" not in whole.detection.diagnostics["rules_fired"]
+    k = whole.event.index
+    data = reference_arrays(ref)
+    cut = np.r_[0:k - 40, k - 20:len(ref.time)]  # 20 frames (0.1 s) lost 20 frames before the contact
+    data.update(time=ref.time[:len(cut)], markers=data["markers"][cut], hand=data["hand"][cut])
+    f = tmp_path / "cut.npz"
+    np.savez(f, **data)
+    c = critical(load_reference(f))
+    assert c.event is not None and c.event.flagged and "jump" in c.detection.diagnostics["rules_fired"]
+    assert any("frames missing" in r for r in c.event.reasons)
+    assert abs(c.event.time - (whole.event.time - 20 * ref.dt)) < 2 * ref.dt  # early by the 0.1 s lost
+
+
 def _occluded(tmp_path, name, markers, t0, t1):
     """mujoco_default_flick_wide with `markers` NaN for t0 <= t < t1, written and loaded again."""
     ref = load_reference(DATA / "mujoco_default_flick_wide.npz")
