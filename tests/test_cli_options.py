@@ -22,3 +22,8 @@ def test_fit_rope_keeps_every_reference():
     argv = ["fit", "rope", "--reference", "a.npz", "--reference", "b.npz", "--validate", "c.npz", "--validate", "d.npz"]
     args = build_parser(argv).parse_args(argv)
     assert args.reference == ["a.npz", "b.npz"] and args.validate == ["c.npz", "d.npz"]
+
+
+def test_correct_rope_keeps_every_params_entry():
+    argv = ["correct", "rope", "--params", "measured", "--params", "fitted,renormalised"]
+    assert build_parser(argv).parse_args(argv).params == ["measured", "fitted", "renormalised"]

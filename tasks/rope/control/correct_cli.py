@@ -17,6 +17,7 @@ SYSTEM = "rope"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from wrenorm.options import add_list
     from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
     from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
 
@@ -42,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default="flick", help="built-in hand path the correction starts from (u = 0)")
     p.add_argument("--perturb", type=float, default=0.0,
                    help="add a seeded random command offset of this size (units of u) to the start")
-    p.add_argument("--params", nargs="+", default=["renormalised-from-fitted"],
+    add_list(p, "--params", default=["renormalised-from-fitted"],
                    metavar="renormalised-from-fitted|renormalised|fitted|measured|FILE",
                    help="coarse models to steer with, each its own correction run: renormalised-from-fitted (the "
                         "default, the best arm on held-out newton seeds; on MuJoCo's rod measured or renormalised do "
