@@ -626,11 +626,19 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--segments", "2"], "segments"), (["--method", "newton"], "--method"),
                       (["--tolerance", "inf"], "tolerance"), (["--reg", "inf"], "reg"), (["--radius", "inf"], "radius"),
                       (["--perturb", "nan"], "perturb"), (["--perturb", "-1"], "perturb"),
-                      (["--fit-generations", "0"], "fit_generations")):
+                      (["--fit-generations", "0"], "fit_generations"), (["--fine-segments", "0"], "fine_segments"),
+                      (["--engine", "mujoco", "--fine-segments", "0"], "fine_segments")):
         assert main(["correct", "rope", "--out", str(tmp_path / "o")] + bad) == 2
         err = capsys.readouterr().err
         assert word in err and len(err.strip().splitlines()) == 1, err
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
+    assert "--path" in capsys.readouterr().err
+    for bad, word in ((["--seed", "-1"], "seed"), (["--marker-noise", "nan"], "marker_noise"),
+                      (["--time-noise", "inf"], "time_noise"), (["--snr", "inf"], "snr"),
+                      (["--fd-step", "inf"], "fd_step"), (["--fit-generations", "0"], "fit_generations")):
+        assert main(["sensitivity", "rope", "--out", str(tmp_path / "s")] + bad) == 2
+        err = capsys.readouterr().err
+        assert word in err and len(err.strip().splitlines()) == 1, err
     with pytest.raises(InputError, match="steps"):  # the loop itself names a step kind it does not have
         correct(None, None, None, np.zeros(13), method="renormalise", steps="newton")
     with pytest.raises(InputError, match="linearise_at"):

@@ -360,6 +360,24 @@ def test_bad_files_are_one_line_errors(tmp_path, case):
     assert "\n" not in str(e.value) and e.value.problem
 
 
+def test_tip_markers_dropped_without_their_arc_lengths_are_refused(tmp_path):
+    """Two of twelve markers cut from the free end, marker_arclength left out: read as evenly spaced over the whole
+    rope, the markers' intervals never straighten, and the detector would report a contact at 0.08 s with high
+    confidence (the throw's is at 0.88 s). Refused on marker_arclength; with the true arc lengths the file is used."""
+    ref = load_reference(DATA / "mujoco_default_flick_wide.npz")
+    data = reference_arrays(ref)
+    keep = slice(0, ref.markers.shape[1] - 2)
+    data.update(markers=data["markers"][:, keep])
+    del data["marker_arclength"]
+    f = tmp_path / "tip_dropped.npz"
+    np.savez(f, **data)
+    with pytest.raises(InputError) as e:
+        load_reference(f)
+    assert e.value.field == "marker_arclength" and "never straighten" in e.value.problem
+    np.savez(f, **data, marker_arclength=ref.marker_arclength[keep])
+    assert critical(load_reference(f)).event is not None
+
+
 def test_bad_files_exit_2_from_inspect_and_are_left_out_by_fit(tmp_path, capsys):
     good = [DATA / "mujoco_default_flick_fast.npz", DATA / "mujoco_default_flick_wide.npz"]
     bads = []

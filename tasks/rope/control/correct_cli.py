@@ -297,6 +297,8 @@ def run(args) -> int:
                              f"must be a finite number {'>=' if zero_allowed else '>'} 0, got {value}")
     if not (np.isfinite(args.perturb) and args.perturb >= 0):
         raise InputError("--perturb", "perturb", f"must be a finite number >= 0 (units of u), got {args.perturb}")
+    if not 4 <= args.fine_segments <= 1024:  # before either engine builds its rod (MuJoCo's checks divide by it)
+        raise InputError("--fine-segments", "fine_segments", f"{args.fine_segments} is outside [4, 1024]")
     if not 1 <= args.fit_generations <= 1000:
         raise InputError("--fit-generations", "fit_generations", f"must be in [1, 1000], got {args.fit_generations}")
     if not (4 <= args.popsize <= 4096 and 1 <= args.generations <= 1000):

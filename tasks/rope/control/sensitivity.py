@@ -232,11 +232,17 @@ def run(args) -> int:
     for name, v, lo in (("--fd-step", args.fd_step, 0), ("--param-fd-step", args.param_fd_step, 0),
                         ("--noise-size", args.noise_size, 0), ("--command-step", args.command_step, 0),
                         ("--param-step", args.param_step, 0), ("--snr", args.snr, 0)):
-        if not v > lo:
-            raise InputError(name, name[2:].replace("-", "_"), f"must be > 0, got {v}")
-    if args.noise_samples < 2 or args.real_repeats < 0 or args.marker_noise < 0 or args.time_noise < 0:
-        raise InputError("--noise-samples/--real-repeats/--marker-noise/--time-noise", "value",
-                         "need >= 2 noise samples and non-negative repeats and noise levels")
+        if not (np.isfinite(v) and v > lo):
+            raise InputError(name, name[2:].replace("-", "_"), f"must be a finite number > 0, got {v}")
+    for name, v in (("--marker-noise", args.marker_noise), ("--time-noise", args.time_noise)):
+        if not (np.isfinite(v) and v >= 0):
+            raise InputError(name, name[2:].replace("-", "_"), f"must be a finite number >= 0, got {v}")
+    if not (2 <= args.noise_samples <= 10000 and 0 <= args.real_repeats <= 1000):
+        raise InputError("--noise-samples/--real-repeats", "value", "need 2-10000 noise samples and 0-1000 repeats")
+    if args.seed < 0:
+        raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
+    if not 1 <= args.fit_generations <= 1000:
+        raise InputError("--fit-generations", "fit_generations", f"must be in [1, 1000], got {args.fit_generations}")
     out = prepare_out(args.out or Path("runs") / f"sensitivity-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=False, force=args.force)
     t_all = time.perf_counter()

@@ -168,7 +168,8 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if hand.shape != (T, 3):
         raise InputError(src, "hand", f"must have shape ({T}, 3), got {hand.shape}")
 
-    if data.get("marker_arclength") is not None:
+    has_arclength = data.get("marker_arclength") is not None
+    if has_arclength:
         s = _array(src, "marker_arclength", data["marker_arclength"])
         if s.shape != (M,):
             raise InputError(src, "marker_arclength", f"must have shape ({M},), got {s.shape}")
@@ -201,6 +202,15 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if worst > 1.1 + 0.002 / max(arc.min(), 1e-9):
         raise InputError(src, "markers", f"marker spacing up to {worst:.3g}x the arc length between markers "
                                          f"(length {length:g} m): wrong units or wrong length?")
+    # ... and every interval straightens at some point of a throw (a rope hanging at rest, a taut swing): the built-in
+    # and test references reach 1.000-1.009 in median. Markers that never come near their arc's length span less rope
+    # than marker_arclength says: tip markers dropped (two of twelve: a contact "found" at 0.08 s instead of 0.88 s).
+    straightest = np.max(np.where(seen, chord, 0.0), axis=0) / arc
+    if np.median(straightest) < MIN_STRAIGHTEST_CHORD:
+        raise InputError(src, "marker_arclength", f"the markers' intervals never straighten (chord / arc at most "
+                         f"{np.median(straightest):.2f} in median over the throw, with marker_arclength "
+                         f"{'as given' if has_arclength else 'evenly spaced 0..1 (not in the file)'}): the markers "
+                         "span less of the rope than that; markers missing at the tip? give marker_arclength")
     reach = np.linalg.norm(markers[:, 0] - hand, axis=1)[~missing[:, 0]]
     reach = reach.max() if reach.size else 0.0
     allowed = s[0] * length * 1.1 + 0.05 * length + 0.01
@@ -241,6 +251,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                          missing if missing.any() else None, src)
 
 
+MIN_STRAIGHTEST_CHORD = 0.95  # median over a file's intervals of their straightest chord / arc (below: refused)
 SAME_RECORDING_TOLERANCE = 1e-6  # m: far below any tracker's precision, far above float64 round-off of a moved copy
 
 
@@ -542,7 +553,8 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress")
     add_number(parser, "--frame-rate", default=None, lo=10.0, hi=5000.0, unit="Hz",
-               help="recorded frames per second (default: newton 250, mujoco 200)")
+               help="recorded frames per second (default: newton 250, mujoco 200); newton's substep is 1/(8 x this "
+                    "rate), so there it also sets the rod's time step, and its first contact moves with it")
     add_number(parser, "--markers", default=None, lo=2, hi=1025, integer=True,
                help="markers at evenly spaced arc length, ends included (default: every node)")
     parser.add_argument("--dense", action="store_true",
