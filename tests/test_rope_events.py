@@ -128,6 +128,17 @@ def test_frames_cut_out_before_the_event_are_flagged(tmp_path):
     assert c.event is not None and c.event.flagged and "jump" in c.detection.diagnostics["rules_fired"]
     assert any("frames missing" in r for r in c.event.reasons)
     assert abs(c.event.time - (whole.event.time - 20 * ref.dt)) < 2 * ref.dt  # early by the 0.1 s lost
+    # a recording that rests for most of its frames before the throw is no jump: its steps are compared with their
+    # neighbourhood, not with the whole recording
+    rest = 10 * len(ref.time)
+    still = data["markers"][:1] + np.random.default_rng(0).normal(0.0, 3e-4, (rest,) + data["markers"].shape[1:])
+    data = reference_arrays(ref)
+    data.update(time=ref.time[0] + ref.dt * np.arange(rest + len(ref.time)),
+                markers=np.concatenate([still, data["markers"]]),
+                hand=np.concatenate([np.repeat(data["hand"][:1], rest, axis=0), data["hand"]]))
+    np.savez(f, **data)
+    c = critical(load_reference(f))
+    assert c.event is not None and "jump" not in c.detection.diagnostics["rules_fired"]
 
 
 def _occluded(tmp_path, name, markers, t0, t1):

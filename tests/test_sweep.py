@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from wrenorm.cli import main
+from wrenorm.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -208,8 +209,12 @@ def test_files_and_folders_that_exist_and_labels_pass_the_check(tmp_path, monkey
     (tmp_path / "clips").mkdir()
     for text in (f'task = "fit rope"\n[axes]\nreference = [["a.npz"], ["{ROPE_NPZ}"]]',
                  'task = "fit swimmer"\n[options]\ndata = "clips"',
-                 'task = "correct rope"\n[options]\nparams = ["measured", "fitted", "a.npz"]'):
+                 'task = "correct rope"\n[options]\nparams = ["measured", "fitted", "a.npz"]',
+                 'task = "correct rope"\n[options]\nparams = "fitted,measured,a.npz"',  # the parser splits commas
+                 f'task = "fit rope"\n[options]\nreference = "a.npz, {ROPE_NPZ}"'):
         assert load(_write(tmp_path, text)).cells, text
+    with pytest.raises(InputError, match="nosuch.npz: does not exist"):  # and each part is checked
+        load(_write(tmp_path, 'task = "fit rope"\n[options]\nreference = "a.npz,nosuch.npz"'))
 
 
 def test_a_failed_cell_records_the_warnings_that_name_the_file_and_why(tmp_path):
@@ -225,8 +230,8 @@ def test_a_failed_cell_records_the_warnings_that_name_the_file_and_why(tmp_path)
     assert f"warning: {bad}: file: is not a readable .npz archive" in res["error"], res["error"]
     assert "no usable fit reference remains" in res["error"] and "\n" not in res["error"]
     log = "".join(f"wrenorm: warning: w{i}\n" for i in range(WARNINGS_KEPT + 2)) + "wrenorm: error: x: y: z\n"
-    assert _error_line(log, 2) == "; ".join(["2 earlier warnings in the cell's log",
-                                             *(f"warning: w{i}" for i in range(2, WARNINGS_KEPT + 2)), "x: y: z"])
+    assert _error_line(log, 2) == "; ".join(["x: y: z", *(f"warning: w{i}" for i in range(2, WARNINGS_KEPT + 2)),
+                                             "2 earlier warnings in the cell's log"])
 
 
 def test_progress_is_a_plain_line_off_a_terminal_and_nothing_when_quiet():

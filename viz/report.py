@@ -489,8 +489,9 @@ def write_report(folder: Path, result: dict | None = None) -> Path:
             text = render(result, folder)
         except (AttributeError, KeyError, TypeError, IndexError, ValueError) as e:
             # what check_result does not look at, laid out otherwise than wrenorm writes it: a line, not a traceback
-            raise InputError(str(source), "contents", f"not laid out as wrenorm writes a result "
-                                                      f"({e.__class__.__name__}: {e})") from None
+            raise InputError(str(source), "contents", f"the report cannot be made from it ({e.__class__.__name__}: "
+                                                      f"{e}): laid out otherwise than wrenorm writes a result, or a "
+                                                      "bug of the report's to file") from None
     path = folder / REPORT_FILE
     write_atomic(path, text)
     return path

@@ -60,7 +60,7 @@ class _GivenList(list):
     """A list given on the command line, as against the option's default, which a second use replaces."""
 
 
-class _ListAction(argparse.Action):
+class ListAction(argparse.Action):
     """nargs='+' whose items may also be comma-separated; every item parsed by `item`; no repeats. Given twice
     (`--reference a.npz --reference b.npz`) the lists join: argparse's plain nargs would keep only the last."""
 
@@ -101,7 +101,7 @@ def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=No
 def add_list(p: argparse.ArgumentParser, flag: str, *, default, item=str, help: str = "", unique: bool = True,
              **kw) -> None:
     """--flag A B or --flag A,B: a list (repeats refused unless unique=False)."""
-    p.add_argument(flag, nargs="+", action=_ListAction, item=item, unique=unique, default=default,
+    p.add_argument(flag, nargs="+", action=ListAction, item=item, unique=unique, default=default,
                    help=f"{help} (spaces or commas)".strip(), **kw)
 
 

@@ -177,7 +177,8 @@ def continuous_reference(cmd: Command, J: float, KP: float, KD: float, times: np
 # ---- measured logs -------------------------------------------------------------------
 
 LOG_COLUMNS = ("time", "q", "q_d", "qd_d")
-MAX_GAP_STEPS = 5.0  # the longest time step a log may have, in median steps (load_log says why)
+MAX_GAP_STEPS = 5.0  # the longest time step a log may have, in median steps (load_log says why) ...
+MIN_GAP_S = 0.02  # ... unless shorter than this: a fast logger's scheduling stall of a few ms bridges harmlessly
 
 
 @dataclass
@@ -191,7 +192,7 @@ class MeasuredLog:
 
 def load_log(path: str | Path) -> MeasuredLog:
     """A measured joint log: CSV with header columns time, q, q_d, qd_d (SI units, rad, rad/s), sampled at a
-    steady rate (a hole of more than MAX_GAP_STEPS median steps is refused)."""
+    steady rate (a hole of more than MAX_GAP_STEPS median steps and MIN_GAP_S is refused)."""
     path = Path(path)
     src = str(path)
     if not path.is_file():
@@ -243,7 +244,7 @@ def load_log(path: str | Path) -> MeasuredLog:
     # or two makes 2-3x; more than MAX_GAP_STEPS medians without a sample is rows lost (cut out, a logger stall),
     # which the interpolation would bridge with a motion nobody measured.
     gap = int(np.argmax(dt))
-    if dt[gap] > MAX_GAP_STEPS * step:
+    if dt[gap] > max(MAX_GAP_STEPS * step, MIN_GAP_S):
         raise InputError(src, "time", f"no sample for {dt[gap]:g} s after time {t[gap]:g} s (data row {gap + 1}), "
                                       f"{dt[gap] / step:.0f} times the median step {step:g} s: rows missing? (give "
                                       "a log without holes, or cut it at the gap)")

@@ -54,8 +54,8 @@ def _error_line(log: str, rc: int) -> str:
         if hit:
             warnings = [ln[len("wrenorm: "):] for ln in lines[:hit[-1]] if ln.startswith("wrenorm: warning: ")]
             more = len(warnings) - WARNINGS_KEPT
-            return "; ".join([*([f"{more} earlier warnings in the cell's log"] if more > 0 else []),
-                              *warnings[-WARNINGS_KEPT:], keep + lines[hit[-1]][len(prefix):]])
+            return "; ".join([keep + lines[hit[-1]][len(prefix):], *warnings[-WARNINGS_KEPT:],
+                              *([f"{more} earlier warnings in the cell's log"] if more > 0 else [])])
     return lines[-1] if lines else f"exit code {rc}"
 
 

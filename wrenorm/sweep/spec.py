@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from wrenorm.errors import InputError
+from wrenorm.options import ListAction
 
 TOP_LEVEL = ("task", "seeds", "options", "axes", "description")
 RESERVED = {"out": "each cell's run folder is DIR/cells/<cell>", "seed": "use `seeds = [...]` at the top level",
@@ -288,12 +289,15 @@ def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
         if kind is None:
             continue
         where, flag = f"{table}.{key}", next(f for f in action.option_strings if f.startswith("--"))
+        split = isinstance(action, ListAction)  # --reference a.npz,b.npz: the parser splits it, and so must this
         for value in values:
             for v in value if isinstance(value, list) else [value]:
-                text = _scalar(v, where, spec.path)
-                problem = None if text in labels else _path_problem(Path(text), kind)
-                if problem:
-                    raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
+                for text in _scalar(v, where, spec.path).split(",") if split else [_scalar(v, where, spec.path)]:
+                    text = text.strip()
+                    problem = None if not text or text in labels else _path_problem(Path(text), kind)
+                    if problem:
+                        raise InputError(spec.path, where,
+                                         f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
 
 
 def _whose(spec: Spec, table: str, key: str, value) -> str:

@@ -946,37 +946,41 @@ def parameters_from_file(path, problem) -> np.ndarray:
         raise InputError(src, "file", f"is not readable JSON: {e}") from None
     if not isinstance(data, dict):
         raise InputError(src, "file", "top level must be an object")
-    runs = data.get("runs") if isinstance(data.get("runs"), list) else [data]
-    for r in runs:
-        if isinstance(r, dict) and not isinstance(r.get("resolution", {}), dict):
-            raise InputError(src, "resolution", f"must be an object, got {r['resolution']!r}")
-    match = [r for r in runs if isinstance(r, dict) and r.get("task", "rope") == "rope"
-             and (r.get("resolution") or {}).get("segments", problem.segments) == problem.segments]
+    several = isinstance(data.get("runs"), list)
+    runs = data["runs"] if several else [data]
+    where = [f"runs[{i}]." if several else "" for i in range(len(runs))]
+    rope = [(r, w) for r, w in zip(runs, where) if isinstance(r, dict) and r.get("task", "rope") == "rope"]
+    for r, w in rope:
+        if r.get("resolution") is not None and not isinstance(r["resolution"], dict):
+            raise InputError(src, f"{w}resolution", f"must be an object, got {r['resolution']!r}")
+    match = [(r, w) for r, w in rope
+             if (r.get("resolution") or {}).get("segments", problem.segments) == problem.segments]
     if not match:
         raise InputError(src, "resolution", f"no rope fit at {problem.segments} segments in this file")
+    fit, w = match[0]
     # effective parameters belong to the resolution they were fitted at: a chain stepped otherwise is another model
-    for key, flag in (("dt", "--dt"), ("iterations", "constraint passes")):
-        theirs, ours = (match[0].get("resolution") or {}).get(key), problem.resolution[key]
+    for key, what in (("dt", "its time step (--dt)"), ("iterations", "its constraint passes (fit rope --iterations)")):
+        theirs, ours = (fit.get("resolution") or {}).get(key), problem.resolution[key]
         if theirs is not None and (not isinstance(theirs, (int, float)) or not np.isclose(theirs, ours, rtol=1e-9)):
-            raise InputError(src, f"resolution.{key}", f"fitted at {theirs!r}, and this correction's chain runs at "
-                                                       f"{ours:g} ({flag}): refit at this resolution")
-    params = match[0].get("parameters")
+            raise InputError(src, f"{w}resolution.{key}", f"fitted at {theirs!r}, and this correction's chain runs at "
+                                                          f"{ours:g}, {what}: refit at this resolution")
+    params = fit.get("parameters")
     if not isinstance(params, dict):
-        raise InputError(src, "parameters", "missing or not an object")
+        raise InputError(src, f"{w}parameters", "missing or not an object")
     values = problem.space.measured.copy()
     for i, prm in enumerate(problem.space.parameters):
         entry = params.get(prm.name)
         if prm.frozen:
             if isinstance(entry, dict) and entry.get("frozen") is False:
-                raise InputError(src, f"parameters.{prm.name}", "was fitted there, and the correction's chain holds "
+                raise InputError(src, f"{w}parameters.{prm.name}", "was fitted there, and the correction's chain holds "
                                                                 "it at its measured value: the fitted chain would not "
                                                                 "be the one steered")
             continue
         v = entry.get("fitted") if isinstance(entry, dict) else None
         if not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise InputError(src, f"parameters.{prm.name}.fitted", "missing or not a finite number")
+            raise InputError(src, f"{w}parameters.{prm.name}.fitted", "missing or not a finite number")
         if not prm.lower <= v <= prm.upper:
-            raise InputError(src, f"parameters.{prm.name}.fitted", f"{v:g} outside [{prm.lower:g}, {prm.upper:g}]")
+            raise InputError(src, f"{w}parameters.{prm.name}.fitted", f"{v:g} outside [{prm.lower:g}, {prm.upper:g}]")
         values[i] = float(v)
     return values
 

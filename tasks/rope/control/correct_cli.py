@@ -305,8 +305,8 @@ def run(args) -> int:
         raise InputError("--popsize/--generations", "value", "need popsize in [4, 4096] and generations in [1, 1000]")
     if args.seed < 0:
         raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
-    if len(set(args.params)) != len(args.params):
-        raise InputError("--params", "params", f"repeated entry in {args.params}")
+    if not isinstance(args.params, list) or len(set(args.params)) != len(args.params):  # a resumed run's settings
+        raise InputError("--params", "params", f"a list without repeats expected, got {args.params!r}")
     for label in args.params:
         if label not in RUN_LABELS and not Path(label).is_file():
             raise InputError(label, "--params", f"is neither one of {', '.join(RUN_LABELS)} nor an existing "
