@@ -95,3 +95,13 @@ def test_resolutions_together_in_one_loop_find_what_they_find_in_turn(tmp_path):
             if not p["frozen"]:
                 q = b["parameters"][name]["fitted"]
                 assert abs(p["fitted"] - q) <= 1e-3 * max(abs(q), 1e-2), (a["resolution"], name, p["fitted"], q)
+
+
+def test_pd_flow_refuses_frequencies_fit_pd_refuses_and_repeats(tmp_path, capsys):
+    """The flow's resolutions take the range `fit pd --f-sim` takes (1e9 Hz ran out of memory), once each."""
+    for bad, word in ((["1e9", "200"], "outside [5, 20000]"), (["0.5", "200"], "outside [5, 20000]"),
+                      (["200", "200"], "repeated")):
+        assert main(["flow", "pd", "--resolutions", *bad, "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert word in err and "--resolutions" in err and err.count("\n") == 1, err
+        assert not (tmp_path / "bad").exists()

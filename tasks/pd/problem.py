@@ -20,7 +20,7 @@ import numpy as np
 from wrenorm.errors import InputError
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem
-from wrenorm.tasks.pd.options import FLOW_F_SIM, MEASURED
+from wrenorm.tasks.pd.options import F_SIM_RANGE, FLOW_F_SIM, MEASURED
 
 DURATION = 3.0
 RAMP = 0.05  # s, rise time of a commanded step
@@ -445,8 +445,12 @@ def build_problems(args, device: str) -> list[PDProblem]:
 
 def flow_problems(args, device: str) -> list[PDProblem]:
     freqs = sorted(args.resolutions or FLOW_F_SIM)
+    lo, hi = F_SIM_RANGE  # the range `fit pd --f-sim` takes
     for f in freqs:
-        _check_positive({"f_sim": f})
+        if not lo <= f <= hi:
+            raise InputError("--resolutions", "f_sim", f"{f:g} Hz is outside [{lo:g}, {hi:g}] Hz")
+    if len(set(freqs)) != len(freqs):
+        raise InputError("--resolutions", "resolutions", f"repeated frequency in {freqs}")
     return [PDProblem(f, args.integrator, device) for f in freqs]
 
 
