@@ -29,6 +29,12 @@ def test_bench_refuses_nonpositive_batches(tmp_path, capsys):
                "--out", str(tmp_path / "b")])
     assert rc == 2
     assert "--batches" in capsys.readouterr().err
+    # a batch no machine holds, and an --out that is a file: refused before anything runs
+    assert main(["bench", "--no-fits", "--only", "pd", "--batches", "1000000000000", "--out", str(tmp_path / "b")]) == 2
+    assert "--batches" in capsys.readouterr().err
+    (tmp_path / "f").write_text("x")
+    assert main(["bench", "--no-fits", "--only", "pd", "--out", str(tmp_path / "f")]) == 2
+    assert "--out" in capsys.readouterr().err and (tmp_path / "f").read_text() == "x"
 
 
 def test_gpu_script_runs_from_the_repository_root_on_the_installed_layout(tmp_path):

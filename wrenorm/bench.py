@@ -23,6 +23,7 @@ from .system import resolve, systems
 BATCHES = [256, 1024, 4096, 16384, 65536]
 # a GPU needs far more chains than cores to fill; REFERENCES.md measured 4096 .. 1 M chains on an H100
 CUDA_BATCHES = [4096, 32768, 262144, 1048576]
+MAX_BATCH = 16 * 1048576  # 16x the largest default: far beyond, the run ends out of memory, not in a table
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -152,13 +153,15 @@ def _table(res: dict) -> str:
 def run(args) -> int:
     from .warp_init import init_warp
 
+    if args.out.exists() and not args.out.is_dir():  # found before the benchmark runs, not after it
+        raise InputError(str(args.out), "--out", "is a file: bench writes results.{json,md,png} into a folder")
     wp = init_warp(args.device)
     if args.device == "cuda" and not wp.is_cuda_available():
         raise InputError("--device", "device", "cuda requested but no CUDA device is available")
     device = "cuda:0" if args.device == "cuda" else "cpu"
     batches = args.batches or ([256, 1024] if args.quick else (CUDA_BATCHES if device != "cpu" else BATCHES))
-    if any(b <= 0 for b in batches):
-        raise InputError("--batches", "batches", "must be positive")
+    if any(not 0 < b <= MAX_BATCH for b in batches):
+        raise InputError("--batches", "batches", f"each must be in [1, {MAX_BATCH}], got {batches}")
     registered = systems()
     only = args.only or [n for n, s in registered.items() if s.bench is not None]
     res = {"schema": "wrenorm.bench/2", "date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(device),
