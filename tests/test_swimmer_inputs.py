@@ -147,6 +147,29 @@ def test_a_flagged_tail_beat_reaches_the_problem_warnings_and_stderr(tmp_path, r
     assert "markers_f2_25.csv" in capsys.readouterr().err
 
 
+def test_a_flagged_training_clip_is_said_by_flow_and_select_and_kept_in_their_json(tmp_path, rates, capsys):
+    """fit swimmer keeps the data's flags in result.json; flow and select said them on stderr only (flow) or not at
+    all (select, whose study sees the training clips alone), so their JSON looked clean."""
+    import json
+
+    from wrenorm.cli import main
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for r in rates:
+        _write_pixels(data, r, markers=_upsampled(r.markers) if r.label == 1.75 else None)
+    assert main(["flow", "swimmer", "--data", str(data), "--resolutions", "0.016", "0.008", "--generations", "2",
+                 "--restarts", "2", "--popsize", "4", "--no-record", "--quiet", "--out", str(tmp_path / "flow")]) == 0
+    flow = json.loads((tmp_path / "flow" / "flow.json").read_text())
+    assert len(flow["warnings"]) == 1 and "markers_f1_75.csv" in flow["warnings"][0]
+    assert "markers_f1_75.csv" in (tmp_path / "flow" / "report.html").read_text()
+    capsys.readouterr()
+    assert main(["select", "swimmer", "--data", str(data), "--quick", "--generations", "2", "--quiet",
+                 "--out", str(tmp_path / "select")]) == 0
+    chosen = json.loads((tmp_path / "select" / "select.json").read_text())
+    assert len(chosen["warnings"]) == 1 and "markers_f1_75.csv" in chosen["warnings"][0]
+    assert "markers_f1_75.csv" in capsys.readouterr().err
+
 def test_duplicated_frames_are_refused(tmp_path, rates):
     _write_pixels(tmp_path, rates[1], markers=np.repeat(rates[1].markers, 2, axis=0))
     with pytest.raises(InputError) as e:

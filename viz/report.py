@@ -297,6 +297,7 @@ def flow_body(flow: dict, folder: Path | None) -> str:
              "renormalisation flow.</p>", '<div class="charts">' + "".join(charts) + "</div>",
              table(["resolution"] + names + ["loss", "undetermined"], rows),
              f"<p class='muted'>{esc(flow.get('uncertainty_method', ''))}</p>"]
+    parts += [f"<p><span class='flag warn'>warning</span> {esc(w)}</p>" for w in flow.get("warnings") or []]
     info = [["device", flow.get("device", "")], ["seed", flow.get("seed", "")],
             ["wall time", f"{flow.get('wall_seconds', 0):.1f} s"],
             ["versions", ", ".join(f"{k} {v}" for k, v in (flow.get("versions") or {}).items())]]
@@ -449,6 +450,7 @@ def check_result(result, src: str) -> None:
             _field(p, "resolution", dict, src, where)
             _field(_field(p, "loss", dict, src, where), "fitted", (int, float), src, where + "loss.", required=False)
             _check_parameters(_field(p, "parameters", dict, src, where), src, where)
+        _field(result, "warnings", list, src, required=False)
     elif "runs" in result:
         runs = _field(result, "runs", list, src)
         if not runs:

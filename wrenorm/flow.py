@@ -86,7 +86,9 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
                                      "measured values" if together else
                                      "in turn: each resolution's searches start from the previous one's result"),
             "seed": seed, "device": problems[0].device, "versions": versions(),
-            "wall_seconds": time.perf_counter() - t0}
+            "wall_seconds": time.perf_counter() - t0,
+            # the data flags every point was fitted under (a fit's result.json carries the same list)
+            "warnings": list(dict.fromkeys(w for prob in problems for w in getattr(prob, "warnings", [])))}
     if command:
         flow["command"] = command
     write_json(out / "flow.json", flow)

@@ -280,7 +280,7 @@ def run(args) -> int:
     from wrenorm.results import versions, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.swimmer import data
-    from wrenorm.tasks.swimmer.problem import _rates
+    from wrenorm.tasks.swimmer.problem import _rates, warn
 
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
@@ -292,8 +292,10 @@ def run(args) -> int:
     study = Study(rates, labels, generations=min(args.generations, 30) if quick else args.generations,
                   virtual_mass=args.virtual_mass, gait=args.gait, quiet=args.quiet)
     priors, seeds = ((None, 1.0), (0,)) if quick else (PRIOR_SCALES, SEEDS)
+    flags = study.problem(labels, study.every, None)
+    warn(flags)  # the data's flags (a tail beat that points at a wrong frame rate), as fit and flow say them
     t0 = time.perf_counter()
-    result = {"train": labels, "data_source": source, "noise": study.noise,
+    result = {"train": labels, "data_source": source, "noise": study.noise, "warnings": list(flags.warnings),
               "rules": {"reach_limit_sigma": REACH_LIMIT, "prior_scales": list(priors), "seeds": list(seeds),
                         "tie_m_s": TIE, "speed_limit_sigma": SPEED_LIMIT, "generations": study.generations},
               "information_published": information(study)}
