@@ -609,9 +609,31 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                                                 "took its goal and throws from newton's built-in references")}
 
 
+def _typed_options(args) -> set[str]:
+    """The settings named on the command line (`wrenorm.cli.main` keeps it in args._argv), whatever their values: an
+    option typed at its default is a request too. Empty where the line is not known (args built by a test)."""
+    import argparse
+
+    argv = list(getattr(args, "_argv", None) or [])
+    command, system = getattr(args, "command", None), getattr(args, "system", None)
+    if command not in argv or system not in argv[argv.index(command) + 1:]:
+        return set()
+    tail = argv[argv.index(system, argv.index(command) + 1) + 1:]
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser)
+    for action in parser._actions:
+        action.default = argparse.SUPPRESS
+    try:
+        named, _ = parser.parse_known_args(tail)
+    except SystemExit:  # the real parser already accepted this line
+        return set()
+    return set(vars(named))
+
+
 def _restore_settings(args) -> None:
-    """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left at its
-    default takes the saved value; one given with another value than the run had is refused, naming it."""
+    """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left out takes
+    the saved value; one given with another value than the run had is refused, naming it (also one typed at its
+    default: the user asked for that value)."""
     import argparse
     import json
 
@@ -629,13 +651,14 @@ def _restore_settings(args) -> None:
     fresh = argparse.ArgumentParser()
     add_arguments(fresh)
     defaults = vars(fresh.parse_args([]))
+    typed = _typed_options(args)
     for key, value in saved.items():
         if key in _NOT_SAVED or key not in defaults:
             continue
         if key == "device" and isinstance(value, str) and value.startswith("cuda"):
             value = "cuda"  # saved as the run resolved it ("cuda:0"); the option's choice is "cuda"
         given = getattr(args, key, None)
-        if given != defaults[key] and json.loads(json.dumps(given, default=str)) != value:
+        if (given != defaults[key] or key in typed) and json.loads(json.dumps(given, default=str)) != value:
             raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction ran with {value!r}, "
                                                                 f"this run asks for {given!r}; resume with the same "
                                                                 "options (or leave them out)")
@@ -644,7 +667,7 @@ def _restore_settings(args) -> None:
         if saved.get(key) is None:  # saved before the option existed: the run had the old behaviour
             as_run = as_run(saved) if callable(as_run) else as_run
             given = getattr(args, key)
-            if given not in (None, as_run, defaults[key]):
+            if given not in (None, as_run, defaults[key]) or (key in typed and given != as_run):
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
