@@ -774,6 +774,8 @@ def test_correct_resume_reads_back_real_trials_and_repeats_the_run(tmp_path, par
     assert len(list(store.folder.glob("trial-*.npz"))) == 2
     # settings come from the folder: an option given now with another value is refused, naming it (issue 17)
     assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--max-trials", "9", "--out", str(cut)]) == 2
+    # also at its default (10): typed, it asks for 10 trials where the run had 4, and was silently given 4
+    assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--max-trials", "10", "--out", str(cut)]) == 2
     assert len(list(store.folder.glob("trial-*.npz"))) == 2  # the refused resume touched nothing
     assert main(["correct", "rope", "--resume", "--quiet", "--no-record", "--out", str(cut)]) == 0
     again = json.loads((cut / "correct.json").read_text())
@@ -940,6 +942,8 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                         "--variant", "heavy", "--out", tmp_path / "o"],
            "run takes fixed parameters only": [diagnostics / "rope_sensitivity_prior.py", "run", "--linearise-at",
                                                "trial", "--out", tmp_path / "o", "--params", "renormalised"],
+           "--also-free widens the --best-parameters bound": [diagnostics / "rope_sensitivity_prior.py", "compare",
+                                                              measured_only, "--also-free", "mass_slope"],
            "--segments 2: the chain takes 3-63 links": [diagnostics / "rope_sensitivity_prior.py", "compare",
                                                         measured_only, "--segments", "2"],
            "chain 64: give the chain's links first, 3-63": [diagnostics / "rope_sensitivity_prior.py", "chain", "64",
@@ -1157,6 +1161,30 @@ def test_the_best_parameters_bound_recovers_a_chains_own_sensitivity(problem):
     assert np.isclose(np.linalg.norm(w[:, None] * (P - J)) / np.linalg.norm(w[:, None] * J), d)
 
 
+def test_the_bound_with_a_fixed_parameter_set_free_reaches_a_sensitivity_only_it_can_make(problem):
+    """--also-free: the bound searches the named fixed parameter too. Handed the sensitivity of a chain whose mass
+    profile is not the start's (mass_slope 0.6, stiffness and drag as in the test above), the bound with mass_slope
+    free comes closer than the six free parameters alone, with mass_slope moved toward 0.6. (The search is CMA-ES:
+    from the other start, or at mass_slope 0.3, the seven-parameter search can end no closer than the six.)"""
+    diag = _script_module("rope_sensitivity_prior")
+    space = CommandSpace(PATHS["flick"])
+    u = np.zeros(space.dim)
+    goal = crit.Target.from_reference(CoarseRope(problem, problem.space.measured)(PATHS["flick_fast"]))
+    w = secant.residual_weights(goal)
+    truth = shifted(problem)
+    truth[problem.space.index("mass_slope")] = 0.6
+    J = secant.Sensitivity.of_chain(CoarseModel(problem, truth, space), u).S
+    frozen = problem.space
+    try:
+        _, d_six = diag.best_parameters(CoarseModel(problem, frozen.measured, space), J, w, u, secant.GN_FD_STEP, 0)
+        problem.space = frozen.with_changes(mass_slope={"frozen": False})
+        values, d_free = diag.best_parameters(CoarseModel(problem, frozen.measured, space), J, w, u,
+                                              secant.GN_FD_STEP, 0)
+    finally:
+        problem.space = frozen
+    assert d_free < 0.7 * d_six
+    assert values[frozen.index("mass_slope")] > 0.3
+
 def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
     """--start-pair: the real rope's critical state under the start command, recorded before the trials, corrects
     the chain's sensitivity as a trial's pair would: after trial 1 the estimate predicts the change from trial 1 to
@@ -1243,6 +1271,15 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert args.start_pair == "none" and args.segments == 12
+    typed = ["--resume", "--out", str(tmp_path), "--segments", "10"]  # the default, typed: not what the run had
+    args = parser.parse_args(typed)
+    args.command, args.system, args._argv = "correct", "rope", ["correct", "rope", *typed]
+    with pytest.raises(InputError, match="ran with 12"):
+        correct_cli._restore_settings(args)
+    args = parser.parse_args(typed[:3])
+    args.command, args.system, args._argv = "correct", "rope", ["correct", "rope", *typed[:3]]
+    correct_cli._restore_settings(args)
+    assert args.segments == 12
     assert args.first_plan_reg == "as-plans" and correct_cli._first_plan_reg(args, "fitted") == 1e-4  # as it ran
     assert args.first_plan_offset == "none" and not correct_cli._first_plan_offset(args, "fitted")  # as it ran
     with pytest.raises(InputError, match="on the chain alone"):

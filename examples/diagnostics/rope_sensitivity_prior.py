@@ -8,7 +8,7 @@ costs 26 extra fine runs (real trials on a robot).
     python examples/diagnostics/rope_sensitivity_prior.py chain 20 --variant heavy --seed 4 --params fitted \\
         --no-record --out runs/chain20-heavy-s4
     python examples/diagnostics/rope_sensitivity_prior.py compare runs/oracle-heavy-s4 [--segments 20]
-        [--best-parameters]
+        [--best-parameters [--also-free mass_slope stretch]]
 
 `run` is `correct rope` (its options after `run`; fixed parameters, `--linearise-at trial`) with the chain's
 central difference at trial 1's command replaced by the fine rope's (the same step, 26 fine runs, not counted as
@@ -20,7 +20,9 @@ command and where it matches trial 1's state; measured parameters at that match)
 relative error (0 alike, 1 no better than zero) and the mean cosine of the columns (position and velocity).
 `--segments N` asks the same of an N-link chain, its parameters fitted as the run's were (same throws, seed and
 generations); `--best-parameters` adds the chain whose parameters were chosen to bring its sensitivity closest to the
-rope's (on the answer itself: a bound on what the parameters can absorb at that resolution, not a method).
+rope's (on the answer itself: a bound on what the parameters can absorb at that resolution, not a method);
+`--also-free NAME ...` repeats that bound with parameters the fit holds fixed set free as well, each set alone and all
+together (README, "Is a chain of 11 masses enough": the mass profile and the links' compliance).
 """
 from __future__ import annotations
 
@@ -209,7 +211,7 @@ def best_parameters(model, J: np.ndarray, w: np.ndarray, u: np.ndarray, step: fl
     return best_v, best_d
 
 
-def compare(folder: Path, segments: int | None = None, best: bool = False) -> int:
+def compare(folder: Path, segments: int | None = None, best: bool = False, also_free: tuple = ()) -> int:
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import CoarseModel, StoredTrials, fit_parameters
     from wrenorm.tasks.rope.problem import RopeProblem
@@ -249,10 +251,22 @@ def compare(folder: Path, segments: int | None = None, best: bool = False) -> in
               "fitted, where it matches trial 1": secant.Sensitivity.of_chain(model, match.u, step).S,
               "measured, at that match": secant.Sensitivity.of_chain(
                   CoarseModel(problem, problem.space.measured, space, "measured"), match.u, step).S}
+    unknown = [n for n in also_free if n not in problem.space.names or not problem.space.parameters[
+        problem.space.index(n)].frozen]
+    if unknown:
+        _fail(f"--also-free {' '.join(unknown)}: not among the chain's fixed parameters "
+              f"({', '.join(p.name for p in problem.space.parameters if p.frozen)})")
     if best:
         values, _ = best_parameters(model, J, w, u, step, settings["seed"])
         priors["best parameters, at trial 1's command"] = secant.Sensitivity.of_chain(
             CoarseModel(problem, values, space, "best"), u, step).S
+        frozen = problem.space
+        for names in [(n,) for n in also_free] + ([tuple(also_free)] if len(also_free) > 1 else []):
+            problem.space = frozen.with_changes(**{n: {"frozen": False} for n in names})
+            values, _ = best_parameters(CoarseModel(problem, fitted, space, "fitted"), J, w, u, step, settings["seed"])
+            priors[f"best, {' and '.join(names)} free too"] = secant.Sensitivity.of_chain(
+                CoarseModel(problem, values, space, "best"), u, step).S
+        problem.space = frozen
     print(f"{folder}: the {segments}-link chain's sensitivity against the rope's (relative error; mean column cosine)")
     for name, P in priors.items():
         print(f"  {name:38s} " + _block_cells(goal, w, P, J))
@@ -275,12 +289,16 @@ def main(argv=None) -> int:
         p.add_argument("--segments", type=int, default=None, help="a chain of this many links, fitted as the run's")
         p.add_argument("--best-parameters", action="store_true",
                        help="also the parameters whose sensitivity lies closest to the rope's (a bound)")
+        p.add_argument("--also-free", nargs="+", default=[], metavar="NAME",
+                       help="with --best-parameters: the bound again with these fixed parameters free as well")
         args = p.parse_args(argv[1:])
         if args.segments is not None and not 3 <= args.segments <= 63:
             _fail(f"--segments {args.segments}: the chain takes 3-63 links")
-        return compare(args.folder, args.segments, args.best_parameters)
+        if args.also_free and not args.best_parameters:
+            _fail("--also-free widens the --best-parameters bound; give both")
+        return compare(args.folder, args.segments, args.best_parameters, tuple(args.also_free))
     _fail("usage: rope_sensitivity_prior.py run [correct rope options] | chain N [correct rope options] | "
-          "compare RUN_FOLDER [--segments N] [--best-parameters]")
+          "compare RUN_FOLDER [--segments N] [--best-parameters [--also-free NAME ...]]")
     return 2
 
 
