@@ -297,7 +297,8 @@ def flow_body(flow: dict, folder: Path | None) -> str:
              "renormalisation flow.</p>", '<div class="charts">' + "".join(charts) + "</div>",
              table(["resolution"] + names + ["loss", "undetermined"], rows),
              f"<p class='muted'>{esc(flow.get('uncertainty_method', ''))}</p>"]
-    parts += [f"<p><span class='flag warn'>warning</span> {esc(w)}</p>" for w in flow.get("warnings") or []]
+    # the data's flags first: every point below was fitted under them
+    parts[:0] = [f"<p><span class='flag warn'>warning</span> {esc(w)}</p>" for w in flow.get("warnings") or []]
     info = [["device", flow.get("device", "")], ["seed", flow.get("seed", "")],
             ["wall time", f"{flow.get('wall_seconds', 0):.1f} s"],
             ["versions", ", ".join(f"{k} {v}" for k, v in (flow.get("versions") or {}).items())]]
