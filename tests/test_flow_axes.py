@@ -110,6 +110,8 @@ def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path):
     full = tmp_path / "full"
     assert main([*args, "--out", str(full)]) == 0
     done = json.loads((full / "flow.json").read_text())
+    # the data's flags, as a fit says them (the built-in flick_slow's grazing touch is flagged)
+    assert any("flick_slow" in w and "flagged" in w for w in done["warnings"]), done["warnings"]
     cut = tmp_path / "cut"
     shutil.copytree(full, cut)
     (cut / "flow.json").unlink()

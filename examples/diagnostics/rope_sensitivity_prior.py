@@ -234,6 +234,11 @@ def compare(folder: Path, segments: int | None = None, best: bool = False, also_
     goal = crit.Target.from_reference(goal_ref)
     segments = settings["segments"] if segments is None else segments
     problem = RopeProblem([goal_ref], segments=segments, dt=settings["dt"], names=[settings["goal"]])
+    unknown = [n for n in also_free if n not in problem.space.names or not problem.space.parameters[
+        problem.space.index(n)].frozen]
+    if unknown:  # before the fit and the match, which take a while
+        _fail(f"--also-free {' '.join(unknown)}: not among the chain's fixed parameters "
+              f"({', '.join(p.name for p in problem.space.parameters if p.frozen)})")
     space = CommandSpace(get_hand_path(settings["start"]))
     if segments == settings["segments"]:  # the run's own chain
         fitted = np.array([result["runs"]["fitted"]["parameters"][name] for name in problem.space.names])
@@ -251,22 +256,20 @@ def compare(folder: Path, segments: int | None = None, best: bool = False, also_
               "fitted, where it matches trial 1": secant.Sensitivity.of_chain(model, match.u, step).S,
               "measured, at that match": secant.Sensitivity.of_chain(
                   CoarseModel(problem, problem.space.measured, space, "measured"), match.u, step).S}
-    unknown = [n for n in also_free if n not in problem.space.names or not problem.space.parameters[
-        problem.space.index(n)].frozen]
-    if unknown:
-        _fail(f"--also-free {' '.join(unknown)}: not among the chain's fixed parameters "
-              f"({', '.join(p.name for p in problem.space.parameters if p.frozen)})")
     if best:
         values, _ = best_parameters(model, J, w, u, step, settings["seed"])
         priors["best parameters, at trial 1's command"] = secant.Sensitivity.of_chain(
             CoarseModel(problem, values, space, "best"), u, step).S
-        frozen = problem.space
-        for names in [(n,) for n in also_free] + ([tuple(also_free)] if len(also_free) > 1 else []):
-            problem.space = frozen.with_changes(**{n: {"frozen": False} for n in names})
-            values, _ = best_parameters(CoarseModel(problem, fitted, space, "fitted"), J, w, u, step, settings["seed"])
-            priors[f"best, {' and '.join(names)} free too"] = secant.Sensitivity.of_chain(
-                CoarseModel(problem, values, space, "best"), u, step).S
-        problem.space = frozen
+        six, frozen = values, problem.space
+        try:
+            for names in [(n,) for n in also_free] + ([tuple(also_free)] if len(also_free) > 1 else []):
+                problem.space = frozen.with_changes(**{n: {"frozen": False} for n in names})
+                # from the six-parameter bound: a parameter more can then only come closer
+                values, _ = best_parameters(CoarseModel(problem, six, space, "six"), J, w, u, step, settings["seed"])
+                priors[f"best, {' and '.join(names)} free too"] = secant.Sensitivity.of_chain(
+                    CoarseModel(problem, values, space, "best"), u, step).S
+        finally:
+            problem.space = frozen
     print(f"{folder}: the {segments}-link chain's sensitivity against the rope's (relative error; mean column cosine)")
     for name, P in priors.items():
         print(f"  {name:38s} " + _block_cells(goal, w, P, J))
@@ -284,13 +287,15 @@ def main(argv=None) -> int:
     if argv[:1] == ["compare"]:
         import argparse
 
+        from wrenorm.options import add_list
+
         p = argparse.ArgumentParser(prog="rope_sensitivity_prior.py compare")
         p.add_argument("folder", type=Path)
         p.add_argument("--segments", type=int, default=None, help="a chain of this many links, fitted as the run's")
         p.add_argument("--best-parameters", action="store_true",
                        help="also the parameters whose sensitivity lies closest to the rope's (a bound)")
-        p.add_argument("--also-free", nargs="+", default=[], metavar="NAME",
-                       help="with --best-parameters: the bound again with these fixed parameters free as well")
+        add_list(p, "--also-free", default=[], metavar="NAME",
+                 help="with --best-parameters: the bound again with these fixed parameters free as well")
         args = p.parse_args(argv[1:])
         if args.segments is not None and not 3 <= args.segments <= 63:
             _fail(f"--segments {args.segments}: the chain takes 3-63 links")

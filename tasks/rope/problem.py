@@ -292,6 +292,12 @@ class RopeProblem(Problem):
         out["references"], out["warnings"] = self.reference_report()
         return out
 
+    @property
+    def warnings(self) -> list[str]:
+        """What a fit on these references says of them (files left out, events flagged or annotated otherwise than
+        detected): result.json's `warnings`, and a flow's."""
+        return self.reference_report()[1]
+
     def reference_report(self) -> tuple[dict, list]:
         """Which reference files were used and which left out (and why), and the warnings to print: left-out
         files, and events used although uncertain (flagged) or annotated differently from the detection."""

@@ -79,7 +79,8 @@ class Study:
         unmeasurable = set(feat.unmeasurable(self.rates))
         self.groups = {g: fs for g, fs in GROUPS.items() if not unmeasurable & set(fs)}
         self.every = ("speed", *[f for fs in self.groups.values() for f in fs])
-        self.noise = self.problem(self.labels, self.every, None).noise
+        every = self.problem(self.labels, self.every, None)
+        self.noise, self.warnings = every.noise, list(every.warnings)  # the training clips' flags
 
     def problem(self, train, features, prior, viscosity=False, **model):
         p = self.sw.SwimmerProblem(self.rates, list(train), features=features, prior_scale=prior,
@@ -292,10 +293,9 @@ def run(args) -> int:
     study = Study(rates, labels, generations=min(args.generations, 30) if quick else args.generations,
                   virtual_mass=args.virtual_mass, gait=args.gait, quiet=args.quiet)
     priors, seeds = ((None, 1.0), (0,)) if quick else (PRIOR_SCALES, SEEDS)
-    flags = study.problem(labels, study.every, None)
-    warn(flags)  # the data's flags (a tail beat that points at a wrong frame rate), as fit and flow say them
+    warn(study)  # the data's flags (a tail beat that points at a wrong frame rate), as fit and flow say them
     t0 = time.perf_counter()
-    result = {"train": labels, "data_source": source, "noise": study.noise, "warnings": list(flags.warnings),
+    result = {"train": labels, "data_source": source, "noise": study.noise, "warnings": study.warnings,
               "rules": {"reach_limit_sigma": REACH_LIMIT, "prior_scales": list(priors), "seeds": list(seeds),
                         "tie_m_s": TIE, "speed_limit_sigma": SPEED_LIMIT, "generations": study.generations},
               "information_published": information(study)}
