@@ -1185,6 +1185,67 @@ def test_the_bound_with_a_fixed_parameter_set_free_reaches_a_sensitivity_only_it
     assert d_free < d_six and values[frozen.index("mass_slope")] != 0.0
 
 
+def test_the_start_throws_recording_is_one_more_secant_pair(problem, tmp_path):
+    """--start-pair: the real rope's critical state under the start command, recorded before the trials, corrects
+    the chain's sensitivity as a trial's pair would: after trial 1 the estimate predicts the change from trial 1 to
+    the start closer than the chain's own, and it is counted as a pair but not as a trial; "first" drops it once a
+    trial gives a pair of its own, "every" keeps it; a recording without a collision is left out. Through the CLI
+    (the coarse stand-in plays the rope) it is recorded once in OUT/start and named in correct.json."""
+    space = CommandSpace(PATHS["flick"])
+    real = CoarseRope(problem, shifted(problem))
+    goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
+    start = crit.from_reference(real(PATHS["flick"]))
+    model = CoarseModel(problem, problem.space.measured, space)
+    kw = dict(max_trials=3, tolerance=1e-6, method="gn", **FAST_PLAN)
+    plain = correct(real, model, goal, np.zeros(space.dim), **kw)
+    paired = correct(real, model, goal, np.zeros(space.dim), recorded=[(np.zeros(space.dim), start)], **kw)
+    t1 = paired["trials"][0]
+    assert np.array_equal(t1.u, plain["trials"][0].u) and len(paired["trials"]) == 3
+    assert plain["trials"][0].sensitivity["secant_pairs"] == 0 and t1.sensitivity["secant_pairs"] == 1
+    assert paired["recorded_pairs"] == 1 and plain["recorded_pairs"] == 0
+    every = correct(real, model, goal, np.zeros(space.dim), recorded=[(np.zeros(space.dim), start)],
+                    recorded_until="every", **kw)
+    assert np.array_equal(every["trials"][1].u, paired["trials"][1].u)  # the same first step
+    assert paired["trials"][1].hit and every["trials"][1].hit
+    assert paired["trials"][1].sensitivity["secant_pairs"] == 1 and every["trials"][1].sensitivity["secant_pairs"] == 2
+    assert not np.allclose(paired["trials"][1].u, plain["trials"][1].u)  # the pair changed the step
+
+    # the pair itself: the corrected sensitivity reproduces the start's change from trial 1 better than the prior
+    w = secant.residual_weights(goal)
+    z1, z0 = state_vector(t1.state)[0], state_vector(start)[0]
+    sens = secant.Sensitivity.of_chain(model, np.array(t1.sensitivity["linearised_at"]))
+    prior_miss = np.linalg.norm(w * (sens.S @ (0.0 - t1.u) - (z0 - z1)))
+    sens.ridge([0.0 - t1.u], [z0 - z1])
+    assert np.linalg.norm(w * (sens.S @ (0.0 - t1.u) - (z0 - z1))) < 0.2 * prior_miss
+
+    nan = np.full_like(start.pos, np.nan)
+    missed = crit.CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
+                                 np.array([0.02]))
+    none = correct(real, model, goal, np.zeros(space.dim), recorded=[(np.zeros(space.dim), missed)], **kw)
+    assert none["recorded_pairs"] == 0 and [t.u.tolist() for t in none["trials"]] == [
+        t.u.tolist() for t in plain["trials"]]
+
+    from wrenorm.cli import main
+
+    out = tmp_path / "paired"  # "first" is the default with Gauss-Newton steps
+    assert main(CORRECT_QUICK + ["--max-trials", "2", "--out", str(out)]) == 0
+    done = json.loads((out / "correct.json").read_text())
+    rec = done["start"]["recorded_pair"]
+    assert rec["path"] == "flick" and rec["hit"] and rec["error"] > 0 and "coarse" in rec["source"]
+    assert done["runs"]["measured"]["recorded_pairs"] == 1 and done["settings"]["start_pair"] == "first"
+    assert len(list((out / "start").glob("trial-*.npz"))) == 1
+    assert "offset" not in done["runs"]["measured"]["trial0_plan"]  # trial 1 on the chain alone by default
+    # without the pair the start throw is still recorded where trial 1 is planned with its offset
+    out = tmp_path / "offset-only"
+    assert main(CORRECT_QUICK + ["--max-trials", "1", "--start-pair", "none", "--first-plan-offset", "start", "--out",
+                                 str(out)]) == 0
+    done = json.loads((out / "correct.json").read_text())
+    run = done["runs"]["measured"]
+    assert run["recorded_pairs"] == 0 and run["trial0_plan"]["offset"]["chain_error_to_rope_there"] > 0
+    assert done["settings"]["first_plan_offset"] == "start" and done["start"]["recorded_pair"]["hit"]
+    assert len(list((out / "start").glob("trial-*.npz"))) == 1
+
+
 def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tmp_path):
     """Left out, --start-pair is "first" with Gauss-Newton steps and "none" with plan and qp (which would ignore
     it); named with them it is refused. A run saved before the option existed resumes without a start pair, as it

@@ -47,6 +47,7 @@ def _mixed_folder(folder, rates, rotated=(1.0, 1.75)):
 
 # --- 1. head-frame clips: yaw and sway are not measurable ---------------------------------------
 
+
 def test_head_frame_clips_leave_yaw_and_sway_out_and_say_so(tmp_path, rates, capsys):
     got = sd.load_dir(_mixed_folder(tmp_path, rates))
     assert [r.frame for r in got] == ["world", "head", "world", "head", "world"]
@@ -170,6 +171,7 @@ def test_a_flagged_training_clip_is_said_by_flow_and_select_and_kept_in_their_js
     assert len(chosen["warnings"]) == 1 and "markers_f1_75.csv" in chosen["warnings"][0]
     assert "markers_f1_75.csv" in capsys.readouterr().err
 
+
 def test_duplicated_frames_are_refused(tmp_path, rates):
     _write_pixels(tmp_path, rates[1], markers=np.repeat(rates[1].markers, 2, axis=0))
     with pytest.raises(InputError) as e:
@@ -226,6 +228,7 @@ def test_a_marker_at_exactly_zero_is_a_dropout(tmp_path, rates, marker):
 
 
 # --- 5. byte-order mark, two files of one label -----------------------------------------------------
+
 
 def test_a_byte_order_mark_is_read_past(tmp_path, rates):
     path = _write_pixels(tmp_path, rates[1])
