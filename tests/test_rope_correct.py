@@ -928,6 +928,13 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                       "engine": "newton", "fine_segments": 32,
                                                       "builtin_throws": False}))
     (fine32 / "correct.json").write_text('{"runs": {"fitted": {}}}')
+    newton_run = tmp_path / "newton-run"  # a run the comparison can read, up to the parameters it is asked to free
+    newton_run.mkdir()
+    np.savez(newton_run / "rope-sensitivity.npz", J=np.zeros((129, 13)), u=np.zeros(13), step=0.3)
+    (newton_run / "settings.json").write_text(json.dumps({"goal": "flick_high", "variant": "default", "segments": 10,
+                                                          "dt": 0.005, "start": "flick", "engine": "newton",
+                                                          "fine_segments": 64}))
+    (newton_run / "correct.json").write_text('{"runs": {"fitted": {}}}')
     bad = {"correct.json: no fitted run": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only],
            "workers: must be >= 1": [examples / "correct_campaign.py", "--workers", "0", "--out", tmp_path / "c"],
            "no-run/correct.json: not a finished": [diagnostics / "correct_stall.py", tmp_path / "no-run"],
@@ -944,6 +951,9 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
                                                "trial", "--out", tmp_path / "o", "--params", "renormalised"],
            "--also-free widens the --best-parameters bound": [diagnostics / "rope_sensitivity_prior.py", "compare",
                                                               measured_only, "--also-free", "mass_slope"],
+           "--also-free lead_fraction: not among the chain's fixed parameters": [
+               diagnostics / "rope_sensitivity_prior.py", "compare", newton_run, "--best-parameters", "--also-free",
+               "lead_fraction"],
            "repeated value stretch": [diagnostics / "rope_sensitivity_prior.py", "compare", measured_only,
                                       "--best-parameters", "--also-free", "stretch", "stretch"],
            "--segments 2: the chain takes 3-63 links": [diagnostics / "rope_sensitivity_prior.py", "compare",
