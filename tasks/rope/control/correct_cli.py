@@ -44,14 +44,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--perturb", type=float, default=0.0,
                    help="add a seeded random command offset of this size (units of u) to the start")
     add_list(p, "--params", default=["renormalised-from-fitted"],
-                   metavar="renormalised-from-fitted|renormalised|fitted|measured|FILE",
-                   help="coarse models to steer with, each its own correction run: renormalised-from-fitted (the "
-                        "default, the best arm on held-out newton seeds; on MuJoCo's rod measured or renormalised do "
-                        "better: parameters refitted to the real trials after every "
-                        "trial, started from the values fitted to the rope's reference throws, prior at the measured "
-                        "values; steps in a trust region), renormalised (the same, started at the measured values), "
-                        "or fixed parameters stepped by --method: measured, fitted (once, to the rope's reference "
-                        "throws, before the trials), or a result.json")
+          metavar="renormalised-from-fitted|renormalised|fitted|measured|FILE",
+          help="coarse models to steer with, each its own correction run: renormalised-from-fitted (the "
+               "default, the best arm on held-out newton seeds; on MuJoCo's rod measured or renormalised do "
+               "better: parameters refitted to the real trials after every "
+               "trial, started from the values fitted to the rope's reference throws, prior at the measured "
+               "values; steps in a trust region), renormalised (the same, started at the measured values), "
+               "or fixed parameters stepped by --method: measured, fitted (once, to the rope's reference "
+               "throws, before the trials), or a result.json")
     p.add_argument("--max-trials", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="goal reached at error <= this")
     p.add_argument("--method", choices=["gn", "plan", "qp"], default="gn",
