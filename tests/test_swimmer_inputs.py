@@ -250,3 +250,16 @@ def test_two_files_of_one_label_are_refused_naming_both(tmp_path, rates):
     _write_pixels(ok, rates[1])
     _write_rotated(ok, rates[1])
     assert [r.frame for r in sd.load_dir(ok)] == ["world"]
+
+
+def test_frames_cut_from_a_rotated_file_are_refused_by_the_head_jump(tmp_path, rates):
+    """A head-frame file keeps the head's forward progress, so frames cut out of it leave the head's jump as in a
+    pixel file; before the check was applied to these files, a cut clip was read through and swam too fast."""
+    whole = _write_rotated(tmp_path, rates[1])
+    rows = np.loadtxt(whole, delimiter=",").reshape(-1, sd.N_MARKERS, 2)
+    assert sd.load_dir(tmp_path)[0].speed > 0  # the uncut clip loads
+    np.savetxt(whole, np.delete(rows, np.s_[100:160], axis=0).reshape(-1, 2), delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    # frames 100 and 101 of the cut clip are rows 892-909 (9 rows a frame)
+    assert whole.name in str(e.value) and e.value.field == "rows 892-909" and "jumps" in e.value.problem

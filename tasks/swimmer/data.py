@@ -11,7 +11,8 @@ Formats (Michelis et al., srl-ethz/fishsim, MIT licence):
 Label X.YZ (motor rate in Hz) comes from the file name; the frame rate is the format's 60 fps unless
 given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
 dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many
-frames repeat the previous one exactly (duplicated frames). Flagged, not refused (tail_beat_check):
+frames repeat the previous one exactly (duplicated frames), frames cut out of a clip (the head's jump, in either
+format). Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
 Forward speed (real and simulated alike): least-squares straight line through the head centre
@@ -100,7 +101,7 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=1)
-    _check_jumps(path, markers)
+    _check_jumps(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
     return markers * (HEAD_MARKER_DISTANCE / head_px)
 
@@ -130,14 +131,15 @@ def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
                          "clip's true frame rate with --fps")
 
 
-def _check_jumps(path: Path, markers: np.ndarray) -> None:
+def _check_jumps(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
     """Rows are frames at one rate with no time column, so frames cut out of a clip leave only a jump of the head:
     read through, the clip swims that far in one frame and its speed comes out too high (a second cut from the
-    1.00 Hz clip: +36 %)."""
+    1.00 Hz clip: +36 %). A rotated file's head markers keep the head's progress, so the jump shows there too."""
     head = 0.5 * (markers[:, 0] + markers[:, 1])
     frame, ratio = largest_jump(np.linalg.norm(np.diff(head, axis=0), axis=1))
     if ratio > MAX_HEAD_JUMP:
-        raise InputError(str(path), f"rows {frame + 1}-{frame + 2}", f"the head jumps {ratio:.0f} x its frame-to-frame "
+        first, last = frame * rows_per_frame + 1, (frame + 2) * rows_per_frame
+        raise InputError(str(path), f"rows {first}-{last}", f"the head jumps {ratio:.0f} x its frame-to-frame "
                          f"step around there between frames {frame + 1} and {frame + 2}: frames missing or a tracking "
                          "jump; give the clip without gaps")
 
@@ -163,6 +165,7 @@ def read_rotated_markers(path: Path) -> np.ndarray:
     _check_dropouts(path, markers, range(1, N_MARKERS), rows_per_frame=N_MARKERS)
     _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=N_MARKERS)
+    _check_jumps(path, markers, rows_per_frame=N_MARKERS)
     # no pixel scale here: the file must already be in metres (a mm or cm export would swim at km/h)
     apart = float(np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean())
     lo, hi = (HEAD_MARKER_DISTANCE * f for f in HEAD_DISTANCE_RANGE)
