@@ -24,6 +24,7 @@ from wrenorm.tasks.rope.reference.generate import (
     builtin_reference_path,
     builtin_references,
     first_self_collision,
+    generate_reference,
     load_reference,
     save_reference,
 )
@@ -413,7 +414,7 @@ def test_short_newton_run_follows_hand_and_keeps_length():
     # Hand moves 0.1 m sideways in 0.16 s; the rope must be dragged along without stretching.
     path = HandPath.through([0, 0.16], [[0, 0, 1.0], [0.1, 0, 1.0]], [[0, 0, 0], [0, 0, 0]])
     t0 = time.perf_counter()
-    run = simulate(path, RopeMaterial(), segments=16, duration=0.2, frame_rate=250, substeps_per_frame=8)
+    run = simulate(path, RopeMaterial(), segments=16, duration=0.2, frame_rate=250, timestep=5e-4)
     assert time.perf_counter() - t0 < 60
     assert run.substeps == 400
     lengths = np.linalg.norm(np.diff(run.nodes, axis=1), axis=2).sum(1)
@@ -424,6 +425,41 @@ def test_short_newton_run_follows_hand_and_keeps_length():
     # Free fall check: nothing pushes the tip up while the hand stays at height.
     assert run.nodes[:, -1, 2].max() < 1.0 - 1.1 + 0.02
 
+
+
+def test_newton_frame_rate_samples_the_same_motion_and_timestep_sets_the_physics():
+    """The frame rate only samples the rod's motion; its physics step is --timestep. Until this was so, newton's
+    step was a fixed eighth of the frame interval, and a flick's first contact moved by 0.26 s between 250 and
+    1000 frames a second."""
+    from wrenorm.tasks.rope.reference.materials import RopeMaterial
+    from wrenorm.tasks.rope.reference.newton import simulate
+
+    path = HandPath.through([0, 0.08, 0.16], [[0, 0, 1.0], [0.15, 0, 1.1], [0.3, 0, 1.0]],
+                            [[0, 0, 0], [3.0, 0, 0], [0, 0, 0]])
+    slow = simulate(path, RopeMaterial(), segments=12, duration=0.16, frame_rate=250, capture=False)
+    fast = simulate(path, RopeMaterial(), segments=12, duration=0.16, frame_rate=1000, capture=False)
+    assert slow.substeps == fast.substeps == 320  # 0.5 ms steps either way
+    np.testing.assert_allclose(fast.nodes[::4], slow.nodes, atol=1e-5)
+    finer = simulate(path, RopeMaterial(), segments=12, duration=0.16, frame_rate=250, timestep=2.5e-4,
+                     capture=False)
+    assert finer.substeps == 640 and np.abs(finer.nodes - slow.nodes).max() > 1e-5
+    # an odd split is made even (the captured graph swaps two states): 300 Hz at 0.5 ms is 8 steps, not 7
+    odd = simulate(path, RopeMaterial(), segments=12, duration=0.1, frame_rate=300, capture=False)
+    assert odd.substeps == 30 * 8
+
+
+def test_reference_timestep_reaches_either_engine_and_is_range_checked(tmp_path, capsys):
+    from wrenorm.cli import main
+
+    ref = generate_reference("flick", segments=16, duration=0.1, engine="mujoco", timestep=5e-4)
+    assert "timestep=0.0005s" in ref.source
+    ref = generate_reference("flick", segments=16, duration=0.1, engine="newton", timestep=2.5e-4)
+    assert "substep=2.50e-04s" in ref.source
+    with pytest.raises(InputError, match="timestep"):
+        generate_reference("flick", segments=16, duration=0.1, timestep=0.1)
+    assert main(["reference", "rope", "--timestep", "0", "--out", str(tmp_path / "r.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "timestep" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "r.npz").exists()
 
 def test_unshipped_variant_goes_to_user_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("WRENORM_CACHE", str(tmp_path))

@@ -52,11 +52,10 @@ def states(path, settings: dict) -> tuple[crit.CriticalStates, crit.CriticalStat
     """(the scoring rule's state at the engine's frame rate, the pre-contact state at FINE_RATE)."""
     engine = settings.get("engine", "newton")
     out = []
-    for rate, spf in ((ENGINE_FRAME_RATE[engine], 8), (FINE_RATE, 2 if engine == "newton" else 8)):
-        # newton's substep is 1 / (rate * spf): 250 Hz x 8 and 1000 Hz x 2 are the same 0.5 ms step; MuJoCo's
-        # step is its own 0.25 ms at every frame rate
+    for rate in (ENGINE_FRAME_RATE[engine], FINE_RATE):
+        # either engine's physics step is its own at every frame rate: the frames only sample the same motion
         ref = generate_reference(path, segments=settings.get("fine_segments", 64), variant=settings["variant"],
-                                 duration=1.5, frame_rate=rate, substeps_per_frame=spf, engine=engine)
+                                 duration=1.5, frame_rate=rate, engine=engine)
         event = crit.reference_event(ref)
         if event is None:
             out.append(None)

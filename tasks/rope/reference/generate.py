@@ -369,6 +369,7 @@ def save_reference(path, ref: RopeReference, extra: dict | None = None) -> None:
 
 ENGINES = ("newton", "mujoco")
 ENGINE_FRAME_RATE = {"newton": FRAME_RATE, "mujoco": 200.0}  # Hz: 200 Hz is a common motion-capture rate
+TIMESTEP_RANGE = (1e-6, 5e-3)  # s; the engines' own defaults (newton.TIMESTEP, mujoco.TIMESTEP) lie inside
 
 
 def resample_nodes(nodes: np.ndarray, markers: int) -> tuple[np.ndarray, np.ndarray]:
@@ -401,7 +402,7 @@ def perturbed_path(path_name: str, seed: int, sigma: float = 0.75):
 
 def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, variant: str = "default",
                        duration: float = DEFAULT_DURATION, markers: int | None = None,
-                       frame_rate: float | None = None, substeps_per_frame: int = 8, iterations: int = 10,
+                       frame_rate: float | None = None, timestep: float | None = None, iterations: int = 10,
                        device: str = "cpu", progress=None, engine: str = "newton", perturb: int | None = None,
                        dense: bool = False, annotate: bool = False) -> RopeReference:
     """Simulate a fine rope (newton's rod or MuJoCo's) along a hand path and (if out is given) save it.
@@ -436,26 +437,29 @@ def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, va
         raise InputError("--segments", "segments", f"{segments} is outside [4, 1024]")
     if not 10.0 <= frame_rate <= 5000.0:
         raise InputError("--frame-rate", "frame_rate", f"{frame_rate:g} Hz is outside [10, 5000] Hz")
+    if timestep is not None and not TIMESTEP_RANGE[0] <= timestep <= TIMESTEP_RANGE[1]:
+        raise InputError("--timestep", "timestep", f"{timestep:g} s is outside [{TIMESTEP_RANGE[0]:g}, "
+                         f"{TIMESTEP_RANGE[1]:g}] s")
     if engine == "mujoco":
-        from wrenorm.tasks.rope.reference.mujoco import simulate as mj_simulate
+        from wrenorm.tasks.rope.reference import mujoco as mujoco_rod
 
-        run = mj_simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
-                          progress=progress)
+        run = mujoco_rod.simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
+                                  timestep=mujoco_rod.TIMESTEP if timestep is None else timestep, progress=progress)
         nodes, time, hand, wall = run.nodes, run.time, run.hand, run.wall_s
         ev = run.contact
         sim_t = float("nan") if ev is None else ev.time
         sim_s = np.array([np.nan, np.nan]) if ev is None else np.array([ev.s_a, ev.s_b])
         what = f"{run.name} near_contacts={run.near_contacts}"
     else:
-        from wrenorm.tasks.rope.reference.newton import simulate
+        from wrenorm.tasks.rope.reference import newton as newton_rod
 
-        run = simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
-                       substeps_per_frame=substeps_per_frame, iterations=iterations, device=device,
-                       progress=progress)
+        run = newton_rod.simulate(hand_path, material, segments=segments, duration=duration, frame_rate=frame_rate,
+                                  timestep=newton_rod.TIMESTEP if timestep is None else timestep,
+                                  iterations=iterations, device=device, progress=progress)
         nodes, time, hand, wall = run.nodes, run.time, run.hand, run.wall_s
         sim_t, sim_s = _dense_first_contact(time, nodes, material.length, material.radius)
         what = (f"newton {_newton_version()} SolverVBD rod: segments={segments} "
-                f"substep={1.0 / (frame_rate * (substeps_per_frame + substeps_per_frame % 2)):.2e}s "
+                f"substep={run.time[-1] / run.substeps:.2e}s "
                 f"iterations={iterations}")
     n_nodes = segments + 1
     m = n_nodes if markers is None else int(markers)
@@ -555,8 +559,11 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress")
     add_number(parser, "--frame-rate", default=None, lo=10.0, hi=5000.0, unit="Hz",
-               help="recorded frames per second (default: newton 250, mujoco 200); newton's substep is 1/(8 x this "
-                    "rate), so there it also sets the rod's time step, and its first contact moves with it")
+               help="recorded frames per second (default: newton 250, mujoco 200); it only samples the motion: the "
+                    "physics step is --timestep")
+    add_number(parser, "--timestep", default=None, lo=TIMESTEP_RANGE[0], hi=TIMESTEP_RANGE[1], unit="s",
+               help="the fine rope's longest physics step (default: newton 5e-4, mujoco 2.5e-4); each frame interval "
+                    "is split into equal steps no longer than this (an even number on newton)")
     add_number(parser, "--markers", default=None, lo=2, hi=1025, integer=True,
                help="markers at evenly spaced arc length, ends included (default: every node)")
     parser.add_argument("--dense", action="store_true",
@@ -595,6 +602,7 @@ def run_reference(args) -> int:
     ref = generate_reference(args.path, args.out, segments=args.segments, variant=args.variant,
                              duration=args.duration, markers=getattr(args, "markers", None), progress=progress,
                              engine=engine, frame_rate=getattr(args, "frame_rate", None),
+                             timestep=getattr(args, "timestep", None),
                              perturb=getattr(args, "perturb", None), dense=getattr(args, "dense", False),
                              annotate=getattr(args, "annotate", False))
     bar.close()
