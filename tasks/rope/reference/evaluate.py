@@ -187,8 +187,8 @@ def generate(args) -> int:
         try:
             ref = generate_reference(path, f, variant=variant, engine=args.engine, frame_rate=args.frame_rate,
                                      timestep=args.timestep, markers=args.markers, perturb=seed, dense=True,
-                                     duration=args.duration, annotate=args.annotate, **({} if args.segments is None else
-                                                                {"segments": args.segments}))
+                                     duration=args.duration, annotate=args.annotate,
+                                     **({} if args.segments is None else {"segments": args.segments}))
         except InputError as e:  # one throw this engine cannot make costs that throw, not the set
             if str(e) not in said:  # an option every throw shares fails every throw: said once
                 print(f"{name}: {e} (skipped; so is every later throw with this problem)", file=sys.stderr,
