@@ -14,7 +14,13 @@ from wrenorm.errors import InputError
 from wrenorm.tasks.rope.observable import Target, reference_critical
 from wrenorm.tasks.rope.reference import evaluate
 from wrenorm.tasks.rope.reference.events import critical, detect, polyline_gap
-from wrenorm.tasks.rope.reference.generate import load_reference, reference_arrays, resample_nodes, save_reference
+from wrenorm.tasks.rope.reference.generate import (
+    generate_reference,
+    load_reference,
+    reference_arrays,
+    resample_nodes,
+    save_reference,
+)
 
 DATA = Path(__file__).parent / "data"
 L, R = 1.1, 0.005
@@ -139,6 +145,55 @@ def test_frames_cut_out_before_the_event_are_flagged(tmp_path):
     np.savez(f, **data)
     c = critical(load_reference(f))
     assert c.event is not None and "jump" not in c.detection.diagnostics["rules_fired"]
+
+
+def test_a_few_frames_cut_while_the_hand_moves_are_flagged_by_its_kink(tmp_path):
+    """Five frames (25 ms) cut with the clock made uniform again: too few for the markers' jump, and the contact
+    comes 25 ms early. The hand is a driven, smooth path: its second difference kinks forth and back at the cut."""
+    ref = load_reference(DATA / "mujoco_default_flick_wide.npz")
+    whole = critical(ref)
+    assert whole.detection.diagnostics["hand_doublet_over_neighbourhood"] < 2
+    speed = np.linalg.norm(np.diff(ref.hand, axis=0), axis=1) / ref.dt
+    i = int(np.argmax(speed))  # where the hand moves fastest
+    data = reference_arrays(ref)
+    cut = np.r_[0:i, i + 5:len(ref.time)]
+    data.update(time=ref.time[:len(cut)], markers=data["markers"][cut], hand=data["hand"][cut])
+    f = tmp_path / "cut5.npz"
+    np.savez(f, **data)
+    c = critical(load_reference(f))
+    assert c.detection.diagnostics["largest_jump_over_neighbourhood"] < 10  # the markers' rule alone misses it
+    assert c.event is not None and c.event.flagged and "jump" in c.detection.diagnostics["rules_fired"]
+    assert any("hand's path kinks" in r for r in c.event.reasons)
+
+
+def _cut_to(f: Path, end: float, markers: int = 12) -> dict:
+    """A dense reference's rope seen by `markers` markers evenly spaced over arc length [0, end]."""
+    z = np.load(f)
+    nodes, s_nodes = z["dense_nodes"].astype(np.float64), z["dense_arclength"]
+    s = np.linspace(0.0, end, markers)
+    out = np.stack([np.stack([np.interp(si, s_nodes, nodes[t, :, k]) for k in range(3)], -1)
+                    for t in range(len(nodes)) for si in s]).reshape(len(nodes), markers, 3)
+    return {k: z[k] for k in ("time", "hand", "length", "mass", "radius")} | {"markers": out, "marker_arclength": s}
+
+
+def test_an_unmarked_free_end_is_never_a_silent_no_contact(tmp_path):
+    """MuJoCo's slow throw touches at its free end (s = 1.0); with the last 1 % of the rope unmarked the marked rope
+    stays 8.6 mm clear and was reported as no contact with confidence. The free end continued straight comes within
+    its uncertainty of the rope: no usable event, said. With every marker kept the contact is found."""
+    f = tmp_path / "slow.npz"
+    ref = generate_reference("flick_slow", f, engine="mujoco", duration=1.0, dense=True)
+    truth = ref.sim_contact_time
+    whole = tmp_path / "whole.npz"
+    np.savez(whole, **_cut_to(f, 1.0))
+    assert abs(critical(load_reference(whole)).event.time - truth) < 0.02
+    short = tmp_path / "short.npz"
+    np.savez(short, **_cut_to(f, 0.99))
+    c = critical(load_reference(short))
+    assert c.event is None and "carry no marker" in c.problem
+    # a third of the rope unmarked is more than a marker interval: where the end is cannot be told
+    np.savez(short, **_cut_to(f, 0.67))
+    c = critical(load_reference(short))
+    assert c.event is None or c.event.flagged
 
 
 def _occluded(tmp_path, name, markers, t0, t1):
@@ -479,3 +534,20 @@ def test_mujoco_rope_reports_its_own_contact():
     t = z["time"]
     k = int(np.searchsorted(t, float(z["sim_contact_time"])))
     assert gap[k - 1] > 0 and gap[max(k - 1, 0):k + 2].min() < 0.002
+
+
+def test_largest_doublet_sees_one_cut_frame_of_a_smooth_path_and_not_noise_or_an_acceleration_step():
+    from wrenorm.jumps import largest_doublet
+
+    t = np.arange(200) * 0.004
+    # a hand path whose acceleration jumps at 0.4 s (a step in the second difference, no kink back)
+    acc = np.where(t < 0.4, 20.0, -30.0)
+    x = np.cumsum(np.cumsum(acc) * 0.004) * 0.004
+    path = np.stack([x, 0.3 * x, np.zeros_like(x)], 1)
+    assert largest_doublet(path)[1] < 2
+    cut = np.delete(path, 120, axis=0)
+    i, ratio = largest_doublet(cut)
+    assert ratio > 10 and i + 1 == 119  # the cut lies between frames 119 and 120 of the cut path
+    noise = np.random.default_rng(1).normal(0.0, 5e-4, path.shape)
+    assert largest_doublet(path + noise)[1] < 5
+    assert largest_doublet(path[:3]) == (-1, 0.0)

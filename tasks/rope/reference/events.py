@@ -37,9 +37,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wrenorm.jumps import largest_jump
+from wrenorm.jumps import largest_doublet, largest_jump
 
-VERSION = 11  # bump when the detector's answer can change (keys the event cache)
+VERSION = 12  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -58,9 +58,11 @@ HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the g
 # Confidence rules applied by default. "fold" (the contact closes a loop within two neighbouring marker intervals) is
 # kept for measurements only: on the dev sets it never caught a wrong event that no other rule caught, and it
 # flagged 8 (12 markers) and 11 (8 markers) right newton events.
-RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump")
+RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip")
 MAX_MARKER_JUMP = 10.0  # x the markers' largest frame-to-frame step around it (wrenorm.jumps): the built-in and test
 # references reach 2.1-3.9, 50 frames cut out of a flick with its clock made uniform again 33
+MAX_HAND_DOUBLET = 10.0  # x the hand's second difference around it (wrenorm.jumps.largest_doublet): newton's and
+# MuJoCo's throws 0-1.1 (with 0.5 mm noise 1.7-3.0); one frame cut while the hand moves 5.8-105 (README)
 
 
 # ------------------------------------------------------------------------------------------------ results
@@ -542,6 +544,28 @@ def _first_per_frame(tt: np.ndarray, value: np.ndarray, T: int):
     return order[first]
 
 
+TIP_SHAPE_FRACTION = 0.25  # of the unmarked tail's length: how far its straight continuation may miss its bent end
+
+
+def _unmarked_tip_gap(X: np.ndarray, S: np.ndarray, length: float, radius: float, excl: float, n_sub: int,
+                      frames: int) -> tuple[np.ndarray, float]:
+    """(gap per frame, tail): the free end beyond the last marker (tail metres that no marker sees) continued
+    straight along the reconstructed rope's end tangent, and its least surface gap to the rope farther than pi
+    diameters along it, in the first `frames` frames (sampled points: the caller adds half a sub-segment of
+    slack). A guess of where the end is, not a bound: the caller widens it by TIP_SHAPE_FRACTION of the tail."""
+    tail = float(length - S[-1])
+    pts, sarc, _ = reconstruct(X[:frames], S, n_sub)
+    end = pts[:, -1, -1] - pts[:, -1, -2]
+    end /= np.maximum(np.linalg.norm(end, axis=-1, keepdims=True), 1e-12)
+    step = SUBSEGMENT_PER_RADIUS * radius
+    u = np.linspace(0.0, tail, int(np.ceil(tail / step)) + 1)[1:]
+    tip = X[:frames, -1][:, None, :] + u[None, :, None] * end[:, None, :]
+    rope, rope_s = pts.reshape(frames, -1, 3), sarc.reshape(frames, -1)
+    d = np.linalg.norm(tip[:, :, None, :] - rope[:, None, :, :], axis=-1)
+    d = np.where((S[-1] + u)[None, :, None] - rope_s[:, None, :] > excl, d, np.inf)
+    return d.min(axis=(1, 2)) - 2.0 * radius, tail
+
+
 def detect(time, markers, marker_arclength, length, radius, missing=None, hand=None,
            time_tolerance: float = TIME_TOLERANCE, noise: float | None = None, continuity: bool = False,
            rules: tuple | None = None, contact_level: float = CONTACT_LEVEL) -> Detection:
@@ -695,7 +719,31 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     # real contact missing for 60-495 ms; README, "Events in motion capture")
     hidden = (_gaps_that_may_hide_a_contact(time, X, S, radius, excl, margin, level, missing, untrusted,
                                             T if k is None else k) if "occlusion" in rules else "")
+    # the free end beyond the last marker is seen by no marker: where its straight continuation comes within its
+    # uncertainty of the rope, or where more than a marker interval of it is unseen, a contact may hide
+    tip_k, tail = None, float(length) * (1.0 - float(sfrac[-1]))
+    upto = T if k is None else k
+    if tail > radius and "tip" in rules and upto > 0:
+        if tail > a.max():
+            tip_k = 0
+        else:
+            tip_gap, tail = _unmarked_tip_gap(X, S, float(length), float(radius), excl, n_sub, upto)
+            spacing = float(a.max()) / n_sub
+            unc_tip = GAP_ERROR + margin + 0.5 * spacing + TIP_SHAPE_FRACTION * tail
+            hit = np.flatnonzero(tip_gap - unc_tip - level <= 0.0)
+            tip_k = int(hit[0]) if len(hit) else None
+    diag["unmarked_tail_m"] = tail
+    diag["unmarked_tip_reach_time"] = None if tip_k is None else float(time[tip_k])
+    tip_reason = ""
+    if tip_k is not None:
+        tip_reason = f"the last {100 * tail:.1f} cm of the rope (from s={sfrac[-1]:.2f}) carry no marker, and " + (
+            "that is more than a marker interval: where the free end is cannot be told" if tail > a.max() else
+            f"continued straight they come within their uncertainty of the rope at t={time[tip_k]:.3f} s")
     if k is None:
+        if tip_reason:
+            reasons.append(f"no contact on the marked rope, but {tip_reason}: a contact of the free end cannot be "
+                           "excluded")
+            return result("unusable", "none")
         if kq is None and hidden:
             reasons.append(f"no contact on the reconstructed rope, but {hidden}: a contact may lie in the gap")
             return result("unusable", "none")
@@ -824,6 +872,19 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                        f"t={time[kj]:.3f} and {time[kj + 1]:.3f} s, before the contact: frames missing from the "
                        "recording? then the contact time is early by the frames lost")
         low.append("jump")
+    if hand is not None and "jump" in rules:
+        hd, ratio_h = largest_doublet(np.asarray(hand, dtype=np.float64)[:k + 1])
+        diag["hand_doublet_over_neighbourhood"] = ratio_h
+        if ratio_h > MAX_HAND_DOUBLET:
+            reasons.append(f"the hand's path kinks forth and back ({ratio_h:.0f} x its usual second difference) "
+                           f"between t={time[hd + 1]:.3f} and {time[hd + 2]:.3f} s, before the contact: frames "
+                           "missing from the recording? then the contact time is early by the frames lost")
+            if "jump" not in low:
+                low.append("jump")
+    if tip_k is not None and time[tip_k] < t_event - time_tolerance:
+        reasons.append(f"{tip_reason} ({1000 * (t_event - time[tip_k]):.0f} ms before the detected contact): the "
+                       "free end may have touched first")
+        low.append("tip")
     diag["rules_fired"] = low
     conf = "low" if low else "high"
     ev = CollisionEvent(k, t_event, sa, sb, float(gap_series[k - 1] + level), float(gap[k] + level), "detected", conf,
