@@ -62,3 +62,56 @@ def test_the_fit_refuses_a_log_with_a_hole_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(f) in err[0] and "time" in err[0] and "Traceback" not in err[0]
     assert not (tmp_path / "r" / "result.json").exists()
+
+
+def test_arrival_time_stamps_that_bunch_up_are_refused(tmp_path):
+    """A logger that stamps samples as they arrive writes a burst after a stall: samples 1 us apart where the median
+    step is 1 ms. Read as measurement times they fitted J 14 % high and K_FF -0.36 without a word."""
+    t = T.copy()
+    t[2001:2006] = t[2000] + 1e-6 * np.arange(1, 6)  # five samples read out at once
+    f = _write(tmp_path / "burst.csv", t=t)
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.field == "time" and "arrival" in e.value.problem and "1e-06" in e.value.problem
+
+
+def test_milliseconds_on_a_fast_log_are_told_by_the_command_velocity(tmp_path):
+    """10 kHz for 3 s written in ms: step 0.1 and span 3000 fit a joint log in seconds too, but qd_d is 1000 x the
+    rate of change of q_d on that clock. It went on to a 298 GiB allocation."""
+    t = np.arange(0, 3.0, 1e-4)
+    f = tmp_path / "ms.csv"
+    cols = np.stack([t * 1e3, 0.3 * np.sin(2 * t), 0.3 * np.sin(2 * t + 0.1), 0.6 * np.cos(2 * t + 0.1)], 1)
+    np.savetxt(f, cols, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.field == "time" and "milliseconds" in e.value.problem
+    cols[:, 0] = t
+    np.savetxt(f, cols, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    assert len(load_log(f).time) == len(t)  # the same log in seconds loads
+
+
+def test_a_coarse_log_is_warned_and_a_still_held_out_part_gives_no_verdict(tmp_path, capsys):
+    from wrenorm.tasks.pd.problem import Command, PDProblem, continuous_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(0, 4.0, 0.05)  # 20 Hz, fitted at 100 Hz
+    q_d, qd_d, _ = cmd(t)
+    f = tmp_path / "coarse.csv"
+    np.savetxt(f, np.c_[t, continuous_reference(cmd, 0.05, 20.0, 0.5, t), q_d, qd_d], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    problem = PDProblem(100.0, log=load_log(f))
+    assert any("coarser than the simulation's step" in w for w in problem.warnings) and problem.held_out
+    # a step that settles within the first two thirds: the held-out third is motionless, so it validates nothing
+    step = Command("step", "step", 0.3, 0.0, 0.0)
+    t = np.arange(0, 6.0, 0.001)
+    q_d, qd_d, _ = step(t)
+    f = tmp_path / "step.csv"
+    np.savetxt(f, np.c_[t, continuous_reference(step, 0.05, 20.0, 2.0, t), q_d, qd_d], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    out = tmp_path / "run"
+    assert main(["fit", "pd", "--reference", str(f), "--out", str(out), "--quiet", "--no-record"]) == 0
+    import json
+
+    r = json.loads((out / "result.json").read_text())
+    assert r["validation"]["verdict"] == "unvalidated"
+    assert any("hardly moves" in w for w in r["warnings"]) and "hardly moves" in capsys.readouterr().err

@@ -112,3 +112,17 @@ def test_restarts_are_polished_like_the_fit_and_report_the_held_out_spread():
     crude = identifiability_restarts(p, fitted, seeds=[1, 2, 3], popsize=8, generations=3)
     assert crude["search"] == "cmaes" and crude["searches_fitting_as_well"] < 3
     assert crude["held_out_mean_error_spread_all"] > 1e-3
+
+
+def test_the_std_of_many_residuals_never_builds_a_rows_by_rows_matrix():
+    """A 3000 s joint log at 100 Hz has 2e5 residuals: the full SVD's left factor alone would be 298 GiB (a
+    traceback), while the parameters' covariance needs only the 4 x 4 side. The null-space test still works when
+    there are fewer rows than parameters."""
+    from wrenorm.uncertainty import _std
+
+    J = np.random.default_rng(0).normal(size=(200_000, 4))
+    cov, std, _ = _std(J, 1.0)
+    np.testing.assert_allclose(cov, np.linalg.inv(J.T @ J), rtol=1e-9)
+    assert np.all(np.isfinite(std))
+    _, std_few, _ = _std(J[:2], 1.0)  # two rows cannot determine four parameters
+    assert np.isinf(std_few).sum() >= 2

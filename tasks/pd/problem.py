@@ -12,6 +12,7 @@ measured log (CSV with columns time, q, q_d, qd_d).
 from __future__ import annotations
 
 import csv
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -179,6 +180,9 @@ def continuous_reference(cmd: Command, J: float, KP: float, KD: float, times: np
 LOG_COLUMNS = ("time", "q", "q_d", "qd_d")
 MAX_GAP_STEPS = 5.0  # the longest time step a log may have, in median steps (load_log says why) ...
 MIN_GAP_S = 0.02  # ... unless shorter than this: a fast logger's scheduling stall of a few ms bridges harmlessly
+MIN_STEP_FRACTION = 0.1  # the shortest step a log may have, in median steps (jitter of a steady logger: > 0.5)
+MAX_RATE_MISMATCH = 10.0  # qd_d over dq_d/dt beyond this (or below its inverse): another clock or unit
+STILL_FRACTION = 0.05  # a held-out part whose q varies less than this share of the training part's tests nothing
 
 
 @dataclass
@@ -236,10 +240,17 @@ def load_log(path: str | Path) -> MeasuredLog:
         raise InputError(src, "time", f"must increase strictly (row {int(np.argmax(dt <= 0)) + 2})")
     step, span = float(np.median(dt)), float(t[-1] - t[0])
     # a joint log samples at 10 Hz .. 100 kHz over seconds to an hour; milliseconds read as seconds do not
-    if not (1e-5 <= step <= 0.1) or span > 3600.0:
+    if not (1e-5 <= step <= 0.1 * (1 + 1e-9)) or span > 3600.0:  # 10 Hz stamps as arange makes them: 0.1 + 1e-17
         hint = " (milliseconds? seconds expected)" if step >= 0.1 or span > 3600.0 else ""
         raise InputError(src, "time", f"sample step {step:g} s over {span:g} s is outside a joint log's range "
                                       f"(step 1e-5..0.1 s, at most an hour){hint}")
+    # Stamps of arrival rather than of measurement bunch up (a burst read after a stall): samples a few us apart
+    # where the median step is a ms put each q at a time it was not measured.
+    if float(dt.min()) < MIN_STEP_FRACTION * step:
+        k = int(np.argmin(dt))
+        raise InputError(src, "time", f"samples {dt[k]:.3g} s apart after time {t[k]:g} s (data row {k + 1}), "
+                                      f"{dt[k] / step:.2g} of the median step {step:g} s: arrival time stamps? give "
+                                      "the time each sample was measured")
     # A steady logger's steps differ from its median by rounding and jitter (well under 2x), and a dropped sample
     # or two makes 2-3x; more than MAX_GAP_STEPS medians without a sample is rows lost (cut out, a logger stall),
     # which the interpolation would bridge with a motion nobody measured.
@@ -253,6 +264,14 @@ def load_log(path: str | Path) -> MeasuredLog:
             raise InputError(src, name, f"never changes (constant {arr[0, j]:g}): nothing to fit")
     if np.max(np.abs(arr[:, 1])) > 100.0:
         raise InputError(src, "q", f"reaches {np.max(np.abs(arr[:, 1])):g} rad: radians expected (degrees?)")
+    # qd_d is the command's velocity: on the right clock it is the rate of change of q_d. Milliseconds at 10 kHz
+    # have a step (0.1) and a span a joint log may have in seconds; this tells them apart.
+    rate = np.gradient(arr[:, 2], t)
+    if np.ptp(arr[:, 3]) > 0 and np.ptp(rate) > 0 and np.corrcoef(rate, arr[:, 3])[0, 1] > 0.9:
+        scale = float(rate @ arr[:, 3] / (rate @ rate))
+        if not 1.0 / MAX_RATE_MISMATCH <= scale <= MAX_RATE_MISMATCH:
+            raise InputError(src, "time", f"qd_d is {scale:.3g} x the rate of change of q_d on this time axis: "
+                                          "time in milliseconds (or qd_d in other units than q_d per second)?")
     return MeasuredLog(src, t - t[0], arr[:, 1], arr[:, 2], arr[:, 3])
 
 
@@ -272,6 +291,23 @@ def parameter_space(J: float, KP: float, KD: float) -> ParameterSpace:
         Parameter("K_AFF", 0.0, -J, J, "linear", unit="kg m^2",
                   doc="acceleration feed-forward gain on qdd_d (explicit Euler delays the velocity command)"),
     ])
+
+
+START_WINDOW = 0.01  # s either side of a segment's start whose samples the start state is fitted to
+
+
+def start_state(time: np.ndarray, q: np.ndarray, a: float) -> tuple[float, float]:
+    """(q, dq/dt) at time a from a least-squares quadratic through the samples within START_WINDOW of it (at least
+    two either side, one-sided at the log's ends). A spline through every sample passes through each one's noise,
+    and its slope multiplies the noise by the sample rate: 1 mrad of encoder noise at 1 kHz gave start velocities
+    of -14 rad/s where the joint rested, and a K_D 15 % high with the verdict "absorbed"."""
+    dt = float(np.median(np.diff(time)))
+    half = max(2, int(round(START_WINDOW / dt)))
+    k = int(np.clip(np.searchsorted(time, a), 0, len(time) - 1))
+    lo = max(0, min(k - half, len(time) - 2 * half - 1))
+    sel = slice(lo, min(len(time), lo + 2 * half + 1))
+    c = np.polynomial.polynomial.polyfit(time[sel] - a, q[sel], 2)
+    return float(c[0]), float(c[1])
 
 
 class PDProblem(Problem):
@@ -297,6 +333,7 @@ class PDProblem(Problem):
         self.space = parameter_space(J, KP, KD)
         self.tolerance = tolerance
         self.resolution = {"f_sim": self.f_sim, "dt": self.dt, "integrator": integrator}
+        self.warnings: list[str] = []
         if log is None:
             self.train = [self._analytic_condition(c) for c in (train or TRAIN_COMMANDS)]
             self.held_out = [self._analytic_condition(c) for c in (held_out or HELD_OUT_COMMANDS)]
@@ -328,7 +365,18 @@ class PDProblem(Problem):
             conds.append(Condition(name, {
                 "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
                 "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
-                "q_ref": q_spline(t), "init": (float(q_spline(a)), float(q_spline(a, 1)))}, {"source": log.path}))
+                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a)}, {"source": log.path}))
+        step = float(np.median(np.diff(log.time)))
+        if step > self.dt * (1 + 1e-6):
+            self.warnings.append(f"{log.path}: sampled every {step:g} s, coarser than the simulation's step "
+                                 f"{self.dt:g} s: the command and q are interpolated between samples (a 10 Hz log "
+                                 "fitted at 100 Hz moved K_D 15 %); log at least as fast as f_sim")
+        moves = [float(np.std(c.data["q_ref"])) for c in conds]
+        if moves[1] < STILL_FRACTION * moves[0]:
+            self.warnings.append(f"{log.path}: the last third of the log, held out for validation, hardly moves (q "
+                                 f"varies {moves[1]:.3g} rad against {moves[0]:.3g} rad in the first two thirds): it "
+                                 "tests nothing, so there is no verdict; log motion throughout")
+            return conds[:1], []
         return conds[:1], conds[1:]
 
     def _commands(self, conditions):
@@ -385,7 +433,8 @@ class PDProblem(Problem):
 
     def report(self, fitted, measured):
         f = self.space.as_dict(fitted)
-        return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name}
+        return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name,
+                "warnings": list(self.warnings)}
 
     def charts(self, fitted, measured):
         from wrenorm.tasks.pd.report import condition_charts
@@ -440,7 +489,10 @@ def build_problems(args, device: str) -> list[PDProblem]:
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
         return [ArmProblem(f, device) for f in args.f_sim]
     log = load_log(args.reference) if args.reference else None
-    return [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
+    problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
+    for w in dict.fromkeys(w for p in problems for w in p.warnings):  # said as they arise, once; kept in result.json
+        print(f"wrenorm: warning: {w}", file=sys.stderr, flush=True)
+    return problems
 
 
 def flow_problems(args, device: str) -> list[PDProblem]:
