@@ -129,6 +129,9 @@ def test_fps_carries_into_the_rates_and_a_wrong_one_is_flagged(tmp_path, rates):
     flagged = sd.tail_beat_check([at60])["flagged"]
     assert len(flagged) == 1 and "markers_f1_00.csv" in flagged[0] and "--fps" in flagged[0]
     assert sd.tail_beat_check([at120])["flagged"] == [] and sd.tail_beat_check(rates)["flagged"] == []
+    # 50 fps read as 60: every beat 20 % fast, 0.90 x the label, inside the band of before (0.5-1.0)
+    _write_pixels(tmp_path, r, markers=_upsampled(r.markers, 50.0 / 60.0))
+    assert len(sd.tail_beat_check(sd.load_dir(tmp_path))["flagged"]) == 1
     for bad in (0.0, -60.0, float("nan")):
         with pytest.raises(InputError, match="fps"):
             sd.load_dir(tmp_path, fps=bad)
@@ -263,3 +266,27 @@ def test_frames_cut_from_a_rotated_file_are_refused_by_the_head_jump(tmp_path, r
         sd.load_dir(tmp_path)
     # frames 100 and 101 of the cut clip are rows 892-909 (9 rows a frame)
     assert whole.name in str(e.value) and e.value.field == "rows 892-909" and "jumps" in e.value.problem
+
+
+def test_clip_names_with_a_decimal_point_or_capitals_read_alike_and_clip_like_names_are_refused(tmp_path, rates):
+    """markers_f2.25.csv was skipped in silence (the fit ran on one rate fewer); it and MARKERS_F1_00.CSV now read as
+    their labels, while a name that starts like a clip but holds no label X.YZ is refused, naming the file."""
+    _write_pixels(tmp_path, rates[0], name="markers_f0.50.csv")
+    _write_pixels(tmp_path, rates[1], name="MARKERS_F1_00.CSV")
+    (tmp_path / "notes.csv").write_text("not a clip")
+    got = sd.load_dir(tmp_path)
+    assert [(r.label, r.source) for r in got] == [(0.5, "markers_f0.50.csv"), (1.0, "MARKERS_F1_00.CSV")]
+    _write_pixels(tmp_path, rates[2], name="markers_f1_25_take2.csv")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_25_take2.csv" in str(e.value) and e.value.field == "file name"
+
+
+def test_a_clip_too_short_for_one_tail_beat_is_refused_in_one_line(tmp_path, rates):
+    """121 frames of the 1.00 Hz clip (2 s, 1.5 beats): the beat scan found 0.05 Hz in its trend, no beat window
+    remained, and the fit ended in a traceback."""
+    _write_pixels(tmp_path, rates[1], markers=rates[1].markers[:121])
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.field == "rows" and "too short to measure the tail beat" in e.value.problem
+    assert "160 frames" in e.value.problem  # two beats at this robot's 0.75 x 1.00 Hz

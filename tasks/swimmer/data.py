@@ -8,11 +8,12 @@ Formats (Michelis et al., srl-ethz/fishsim, MIT licence):
                             for that label exists (its head markers still give the forward track,
                             but the heading is constant by construction: Rate.frame "head", and
                             the head's yaw and sway cannot be measured from it).
-Label X.YZ (motor rate in Hz) comes from the file name; the frame rate is the format's 60 fps unless
-given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
-dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many
-frames repeat the previous one exactly (duplicated frames), frames cut out of a clip (the head's jump, in either
-format). Flagged, not refused (tail_beat_check):
+Label X.YZ (motor rate in Hz) comes from the file name (markers_fX.YZ.csv and any case read alike; another name
+that starts like a clip, markers_f1.csv or markers_f1_00_take2.csv, is refused); the frame rate is the format's 60
+fps unless given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
+dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many frames repeat
+the previous one exactly (duplicated frames), frames cut out of a clip (the head's jump, in either format).
+Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
 Forward speed (real and simulated alike): least-squares straight line through the head centre
@@ -43,8 +44,11 @@ MAX_REPEATED_FRAMES = 0.2  # share of frames equal to the previous one; tracked 
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
 MAX_HEAD_JUMP = 10.0  # x the head's median step around it (wrenorm.jumps): built-in clips 1.4-3.3, a second cut out 47
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
-TAIL_BEAT_PER_LABEL_RANGE = (0.5, 1.0)  # outside: flagged (a frame rate off by 2x lands at 0.375 or 1.5)
-_NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)_(\d+)\.csv$")
+TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
+# off by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by)
+# fishsim's names, markers_f1_00.csv; a decimal point (markers_f1.00.csv) and any case of the letters read alike
+_NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)[_.](\d+)\.csv$", re.IGNORECASE)
+_CLIP_LIKE = re.compile(r"^(markers|rotatedmarkers)_f\d.*\.csv$", re.IGNORECASE)
 BUILTIN = "fishsim_kinematics.npz"
 
 
@@ -72,7 +76,7 @@ def _label_of(path: Path) -> tuple[str, float] | None:
     m = _NAME.match(path.name)
     if not m:
         return None
-    return m.group(1), float(f"{m.group(2)}.{m.group(3)}")
+    return ("markers" if m.group(1).lower() == "markers" else "rotatedMarkers"), float(f"{m.group(2)}.{m.group(3)}")
 
 
 def _read_csv(path: Path, columns: int) -> np.ndarray:
@@ -193,6 +197,10 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
     for f in sorted(path.iterdir()):
         got = _label_of(f)
         if got is None:
+            if _CLIP_LIKE.match(f.name):  # meant as a clip: left out, the fit would run on fewer rates in silence
+                raise InputError(str(f), "file name", "looks like a clip but is not named markers_fX_YZ.csv or "
+                                 "rotatedMarkers_fX_YZ.csv (label X.YZ Hz, e.g. markers_f2_25.csv or "
+                                 "markers_f2.25.csv): rename it, or move it out of the folder")
             continue
         if got in by_kind:  # markers_f1_0.csv and markers_f1_00.csv: keeping either would hide the other
             raise InputError(str(path), "file names", f"{by_kind[got].name} and {f.name} both hold label "
@@ -342,6 +350,15 @@ def analyse(rate: Rate) -> Rate:
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
+    frames = len(rate.markers)
+    if np.floor(frames / rate.fps * rate.tail_freq + 1e-6) < 1:  # the features are per complete beat
+        # a clip that short gets a frequency from its trend, not from a beat (121 frames of the 1.00 Hz clip: 0.05 Hz)
+        expected = TAIL_BEAT_PER_LABEL * rate.label
+        need = (f"; this robot beats at ~{expected:.3g} Hz here: give at least two beats, "
+                f"{int(np.ceil(2 * rate.fps / expected))} frames") if expected > 0 else ""
+        raise InputError(rate.source or rate.name, "rows",
+                         f"{frames} frames ({frames / rate.fps:.2f} s at {rate.fps:g} fps) are too short to measure "
+                         f"the tail beat (the estimate, {rate.tail_freq:.3f} Hz, holds no complete beat){need}")
     rate.speed = measured_speed(rate.markers, rate.fps)
     head = 0.5 * (rate.markers[:, 0] + rate.markers[:, 1])
     travel = float(np.linalg.norm(head[-1] - head[0]))
