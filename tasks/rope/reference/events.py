@@ -39,7 +39,7 @@ import numpy as np
 
 from wrenorm.jumps import largest_doublet, largest_jump
 
-VERSION = 12  # bump when the detector's answer can change (keys the event cache)
+VERSION = 13  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -947,7 +947,9 @@ def _cache_file(key: str):
 def _to_json(det: Detection) -> dict:
     keep = ("summary", "event_intervals", "gap_before", "gap_at", "gap_uncertainty_m", "closing_speed_mps",
             "earliest_plausible_time", "earliest_possible_time", "approach_episode_start_time", "rules_fired",
-            "fastest_motion_time", "after_fastest_s", "event_chord_over_arc", "depth_m", "noise_sigma_m")
+            "fastest_motion_time", "after_fastest_s", "event_chord_over_arc", "depth_m", "noise_sigma_m",
+            "largest_jump_over_neighbourhood", "hand_doublet_over_neighbourhood", "unmarked_tail_m",
+            "unmarked_tip_reach_time")
     d = {k: det.diagnostics.get(k) for k in keep if k in det.diagnostics}
     e = det.event
     return {"status": det.status, "confidence": det.confidence, "reasons": list(det.reasons),
