@@ -186,6 +186,18 @@ def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):
             assert abs(v0) < 0.5 and abs(q0 - clean[0]) < 1e-3
     for p in ("J", "K_D"):
         assert fits["noisy"][p]["fitted"] == pytest.approx(fits["clean"][p]["fitted"], rel=0.02), p
+    # on clean logs that start in mid-motion the state is the spline's, whatever the rate: a quadratic over a window
+    # wider than the log's own motion (two samples either side at 100 Hz) biased a chirp's start velocity 6 %
+    from scipy.interpolate import CubicSpline
+
+    chirp = Command("ch", "chirp", 0.3, 0.5, 3.0)
+    for hz in (1000, 100, 50):
+        t = np.arange(0, 5.0, 1.0 / hz)
+        q = continuous_reference(chirp, 0.05, 20.0, 0.5, t)
+        m = t >= 1.23
+        spline = CubicSpline(t[m], q[m])
+        q0, v0 = start_state(t[m], q[m], 4.0)
+        assert abs(v0 - spline(4.0, 1)) < 1e-3 * abs(spline(4.0, 1)) and abs(q0 - spline(4.0)) < 1e-5, hz
 
 
 @pytest.mark.parametrize("KD", [0.5, 2.0, 5.0])  # under-, critically and over-damped

@@ -88,6 +88,11 @@ def test_milliseconds_on_a_fast_log_are_told_by_the_command_velocity(tmp_path):
     cols[:, 0] = t
     np.savetxt(f, cols, delimiter=",", header="time,q,q_d,qd_d", comments="")
     assert len(load_log(f).time) == len(t)  # the same log in seconds loads
+    cols[:, 3] *= -1  # the command velocity with the wrong sign
+    np.savetxt(f, cols, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.field == "qd_d" and "wrong sign" in e.value.problem
 
 
 def test_a_coarse_log_is_warned_and_a_still_held_out_part_gives_no_verdict(tmp_path, capsys):
@@ -109,7 +114,9 @@ def test_a_coarse_log_is_warned_and_a_still_held_out_part_gives_no_verdict(tmp_p
     np.savetxt(f, np.c_[t, continuous_reference(step, 0.05, 20.0, 2.0, t), q_d, qd_d], delimiter=",",
                header="time,q,q_d,qd_d", comments="")
     out = tmp_path / "run"
-    assert main(["fit", "pd", "--reference", str(f), "--out", str(out), "--quiet", "--no-record"]) == 0
+    # recorded too: the recording walked the held-out conditions and met none
+    assert main(["fit", "pd", "--reference", str(f), "--out", str(out), "--quiet"]) == 0
+    assert (out / "recording.rrd").exists()
     import json
 
     r = json.loads((out / "result.json").read_text())

@@ -26,12 +26,13 @@ def largest_jump(steps: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int, flo
 
 
 def largest_doublet(points: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int, float]:
-    """(i, ratio): frames cut out of a smooth path whose clock was made uniform again leave a kink back and forth,
-    two neighbouring second differences of opposite direction (a step of k frames' motion, then its return), each
-    as large as the motion of the frames lost. ratio is the smaller of the two over the median second difference
-    within `window` either side; the cut lies between frames i + 1 and i + 2. A single cut frame already stands out
-    where a first-difference jump (largest_jump) needs about ten; (-1, 0.0) when there is none or fewer than 4
-    frames. Used on a driven path (the hand): a free rope's own second differences kink in contact and whip."""
+    """(i, ratio): frames cut out of a smooth path whose clock was made uniform again leave a kink back and forth, two
+    neighbouring second differences of opposite direction (a step of k frames' motion, then its return), each as large
+    as the motion of the frames lost, between second differences less than half as large (one sample off the path, a
+    tracking glitch, kinks three times instead: +e, -2e, +e). ratio is the smaller of the two over the median second
+    difference within `window` either side; the cut lies between frames i + 1 and i + 2. A single cut frame already
+    stands out where a first-difference jump (largest_jump) needs about ten; (-1, 0.0) when there is none or fewer
+    than 4 frames. Used on a driven path (the hand): a free rope's own second differences kink in contact and whip."""
     x = np.asarray(points, dtype=np.float64)
     if len(x) < 4:
         return -1, 0.0
@@ -39,7 +40,11 @@ def largest_doublet(points: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int,
     size = np.linalg.norm(d2, axis=1)
     both = np.minimum(size[:-1], size[1:])
     cos = np.einsum("ij,ij->i", d2[:-1], d2[1:]) / np.maximum(size[:-1] * size[1:], 1e-300)
-    candidate = np.where((cos < -0.5) & (both > 0), both, 0.0)
+    # a cut is a pair with quiet neighbours; one sample off the path (a tracking glitch) kinks three times, +e -2e +e
+    before = np.concatenate([[0.0], size[:-2]])
+    after = np.concatenate([size[2:], [0.0]])
+    quiet = np.maximum(before, after) < 0.5 * both
+    candidate = np.where((cos < -0.5) & (both > 0) & quiet, both, 0.0)
     best, ratio = -1, 0.0
     for i in np.argsort(candidate)[::-1][:8]:
         if candidate[i] <= 0:

@@ -248,7 +248,7 @@ def load_log(path: str | Path) -> MeasuredLog:
     # where the median step is a ms put each q at a time it was not measured.
     if float(dt.min()) < MIN_STEP_FRACTION * step:
         k = int(np.argmin(dt))
-        raise InputError(src, "time", f"samples {dt[k]:.3g} s apart after time {t[k]:g} s (data row {k + 1}), "
+        raise InputError(src, "time", f"samples {dt[k]:.3g} s apart after time {t[k]:.12g} s (data row {k + 1}), "
                                       f"{dt[k] / step:.2g} of the median step {step:g} s: arrival time stamps? give "
                                       "the time each sample was measured")
     # A steady logger's steps differ from its median by rounding and jitter (well under 2x), and a dropped sample
@@ -256,7 +256,7 @@ def load_log(path: str | Path) -> MeasuredLog:
     # which the interpolation would bridge with a motion nobody measured.
     gap = int(np.argmax(dt))
     if dt[gap] > max(MAX_GAP_STEPS * step, MIN_GAP_S):
-        raise InputError(src, "time", f"no sample for {dt[gap]:g} s after time {t[gap]:g} s (data row {gap + 1}), "
+        raise InputError(src, "time", f"no sample for {dt[gap]:g} s after time {t[gap]:.12g} s (data row {gap + 1}), "
                                       f"{dt[gap] / step:.0f} times the median step {step:g} s: rows missing? (give "
                                       "a log without holes, or cut it at the gap)")
     for j, name in enumerate(LOG_COLUMNS[1:], start=1):
@@ -267,8 +267,11 @@ def load_log(path: str | Path) -> MeasuredLog:
     # qd_d is the command's velocity: on the right clock it is the rate of change of q_d. Milliseconds at 10 kHz
     # have a step (0.1) and a span a joint log may have in seconds; this tells them apart.
     rate = np.gradient(arr[:, 2], t)
-    if np.ptp(arr[:, 3]) > 0 and np.ptp(rate) > 0 and np.corrcoef(rate, arr[:, 3])[0, 1] > 0.9:
+    if np.ptp(arr[:, 3]) > 0 and np.ptp(rate) > 0 and abs(np.corrcoef(rate, arr[:, 3])[0, 1]) > 0.9:
         scale = float(rate @ arr[:, 3] / (rate @ rate))
+        if scale < 0:
+            raise InputError(src, "qd_d", f"runs against the rate of change of q_d ({scale:.3g} x it): the command "
+                                          "velocity with the wrong sign?")
         if not 1.0 / MAX_RATE_MISMATCH <= scale <= MAX_RATE_MISMATCH:
             raise InputError(src, "time", f"qd_d is {scale:.3g} x the rate of change of q_d on this time axis: "
                                           "time in milliseconds (or qd_d in other units than q_d per second)?")
@@ -296,17 +299,26 @@ def parameter_space(J: float, KP: float, KD: float) -> ParameterSpace:
 START_WINDOW = 0.01  # s either side of a segment's start whose samples the start state is fitted to
 
 
-def start_state(time: np.ndarray, q: np.ndarray, a: float) -> tuple[float, float]:
-    """(q, dq/dt) at time a from a least-squares quadratic through the samples within START_WINDOW of it (at least
-    two either side, one-sided at the log's ends). A spline through every sample passes through each one's noise,
-    and its slope multiplies the noise by the sample rate: 1 mrad of encoder noise at 1 kHz gave start velocities
-    of -14 rad/s where the joint rested, and a K_D 15 % high with the verdict "absorbed"."""
+def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple[float, float]:
+    """(q, dq/dt) at time a. A spline through every sample passes through each one's noise, and its slope multiplies
+    the noise by the sample rate: 1 mrad of encoder noise at 1 kHz gave start velocities of -14 rad/s where the joint
+    rested, and a K_D 15 % high with the verdict "absorbed". So where START_WINDOW holds at least two samples either
+    side (logs at 200 Hz and faster) the state comes from a least-squares cubic through the samples within it
+    (one-sided at the log's ends; a cubic, so that the slope carries no error from the third derivative); a coarser
+    log, whose slope the noise moves little and whose window would span its motion, keeps the spline's (`spline`:
+    scipy's CubicSpline through the samples)."""
     dt = float(np.median(np.diff(time)))
-    half = max(2, int(round(START_WINDOW / dt)))
+    half = int(np.floor(START_WINDOW / dt + 1e-9))
+    if half < 2:
+        if spline is None:
+            from scipy.interpolate import CubicSpline
+
+            spline = CubicSpline(time, q)
+        return float(spline(a)), float(spline(a, 1))
     k = int(np.clip(np.searchsorted(time, a), 0, len(time) - 1))
     lo = max(0, min(k - half, len(time) - 2 * half - 1))
     sel = slice(lo, min(len(time), lo + 2 * half + 1))
-    c = np.polynomial.polynomial.polyfit(time[sel] - a, q[sel], 2)
+    c = np.polynomial.polynomial.polyfit(time[sel] - a, q[sel], 3)
     return float(c[0]), float(c[1])
 
 
@@ -365,7 +377,7 @@ class PDProblem(Problem):
             conds.append(Condition(name, {
                 "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
                 "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
-                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a)}, {"source": log.path}))
+                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a, q_spline)}, {"source": log.path}))
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
             self.warnings.append(f"{log.path}: sampled every {step:g} s, coarser than the simulation's step "
@@ -443,6 +455,8 @@ class PDProblem(Problem):
 
     def record(self, rec, fitted, measured):
         for group in (self.train, self.held_out):
+            if not group:  # a log whose held-out third does not move has none
+                continue
             traj = self.trajectories(np.stack([measured, fitted]), group)
             for j, c in enumerate(group):
                 t = c.data["t"][: traj.shape[2]]

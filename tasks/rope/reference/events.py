@@ -39,7 +39,7 @@ import numpy as np
 
 from wrenorm.jumps import largest_doublet, largest_jump
 
-VERSION = 13  # bump when the detector's answer can change (keys the event cache)
+VERSION = 14  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -554,16 +554,22 @@ def _unmarked_tip_gap(X: np.ndarray, S: np.ndarray, length: float, radius: float
     diameters along it, in the first `frames` frames (sampled points: the caller adds half a sub-segment of
     slack). A guess of where the end is, not a bound: the caller widens it by TIP_SHAPE_FRACTION of the tail."""
     tail = float(length - S[-1])
-    pts, sarc, _ = reconstruct(X[:frames], S, n_sub)
-    end = pts[:, -1, -1] - pts[:, -1, -2]
-    end /= np.maximum(np.linalg.norm(end, axis=-1, keepdims=True), 1e-12)
     step = SUBSEGMENT_PER_RADIUS * radius
     u = np.linspace(0.0, tail, int(np.ceil(tail / step)) + 1)[1:]
-    tip = X[:frames, -1][:, None, :] + u[None, :, None] * end[:, None, :]
-    rope, rope_s = pts.reshape(frames, -1, 3), sarc.reshape(frames, -1)
-    d = np.linalg.norm(tip[:, :, None, :] - rope[:, None, :, :], axis=-1)
-    d = np.where((S[-1] + u)[None, :, None] - rope_s[:, None, :] > excl, d, np.inf)
-    return d.min(axis=(1, 2)) - 2.0 * radius, tail
+    gap = np.empty(frames)
+    per_frame = len(u) * (len(S) - 1) * (n_sub + 1)
+    chunk = max(1, 200000 // per_frame)  # point pairs per block, as the contact search takes them
+    for f0 in range(0, frames, chunk):
+        f1 = min(frames, f0 + chunk)
+        pts, sarc, _ = reconstruct(X[f0:f1], S, n_sub)
+        end = pts[:, -1, -1] - pts[:, -1, -2]
+        end /= np.maximum(np.linalg.norm(end, axis=-1, keepdims=True), 1e-12)
+        tip = X[f0:f1, -1][:, None, :] + u[None, :, None] * end[:, None, :]
+        rope, rope_s = pts.reshape(f1 - f0, -1, 3), sarc.reshape(f1 - f0, -1)
+        d = np.linalg.norm(tip[:, :, None, :] - rope[:, None, :, :], axis=-1)
+        d = np.where((S[-1] + u)[None, :, None] - rope_s[:, None, :] > excl, d, np.inf)
+        gap[f0:f1] = d.min(axis=(1, 2)) - 2.0 * radius
+    return gap, tail
 
 
 def detect(time, markers, marker_arclength, length, radius, missing=None, hand=None,
@@ -873,11 +879,11 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                        "recording? then the contact time is early by the frames lost")
         low.append("jump")
     if hand is not None and "jump" in rules:
-        hd, ratio_h = largest_doublet(np.asarray(hand, dtype=np.float64)[:k + 1])
+        hd, ratio_h = largest_doublet(np.asarray(hand, dtype=np.float64)[:k + 2])  # the interval into frame k too
         diag["hand_doublet_over_neighbourhood"] = ratio_h
         if ratio_h > MAX_HAND_DOUBLET:
             reasons.append(f"the hand's path kinks forth and back ({ratio_h:.0f} x its usual second difference) "
-                           f"between t={time[hd + 1]:.3f} and {time[hd + 2]:.3f} s, before the contact: frames "
+                           f"between t={time[hd + 1]:.3f} and {time[hd + 2]:.3f} s, up to the contact: frames "
                            "missing from the recording? then the contact time is early by the frames lost")
             if "jump" not in low:
                 low.append("jump")
