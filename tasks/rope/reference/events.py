@@ -62,7 +62,7 @@ RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip
 MAX_MARKER_JUMP = 10.0  # x the markers' largest frame-to-frame step around it (wrenorm.jumps): the built-in and test
 # references reach 2.1-3.9, 50 frames cut out of a flick with its clock made uniform again 33
 MAX_HAND_DOUBLET = 10.0  # x the hand's second difference around it (wrenorm.jumps.largest_doublet): newton's and
-# MuJoCo's throws 0-1.1 (with 0.5 mm noise 1.7-3.0); one frame cut while the hand moves 5.8-105 (README)
+# MuJoCo's built-in-path throws 0 (with 0.5 mm noise at most 2.5); one frame cut while the hand moves 5.8-38 (README)
 
 
 # ------------------------------------------------------------------------------------------------ results
