@@ -459,7 +459,7 @@ def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, va
         nodes, time, hand, wall = run.nodes, run.time, run.hand, run.wall_s
         sim_t, sim_s = _dense_first_contact(time, nodes, material.length, material.radius)
         what = (f"newton {_newton_version()} SolverVBD rod: segments={segments} "
-                f"substep={run.time[-1] / run.substeps:.2e}s "
+                f"substep={run.time[-1] / max(run.substeps, 1):.2e}s "
                 f"iterations={iterations}")
     n_nodes = segments + 1
     m = n_nodes if markers is None else int(markers)
