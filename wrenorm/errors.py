@@ -1,4 +1,13 @@
 """User-facing errors: every bad input names its source, the field and the problem."""
+import sys
+
+WARNING_PREFIX = "wrenorm: warning: "  # a sweep cell's log is read back by it (wrenorm.sweep.cell)
+
+
+def warn(message: str) -> None:
+    """Say a flag on the data (a file left out, an uncertain event, a suspect frame rate) on stderr, as it arises;
+    the result files keep the same text."""
+    print(f"{WARNING_PREFIX}{message}", file=sys.stderr, flush=True)
 
 
 class InputError(Exception):

@@ -13,15 +13,20 @@ def largest_jump(steps: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int, flo
     `window` frames either side of it (itself left out), and that multiple; (-1, 0.0) when no step has a moving
     neighbourhood or there are fewer than 3 steps."""
     steps = np.asarray(steps, dtype=np.float64)
-    n = len(steps)
+    if len(steps) < 3:
+        return -1, 0.0
+    return _most_unusual(steps, steps, 1, window)
+
+
+def _most_unusual(score: np.ndarray, series: np.ndarray, width: int, window: int) -> tuple[int, float]:
+    """(i, ratio): among the 8 largest scores, the one that is the largest multiple of the median of `series` within
+    `window` entries either side of entries i .. i + width - 1 (left out), and that multiple; (-1, 0.0) if none."""
     best, ratio = -1, 0.0
-    if n < 3:
-        return best, ratio
-    for i in np.argsort(steps)[::-1][:8]:  # a jump is among the largest steps
-        around = np.concatenate([steps[max(0, i - window):i], steps[i + 1:i + 1 + window]])
+    for i in np.argsort(score)[::-1][:8]:  # what stands out is among the largest
+        around = np.concatenate([series[max(0, i - window):i], series[i + width:i + width + window]])
         usual = float(np.median(around)) if around.size else 0.0
-        if usual > 0 and steps[i] / usual > ratio:
-            best, ratio = int(i), float(steps[i] / usual)
+        if usual > 0 and score[i] / usual > ratio:
+            best, ratio = int(i), float(score[i] / usual)
     return best, ratio
 
 
@@ -44,14 +49,5 @@ def largest_doublet(points: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int,
     before = np.concatenate([[0.0], size[:-2]])
     after = np.concatenate([size[2:], [0.0]])
     quiet = np.maximum(before, after) < 0.5 * both
-    candidate = np.where((cos < -0.5) & (both > 0) & quiet, both, 0.0)
-    best, ratio = -1, 0.0
-    for i in np.argsort(candidate)[::-1][:8]:
-        if candidate[i] <= 0:
-            break
-        around = np.concatenate([size[max(0, i - window):i], size[i + 2:i + 2 + window]])
-        usual = float(np.median(around)) if around.size else 0.0
-        if usual > 0 and candidate[i] / usual > ratio:
-            best, ratio = int(i), float(candidate[i] / usual)
-    return best, ratio
+    return _most_unusual(np.where((cos < -0.5) & (both > 0) & quiet, both, 0.0), size, 2, window)
 

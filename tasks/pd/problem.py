@@ -12,13 +12,12 @@ measured log (CSV with columns time, q, q_d, qd_d).
 from __future__ import annotations
 
 import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from wrenorm.errors import InputError
+from wrenorm.errors import InputError, warn
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem
 from wrenorm.tasks.pd.options import F_SIM_RANGE, FLOW_F_SIM, MEASURED
@@ -505,7 +504,7 @@ def build_problems(args, device: str) -> list[PDProblem]:
     log = load_log(args.reference) if args.reference else None
     problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
     for w in dict.fromkeys(w for p in problems for w in p.warnings):  # said as they arise, once; kept in result.json
-        print(f"wrenorm: warning: {w}", file=sys.stderr, flush=True)
+        warn(w)
     return problems
 
 

@@ -525,12 +525,11 @@ def screen_references(paths, role: str, rows: list, warn=None) -> tuple[list, li
     """Load each reference and find its critical moment; a file that cannot be read, or has no usable event,
     is left out with a one-line warning naming file, field and problem (and a row in `rows`); an uncertain
     (flagged) event is used, and said so. Returns (references, names) of the usable ones."""
-    import sys
-
+    from wrenorm.errors import warn as say_on_stderr
     from wrenorm.tasks.rope.reference.generate import load_reference
 
     def say(msg):
-        (warn or (lambda m: print(f"wrenorm: warning: {m}", file=sys.stderr, flush=True)))(msg)
+        (warn or say_on_stderr)(msg)
 
     refs, names = [], []
     taken = set()

@@ -557,10 +557,10 @@ def _rates(args):
 
 def warn(problem) -> None:
     """The problem's warnings (features left out, tail-beat flags) on stderr, as they arise: once per command."""
-    import sys
+    from wrenorm.errors import warn as say
 
     for w in problem.warnings:
-        print(f"wrenorm: warning: {w}", file=sys.stderr, flush=True)
+        say(w)
 
 
 def _check_dt(dt: float, source: str = "--dt") -> float:

@@ -18,6 +18,8 @@ import time
 import traceback
 from pathlib import Path
 
+from wrenorm.errors import WARNING_PREFIX
+
 TOKEN_FILE = ".wrenorm-sweep"
 RESULT_FILES = {"fit": "result.json", "flow": "flow.json"}  # any other command: <verb>.json (correct.json)
 WARNINGS_KEPT = 5  # a failed cell's last warnings that its recorded error carries
@@ -52,7 +54,7 @@ def _error_line(log: str, rc: int) -> str:
     for prefix, keep in (("wrenorm: error: ", ""), ("wrenorm: fit failed: ", "fit failed: ")):
         hit = [i for i, ln in enumerate(lines) if ln.startswith(prefix)]
         if hit:
-            warnings = [ln[len("wrenorm: "):] for ln in lines[:hit[-1]] if ln.startswith("wrenorm: warning: ")]
+            warnings = [ln[len("wrenorm: "):] for ln in lines[:hit[-1]] if ln.startswith(WARNING_PREFIX)]
             more = len(warnings) - WARNINGS_KEPT
             return "; ".join([keep + lines[hit[-1]][len(prefix):], *warnings[-WARNINGS_KEPT:],
                               *([f"{more} earlier warnings in the cell's log"] if more > 0 else [])])
