@@ -6,6 +6,7 @@
 # folders) would otherwise come first on sys.path.
 #   bash bench/gpu.sh [extra bench options]      results: $OUT/bench/results-cuda.{json,md} (+ the fits, each
 #                                                against the CPU default on two cores of the same machine)
+# Without $OUT the results go to the checkout's bench/, where the committed ones stand: add --force to replace them.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 src=$(mktemp -d /tmp/wrenorm-src.XXXXXX)

@@ -37,6 +37,19 @@ def test_bench_refuses_nonpositive_batches(tmp_path, capsys):
     assert "--out" in capsys.readouterr().err and (tmp_path / "f").read_text() == "x"
 
 
+def test_bench_keeps_earlier_results_without_force(tmp_path, capsys):
+    """A quick run into a folder holding measured tables is refused before it runs; --force replaces them."""
+    out = tmp_path / "b"
+    out.mkdir()
+    (out / "results.md").write_text("measured")
+    args = ["bench", "--quick", "--no-fits", "--no-cuda-build", "--only", "pd", "--batches", "256", "--out", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "results.md" in err and "--force" in err and (out / "results.md").read_text() == "measured"
+    assert main([*args, "--force"]) == 0
+    assert "PD joint" in (out / "results.md").read_text()
+
+
 def test_gpu_script_runs_from_the_repository_root_on_the_installed_layout(tmp_path):
     """bench/gpu.sh lays the package out as installed and runs it from outside the checkout (tried here on the
     CPU: WRENORM_BENCH_DEVICE=cpu)."""

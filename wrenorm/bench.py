@@ -36,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", choices=list(systems()), nargs="+", default=None, help="systems to bench")
     p.add_argument("--no-cuda-build", action="store_true",
                    help="skip the ahead-of-time sm_90 build of every kernel (registers, stack per thread)")
+    p.add_argument("--force", action="store_true", help="replace results already in --out")
 
 
 def _machine(device: str) -> dict:
@@ -155,6 +156,11 @@ def run(args) -> int:
 
     if args.out.exists() and not args.out.is_dir():  # found before the benchmark runs, not after it
         raise InputError(str(args.out), "--out", "is a file: bench writes results.{json,md,png} into a folder")
+    stem = "results" if args.device == "cpu" else "results-cuda"  # both live in bench/, side by side
+    present = [args.out / f"{stem}.{ext}" for ext in ("json", "md", "png") if (args.out / f"{stem}.{ext}").exists()]
+    if present and not args.force:  # a --quick run would replace the measured tables in silence
+        raise InputError(str(present[0]), "--out", "holds results of an earlier bench; --force replaces them, or "
+                                                   "choose another --out")
     wp = init_warp(args.device)
     if args.device == "cuda" and not wp.is_cuda_available():
         raise InputError("--device", "device", "cuda requested but no CUDA device is available")
@@ -190,7 +196,6 @@ def run(args) -> int:
             if peer is not None:
                 res["peers"][name] = peer(device)
     table = _table(res)
-    stem = "results" if device == "cpu" else "results-cuda"  # both live in bench/, side by side
     write_json(args.out / f"{stem}.json", res)
     write_atomic(args.out / f"{stem}.md", table)
     written = [args.out / f"{stem}.json", args.out / f"{stem}.md"]
