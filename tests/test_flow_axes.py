@@ -93,6 +93,21 @@ def test_flow_over_a_second_resolution_axis(tmp_path, system, axis, points, fixe
     assert main(["flow", system, "--axis", axis, "--resolutions", bad, "--out", str(tmp_path / "bad")]) == 2
 
 
+@pytest.mark.parametrize("system,axis,option", [("rope", "segments", "--segments"), ("rope", "dt", "--dt"),
+                                                ("swimmer", "dt", "--dt"), ("swimmer", "bodies", "--bodies")])
+def test_flow_refuses_a_single_value_on_the_axis_it_varies(tmp_path, capsys, system, axis, option):
+    """`flow rope --segments 20` held nothing at 20 and ran the default resolutions: the option on the varied axis
+    is refused, named, before anything runs (typed at its default too)."""
+    value = {"--segments": "10", "--dt": "0.005", "--bodies": "6"}[option]
+    if system == "swimmer" and option == "--dt":
+        value = "0.008"
+    rc = main(["flow", system, "--axis", axis, option, value, "--out", str(tmp_path / "f"), "--quiet", "--no-record"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert option in err and "--resolutions" in err
+    assert not (tmp_path / "f" / "flow.json").exists()
+
+
 def test_plot_axis_is_the_varied_key():
     pts = lambda *res: {"points": [{"resolution": r} for r in res]}  # noqa: E731
     assert _axis(pts({"segments": 10, "dt": 0.01, "on": True}, {"segments": 10, "dt": 0.005, "on": False}))[0] == "dt"

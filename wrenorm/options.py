@@ -91,10 +91,12 @@ class ListAction(argparse.Action):
 
 
 def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=None, integer: bool = False,
-               lo_open: bool = False, help: str = "", unit: str = "", **kw) -> None:
-    """--flag N, range-checked; the range (and unit) appear in --help."""
+               lo_open: bool = False, help: str = "", unit: str = "", default_text: str | None = None, **kw) -> None:
+    """--flag N, range-checked; the range (and unit) appear in --help, with `default_text` in place of the default
+    where that is None (filled in later)."""
     rng = range_text(lo, hi, lo_open)
-    text = f"{help} ({'integer ' if integer else ''}{rng}{' ' + unit if unit else ''}; default {default})".strip()
+    shown = default if default_text is None else default_text
+    text = f"{help} ({'integer ' if integer else ''}{rng}{' ' + unit if unit else ''}; default {shown})".strip()
     p.add_argument(flag, type=number(lo, hi, integer, lo_open), default=default, help=text, **kw)
 
 

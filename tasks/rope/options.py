@@ -12,10 +12,19 @@ FLOW_SEGMENTS = [6, 10, 16]
 FLOW_DT = [0.0025, 0.005, 0.01]
 
 
-def add_chain_arguments(p: argparse.ArgumentParser, segments: int = 10) -> None:
-    add_number(p, "--segments", default=segments, lo=SEGMENTS[0], hi=SEGMENTS[1], integer=True,
+SEGMENTS_DEFAULT = 10
+DT_DEFAULT = 0.005
+
+
+def add_chain_arguments(p: argparse.ArgumentParser, segments: int = SEGMENTS_DEFAULT, flow: bool = False) -> None:
+    """The chain's resolution and solver. flow: --segments and --dt default to None (filled in by flow_problems),
+    so one named on the axis that --resolutions varies is seen and refused rather than ignored."""
+    held = " when --resolutions varies the other" if flow else ""
+    add_number(p, "--segments", default=None if flow else segments, lo=SEGMENTS[0], hi=SEGMENTS[1], integer=True,
+               default_text=f"{segments}{held}" if flow else None,
                help="links of the coarse chain; it has segments + 1 point masses (10 = the flying knot's 11)")
-    add_number(p, "--dt", default=0.005, lo=DT[0], hi=DT[1], unit="s", help="coarse step (flying knot: 0.005)")
+    add_number(p, "--dt", default=None if flow else DT_DEFAULT, lo=DT[0], hi=DT[1], unit="s",
+               default_text=f"{DT_DEFAULT}{held}" if flow else None, help="coarse step (flying knot: 0.005)")
     add_number(p, "--iterations", default=ITERATIONS, lo=1, hi=64, integer=True,
                help="constraint passes per step (fewer: softer, under-converged links and joints)")
 
@@ -31,4 +40,4 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def add_flow_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--axis", choices=["segments", "dt"], default="segments",
                    help="what --resolutions varies: segments (links of the chain) or dt (step [s])")
-    add_chain_arguments(p)
+    add_chain_arguments(p, flow=True)

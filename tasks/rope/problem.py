@@ -44,7 +44,7 @@ from wrenorm.tasks.rope.observable import (
     resample,
     stack_targets,
 )
-from wrenorm.tasks.rope.options import FLOW_DT, FLOW_SEGMENTS, ITERATIONS
+from wrenorm.tasks.rope.options import DT_DEFAULT, FLOW_DT, FLOW_SEGMENTS, ITERATIONS, SEGMENTS_DEFAULT
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
@@ -579,6 +579,12 @@ def flow_problems(args, device: str) -> list[RopeProblem]:
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
     by_dt = getattr(args, "axis", "segments") == "dt"
+    varied = "--dt" if by_dt else "--segments"
+    if getattr(args, varied[2:], None) is not None:
+        raise InputError(varied, varied[2:], f"--axis {varied[2:]} varies it over --resolutions; give the values there "
+                                             f"(or vary the other axis)")
+    segments = getattr(args, "segments", None) or SEGMENTS_DEFAULT
+    dt = getattr(args, "dt", None) or DT_DEFAULT
     points = []
     for r in args.resolutions or (FLOW_DT if by_dt else FLOW_SEGMENTS):
         if by_dt and not 1e-4 <= r <= 0.05:
@@ -596,5 +602,5 @@ def flow_problems(args, device: str) -> list[RopeProblem]:
                            held_names=list(HELD_OUT_PATHS), iterations=args.iterations)
 
     if by_dt:
-        return [problem(getattr(args, "segments", 10), dt) for dt in sorted(points)]
-    return [problem(s, args.dt) for s in sorted(points)]
+        return [problem(segments, d) for d in sorted(points)]
+    return [problem(s, dt) for s in sorted(points)]

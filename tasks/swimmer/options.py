@@ -69,10 +69,15 @@ def add_fit_arguments(p: argparse.ArgumentParser) -> None:
                    help="ros2: second-order Rosenbrock (default); euler: linearly implicit Euler, first order")
 
 
-def add_resolution_arguments(p: argparse.ArgumentParser) -> None:
-    add_number(p, "--dt", default=DEFAULT_DT, lo=0.0002, hi=0.02, unit="s",
+def add_resolution_arguments(p: argparse.ArgumentParser, flow: bool = False) -> None:
+    """flow: both default to None (filled in by flow_problems), so one named on the axis that --resolutions varies
+    is seen and refused rather than ignored."""
+    held = " when --resolutions varies the other" if flow else ""
+    add_number(p, "--dt", default=None if flow else DEFAULT_DT, lo=0.0002, hi=0.02, unit="s",
+               default_text=f"{DEFAULT_DT}{held}" if flow else None,
                help="simulation step (fitted to a whole tail beat)")
-    add_number(p, "--bodies", default=TAIL_BODIES, lo=2, hi=TAIL_BODIES, integer=True,
+    add_number(p, "--bodies", default=None if flow else TAIL_BODIES, lo=2, hi=TAIL_BODIES, integer=True,
+               default_text=f"{TAIL_BODIES}{held}" if flow else None,
                help="tail bodies (consecutive plates merged; the fin kept)")
 
 
@@ -90,4 +95,4 @@ def add_flow_arguments(p: argparse.ArgumentParser) -> None:
     add_common_arguments(p)
     p.add_argument("--axis", choices=["dt", "bodies"], default="dt",
                    help="what --resolutions varies: dt, the time step [s]; bodies, the tail's rigid bodies")
-    add_resolution_arguments(p)
+    add_resolution_arguments(p, flow=True)

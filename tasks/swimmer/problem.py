@@ -605,16 +605,20 @@ def _check_bodies(n, source: str) -> int:
 def flow_problems(args, device: str) -> list[SwimmerProblem]:
     """One problem per resolution, finest first: time steps [s] (--axis dt, the default) or tail
     body counts (--axis bodies), the other held at --dt / --bodies."""
+    axis = getattr(args, "axis", "dt")
+    if getattr(args, axis, None) is not None:
+        raise InputError(f"--{axis}", axis, f"--axis {axis} varies it over --resolutions; give the values there (or "
+                                            f"vary the other axis)")
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
-    if getattr(args, "axis", "dt") == "bodies":
+    if axis == "bodies":
         counts = sorted((_check_bodies(n, "--resolutions") for n in (args.resolutions or FLOW_BODIES)), reverse=True)
         if len(set(counts)) != len(counts):
             raise InputError("--resolutions", "bodies", f"repeated body count in {counts}")
-        dt = _check_dt(getattr(args, "dt", body.DEFAULT_DT))
+        dt = _check_dt(getattr(args, "dt", None) or body.DEFAULT_DT)
         problems = [_problem(args, device, rates, source, labels, dt, n) for n in counts]
     else:
-        bodies = _check_bodies(getattr(args, "bodies", len(body.LINKS)), "--bodies")
+        bodies = _check_bodies(getattr(args, "bodies", None) or len(body.LINKS), "--bodies")
         dts = sorted(_check_dt(d, "--resolutions") for d in (args.resolutions or FLOW_DT))
         if len(set(dts)) != len(dts):
             raise InputError("--resolutions", "dt", f"repeated time step in {dts}")
