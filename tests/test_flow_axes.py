@@ -6,6 +6,7 @@ import pytest
 from swimmer_checks import com_drift
 
 from wrenorm.cli import main
+from wrenorm.flow import _digest
 from wrenorm.tasks.swimmer import body as sb
 from wrenorm.tasks.swimmer import data as sd
 from wrenorm.tasks.swimmer import problem as swimmer
@@ -115,7 +116,7 @@ def test_plot_axis_is_the_varied_key():
     assert _axis(pts({"gait": "chain", "dt": 0.01}))[0] == "dt"
 
 
-def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path):
+def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path, capsys):
     """A flow killed after its first resolution (its points file cut back to that point) resumes from
     there and ends with the same points as the uninterrupted flow."""
     import shutil
@@ -133,11 +134,25 @@ def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path):
     state = json.loads((cut / "flow_points.json").read_text())
     first = state["points"][0]
     state["points"], state["start"] = [dict(first, read_back=True)], [p["fitted"] for p in first["parameters"].values()]
+    # a hand edit (the mark) is refused: a resume would report the edited point as fitted
+    (cut / "flow_points.json").write_text(json.dumps(state))
+    assert main([*args, "--out", str(cut), "--resume"]) == 2
+    assert not (cut / "flow.json").exists()
+    state["digest"] = _digest(state["points"], state["start"])  # the file as the flow writes it after one point
     (cut / "flow_points.json").write_text(json.dumps(state))
     assert main([*args, "--out", str(cut), "--resume"]) == 0
     again = json.loads((cut / "flow.json").read_text())["points"]
     assert again[0].pop("read_back") is True  # the finished point was read back, not fitted again
     assert again == done["points"]
+    # points of other resolutions than the flow's (the file from another flow with the same settings cannot be,
+    # but an edit can) are refused too
+    state["points"] = [dict(first, resolution=dict(first["resolution"], dt=0.02))]
+    state["digest"] = _digest(state["points"], state["start"])
+    (cut / "flow_points.json").write_text(json.dumps(state))
+    (cut / "flow.json").unlink()
+    capsys.readouterr()
+    assert main([*args, "--out", str(cut), "--resume"]) == 2
+    assert "flow_points.json" in capsys.readouterr().err
     # other options than the interrupted flow's are refused, as is a folder with nothing to resume
     assert main([*args[:-1], "4", "--out", str(cut), "--resume"]) == 2
     (tmp_path / "empty").mkdir()

@@ -9,6 +9,7 @@ where the system exposes residuals, the Gauss-Newton std at the best optimum is 
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -31,14 +32,28 @@ def _settings(problems, seed, restarts, popsize, generations, identity, together
             "free": [[q.name for q in p.space.free] for p in problems]} | (identity or {})
 
 
-def _resumed(out: Path, settings: dict) -> tuple[list, object]:
+def _digest(points: list, start) -> str:
+    """What the finished points hold, as written: a resume continues only from points this run wrote itself."""
+    return hashlib.sha256(json.dumps([points, start], sort_keys=True).encode()).hexdigest()
+
+
+def _resumed(out: Path, settings: dict, problems: list) -> tuple[list, object]:
     f = out / POINTS_FILE  # prepare_out checked that it exists
     try:
         saved = json.loads(f.read_text())
     except (OSError, ValueError) as e:
         raise InputError(str(f), POINTS_FILE, f"cannot be read: {e}") from None
+    if not isinstance(saved, dict) or not isinstance(saved.get("points"), list) or "start" not in saved:
+        raise InputError(str(f), "points", "is not a flow's list of finished resolutions; rerun without --resume")
     check_same_settings(str(f), saved.get("settings") or {}, json.loads(json.dumps(settings)), "flow")
-    return saved["points"], (np.array(saved["start"]) if saved["start"] is not None else None)
+    points, start = saved["points"], saved["start"]
+    if saved.get("digest") != _digest(points, start):
+        raise InputError(str(f), "points", "changed since the flow wrote them (or written before resumes checked "
+                                           "them): a resume would report them as fitted; rerun without --resume")
+    if len(points) > len(problems) or any(not isinstance(p, dict) or p.get("resolution") != q.resolution
+                                          for p, q in zip(points, problems)):
+        raise InputError(str(f), "points", "do not follow this flow's resolutions; rerun without --resume")
+    return points, (np.array(start) if start is not None else None)
 
 
 def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsize: int = 16,
@@ -47,7 +62,7 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
              together: bool = False) -> dict:
     t0 = time.perf_counter()
     settings = _settings(problems, seed, restarts, popsize, generations, identity, together)
-    points, start = _resumed(out, settings) if resume else ([], None)
+    points, start = _resumed(out, settings, problems) if resume else ([], None)
     seeds = [seed + 1000 * k for k in range(restarts)]
     todo = problems[len(points):]
     found = restarts_together(todo, seeds, popsize, generations, quiet=quiet) if together and todo else None
@@ -78,7 +93,8 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
             point["analytic"] = analytic(prob, prob.space.as_dict(best.best_values))
         points.append(point)
         start = best.best_values
-        write_json(out / POINTS_FILE, {"settings": settings, "points": points, "start": start.tolist()})
+        write_json(out / POINTS_FILE, {"settings": settings, "points": points, "start": start.tolist(),
+                                       "digest": _digest(points, start.tolist())})
     flow = {"schema": SCHEMA.replace("result", "flow"), "task": problems[0].task, "points": points,
             "uncertainty_method": f"std over {restarts} seeded CMA-ES restarts run side by side (std_restarts); "
                                   "Gauss-Newton sigma^2 (J^T J)^-1 where residuals exist (std_jacobian)",
