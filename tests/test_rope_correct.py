@@ -633,9 +633,11 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         assert word in err and len(err.strip().splitlines()) == 1, err
     assert main(["sensitivity", "rope", "--path", "nope", "--out", str(tmp_path / "s")]) == 2
     assert "--path" in capsys.readouterr().err
-    for bad, word in ((["--seed", "-1"], "seed"), (["--marker-noise", "nan"], "marker_noise"),
-                      (["--time-noise", "inf"], "time_noise"), (["--snr", "inf"], "snr"),
-                      (["--fd-step", "inf"], "fd_step"), (["--fit-generations", "0"], "fit_generations")):
+    for bad, word in ((["--seed", "-1"], "--seed"), (["--marker-noise", "nan"], "--marker-noise"),
+                      (["--time-noise", "inf"], "--time-noise"), (["--snr", "inf"], "--snr"),
+                      (["--fd-step", "inf"], "--fd-step"), (["--fit-generations", "0"], "--fit-generations"),
+                      (["--segments", "2"], "--segments"), (["--dt", "-0.005"], "--dt"),
+                      (["--noise-samples", "1"], "--noise-samples"), (["--real-repeats", "-1"], "--real-repeats")):
         assert main(["sensitivity", "rope", "--out", str(tmp_path / "s")] + bad) == 2
         err = capsys.readouterr().err
         assert word in err and len(err.strip().splitlines()) == 1, err

@@ -34,6 +34,8 @@ import numpy as np
 
 from wrenorm.errors import InputError
 from wrenorm.jacobian import jacobian
+from wrenorm.options import add_number
+from wrenorm.tasks.rope.options import DT, DT_DEFAULT, SEGMENTS
 
 SYSTEM = "rope"
 FRAME_TIME = 1.0 / 250.0  # s, the reference's (motion capture's) frame time
@@ -41,28 +43,30 @@ FRAME_TIME = 1.0 / 250.0  # s, the reference's (motion capture's) frame time
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/sensitivity-rope-<time>)")
-    p.add_argument("--seed", type=int, default=0)
+    add_number(p, "--seed", default=0, lo=0, integer=True)
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     p.add_argument("--force", action="store_true")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--no-record", action="store_true")
-    p.add_argument("--variant", default="default", help="rope material of the references: default|stiff|soft|heavy")
+    p.add_argument("--variant", default="default", help="rope material of the references (correct rope's --variant)")
     p.add_argument("--path", default="flick", help="built-in hand path around which the command is varied")
     p.add_argument("--params", default="measured", metavar="measured|fitted|FILE", help="coarse-model parameters")
-    p.add_argument("--segments", type=int, default=20,
-                   help="links of the coarse chain (correct rope steers with 10 by default)")
-    p.add_argument("--dt", type=float, default=0.005)
-    p.add_argument("--fd-step", type=float, default=0.1, help="command FD step (units of u)")
-    p.add_argument("--param-fd-step", type=float, default=0.01, help="parameter FD step (normalised coordinates)")
-    p.add_argument("--noise-samples", type=int, default=32)
-    p.add_argument("--noise-size", type=float, default=1e-3, help="tiny command offsets (units of u)")
-    p.add_argument("--marker-noise", type=float, default=0.003, help="marker position noise (m)")
-    p.add_argument("--time-noise", type=float, default=0.002, help="collision time noise (s)")
-    p.add_argument("--real-repeats", type=int, default=0, help="newton runs at tiny offsets to measure repeat spread")
-    p.add_argument("--command-step", type=float, default=1.0)
-    p.add_argument("--param-step", type=float, default=0.1)
-    p.add_argument("--snr", type=float, default=3.0)
-    p.add_argument("--fit-generations", type=int, default=30)
+    add_number(p, "--segments", default=20, lo=SEGMENTS[0], hi=SEGMENTS[1], integer=True,
+               help="links of the coarse chain (correct rope steers with 10 by default)")
+    add_number(p, "--dt", default=DT_DEFAULT, lo=DT[0], hi=DT[1], unit="s", help="coarse step")
+    positive = {"lo": 0.0, "lo_open": True}
+    add_number(p, "--fd-step", default=0.1, **positive, help="command FD step (units of u)")
+    add_number(p, "--param-fd-step", default=0.01, **positive, help="parameter FD step (normalised coordinates)")
+    add_number(p, "--noise-samples", default=32, lo=2, hi=10000, integer=True)
+    add_number(p, "--noise-size", default=1e-3, **positive, help="tiny command offsets (units of u)")
+    add_number(p, "--marker-noise", default=0.003, lo=0.0, unit="m", help="marker position noise")
+    add_number(p, "--time-noise", default=0.002, lo=0.0, unit="s", help="collision time noise")
+    add_number(p, "--real-repeats", default=0, lo=0, hi=1000, integer=True,
+               help="newton runs at tiny offsets to measure repeat spread")
+    add_number(p, "--command-step", default=1.0, **positive)
+    add_number(p, "--param-step", default=0.1, **positive)
+    add_number(p, "--snr", default=3.0, **positive)
+    add_number(p, "--fit-generations", default=30, lo=1, hi=1000, integer=True)
 
 
 # ------------------------------------------------------------------------------ building blocks
@@ -229,20 +233,6 @@ def run(args) -> int:
     get_variant(args.variant)
     device = _device(args.device)
     path = get_hand_path(args.path, "--path")
-    for name, v, lo in (("--fd-step", args.fd_step, 0), ("--param-fd-step", args.param_fd_step, 0),
-                        ("--noise-size", args.noise_size, 0), ("--command-step", args.command_step, 0),
-                        ("--param-step", args.param_step, 0), ("--snr", args.snr, 0)):
-        if not (np.isfinite(v) and v > lo):
-            raise InputError(name, name[2:].replace("-", "_"), f"must be a finite number > 0, got {v}")
-    for name, v in (("--marker-noise", args.marker_noise), ("--time-noise", args.time_noise)):
-        if not (np.isfinite(v) and v >= 0):
-            raise InputError(name, name[2:].replace("-", "_"), f"must be a finite number >= 0, got {v}")
-    if not (2 <= args.noise_samples <= 10000 and 0 <= args.real_repeats <= 1000):
-        raise InputError("--noise-samples/--real-repeats", "value", "need 2-10000 noise samples and 0-1000 repeats")
-    if args.seed < 0:
-        raise InputError("--seed", "seed", f"must be >= 0, got {args.seed}")
-    if not 1 <= args.fit_generations <= 1000:
-        raise InputError("--fit-generations", "fit_generations", f"must be in [1, 1000], got {args.fit_generations}")
     out = prepare_out(args.out or Path("runs") / f"sensitivity-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=False, force=args.force)
     t_all = time.perf_counter()
