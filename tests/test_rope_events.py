@@ -15,6 +15,7 @@ from wrenorm.tasks.rope.observable import Target, reference_critical
 from wrenorm.tasks.rope.reference import evaluate
 from wrenorm.tasks.rope.reference.events import critical, detect, polyline_gap
 from wrenorm.tasks.rope.reference.generate import (
+    builtin_reference_path,
     generate_reference,
     load_reference,
     reference_arrays,
@@ -557,3 +558,26 @@ def test_largest_doublet_sees_one_cut_frame_of_a_smooth_path_and_not_noise_or_an
     glitch = path.copy()
     glitch[60] += [0.005, 0.0, 0.0]  # one sample of the hand's tracking 5 mm off: no frame is missing
     assert largest_doublet(glitch)[1] < 2
+
+
+def test_an_edited_or_renamed_event_cache_entry_is_detected_again(monkeypatch, tmp_path):
+    """The detector's answers are cached on disk by content; an entry changed since it was written (or one
+    recording's entry under another's name) is not trusted: the recording is detected again."""
+    from wrenorm.tasks.rope.reference.events import detect_reference
+
+    monkeypatch.setenv("WRENORM_CACHE", str(tmp_path))
+    f = builtin_reference_path("flick", "default")
+    first = detect_reference(load_reference(f))
+    entry = next((tmp_path / "events").glob("*.json"))
+    saved = json.loads(entry.read_text())
+    saved["detection"]["event"][1] += 0.05  # the contact 50 ms later
+    entry.write_text(json.dumps(saved))
+    again = detect_reference(load_reference(f))
+    assert again.event.time == pytest.approx(first.event.time)
+    assert json.loads(entry.read_text())["detection"]["event"][1] == pytest.approx(first.event.time)  # rewritten
+    other = load_reference(builtin_reference_path("flick_fast", "default"))
+    theirs = detect_reference(other)
+    other_entry = next(e for e in (tmp_path / "events").glob("*.json") if e != entry)
+    other_entry.write_text(entry.read_text())  # flick's answer under flick_fast's name
+    assert detect_reference(load_reference(builtin_reference_path("flick_fast", "default"))).event.time == \
+        pytest.approx(theirs.event.time)

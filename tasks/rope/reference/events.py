@@ -963,6 +963,13 @@ def _to_json(det: Detection) -> dict:
             "diagnostics": d}
 
 
+def _cache_digest(body: dict) -> str:
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
 def _from_json(d: dict) -> Detection:
     e = d["event"]
     ev = None if e is None else CollisionEvent(int(e[0]), *map(float, e[1:]), "detected", d["confidence"],
@@ -978,11 +985,16 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
     cached = getattr(ref, "_detection", None)
     if cached is not None:
         return cached
-    path = _cache_file(_content_key(ref)) if use_cache else None
+    key = _content_key(ref)
+    path = _cache_file(key) if use_cache else None
     det = None
     if path is not None and path.exists():
         try:
-            det = _from_json(json.loads(path.read_text()))
+            saved = json.loads(path.read_text())
+            body = saved["detection"]
+            # a file renamed, cut or edited since it was written is not this recording's answer: detect again
+            if saved["key"] == key and saved["digest"] == _cache_digest(body):
+                det = _from_json(body)
         except (OSError, ValueError, KeyError, TypeError, IndexError):
             det = None
     if det is None:
@@ -992,7 +1004,8 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
             try:
                 from wrenorm.results import jsonable, write_atomic
 
-                write_atomic(path, json.dumps(jsonable(_to_json(det))))
+                body = json.loads(json.dumps(jsonable(_to_json(det))))
+                write_atomic(path, json.dumps({"key": key, "digest": _cache_digest(body), "detection": body}))
             except OSError:  # a read-only cache only costs time
                 pass
     try:
