@@ -1520,3 +1520,47 @@ def test_fitted_on_another_engine_is_fitted_to_that_ropes_own_throws(tmp_path, m
     assert main(cmd + ["--out", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert "--fit-throws" in err and "none of the fit throws" in err and "never hits itself" in err
+
+
+def test_a_resume_reads_no_trial_recorded_for_another_command_or_rope(tmp_path, problem):
+    """Stored trials are named by their command; each also carries a key of the command and the real rope it ran
+    on. A file copied under another trial's name, or a folder whose run was on another rope (settings.json edited
+    to another variant), is refused, naming the file, instead of being read as that trial."""
+    from wrenorm.tasks.rope.control.correct import StoredTrials
+
+    space = CommandSpace(PATHS["flick"])
+    u0, u1 = np.zeros(space.dim), np.full(space.dim, 0.3)
+    store = StoredTrials(CoarseRope(problem, problem.space.measured), tmp_path / "trials")
+    first = store(space.decode(u0))
+    store(space.decode(u1))
+    again = StoredTrials(CoarseRope(problem, problem.space.measured), tmp_path / "trials")  # a resume
+    assert np.array_equal(again(space.decode(u0)).markers, first.markers) and again.reused == 1
+    other = StoredTrials(CoarseRope(problem, problem.space.measured * 1.5), tmp_path / "trials")  # another rope
+    with pytest.raises(InputError, match="trial_key"):
+        other(space.decode(u0))
+    f0, f1 = store.file_for(space.decode(u0)), store.file_for(space.decode(u1))
+    f0.write_bytes(f1.read_bytes())  # trial 2's file under trial 1's name
+    with pytest.raises(InputError, match=f0.name):
+        StoredTrials(CoarseRope(problem, problem.space.measured), tmp_path / "trials")(space.decode(u0))
+
+
+def test_a_resume_refuses_settings_changed_since_the_run_wrote_them(tmp_path):
+    """settings.json carries a digest: an edited value (another variant, a word where a number was) is refused in
+    one line rather than read as the run's (the trials belong to the settings they ran with)."""
+    import argparse
+
+    from wrenorm.tasks.rope.control import correct_cli
+
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    saved = {k: v for k, v in vars(parser.parse_args([])).items() if k not in correct_cli._NOT_SAVED}
+    saved = json.loads(json.dumps(saved, default=str))
+    f = tmp_path / correct_cli.SETTINGS_FILE
+    f.write_text(json.dumps(saved | {"_digest": correct_cli._settings_digest(saved)}))
+    correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path)]))  # as written: accepted
+    f.write_text(json.dumps(saved | {"variant": "stiff", "_digest": correct_cli._settings_digest(saved)}))
+    with pytest.raises(InputError, match="changed since the run wrote it"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path)]))
+    f.write_text(json.dumps(saved | {"tolerance": "abc"}))  # a file without a digest (an older run): types checked
+    with pytest.raises(InputError, match="tolerance"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path)]))

@@ -112,6 +112,11 @@ class FineRope:
         self.runs, self.wall_s = 0, 0.0
         self._cache = {}
 
+    @property
+    def identity(self) -> str:
+        """What a trial's answer depends on besides its command (StoredTrials checks a stored trial against it)."""
+        return f"{self.engine} variant={self.variant} segments={self.segments} duration={self.duration:g}"
+
     def __call__(self, path):
         from wrenorm.tasks.rope.reference.generate import generate_reference
 
@@ -159,6 +164,12 @@ class StoredTrials:
         self.unstored = 0
         self._seen: set[str] = set()
 
+    def key_for(self, path) -> str:
+        """The trial's full key, stored in its file: the command and the real system (engine, rope, resolution), so
+        a file copied under another trial's name, or left by a run on another rope, is not read as this trial."""
+        identity = getattr(self.real, "identity", type(self.real).__name__)
+        return hashlib.sha256(f"{identity} {self.file_for(path).name}".encode()).hexdigest()
+
     @property
     def runs(self) -> int:
         return self.real.runs
@@ -179,7 +190,7 @@ class StoredTrials:
         if not f.exists():
             ref = self.real(path)
             try:
-                save_reference(f, ref)
+                save_reference(f, ref, extra={"trial_key": np.array(self.key_for(path))})
             except InputError:
                 # a trial that blew up (non-finite markers) is not a valid reference file: it costs
                 # this trial (no self-collision, large error), is kept in memory only, and a resumed
@@ -188,8 +199,21 @@ class StoredTrials:
                 return ref
         elif f.name not in self._seen:
             self.reused += 1
+            self._check_key(f, path)
         self._seen.add(f.name)
         return load_reference(f)
+
+    def _check_key(self, f: Path, path) -> None:
+        try:
+            with np.load(f, allow_pickle=False) as data:
+                stored = str(data["trial_key"]) if "trial_key" in data.files else None
+        except (OSError, ValueError) as e:
+            raise InputError(str(f), "file", f"is not a readable .npz archive ({e})") from None
+        # a file written before trials carried their key (stop 45) is read as before
+        if stored is not None and stored != self.key_for(path):
+            raise InputError(str(f), "trial_key", "was recorded for another command or another real rope (engine, "
+                                                  "variant, resolution) than this run's trial under that name; "
+                                                  "resume in the run's own folder, or start a new run")
 
 
 class CoarseRope:
@@ -201,6 +225,12 @@ class CoarseRope:
         self.problem, self.values = problem, np.asarray(values, dtype=np.float64)
         self.runs, self.wall_s = 0, 0.0
         self.duration = duration
+
+    @property
+    def identity(self) -> str:
+        values = hashlib.sha256(self.values.tobytes()).hexdigest()[:16]
+        return f"coarse segments={self.problem.segments} dt={self.problem.dt:g} values={values} " \
+               f"duration={self.duration}"
 
     def __call__(self, path):
         from wrenorm.tasks.rope.reference.generate import RopeReference

@@ -4,6 +4,7 @@ recording (per trial: the real rope at its critical frame against the goal)."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -364,7 +365,8 @@ def run(args) -> int:
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
     if not args.resume:
-        write_json(out / SETTINGS_FILE, {k: v for k, v in vars(args).items() if k not in _NOT_SAVED})
+        saved = json.loads(json.dumps({k: v for k, v in vars(args).items() if k not in _NOT_SAVED}, default=str))
+        write_json(out / SETTINGS_FILE, saved | {DIGEST_KEY: _settings_digest(saved)})
     t_all = time.perf_counter()
 
     if args.real == "fine" and not args.builtin_throws:
@@ -589,6 +591,25 @@ def report_markdown(result: dict) -> str:
 
 RUN_LABELS = ("renormalised", "renormalised-from-fitted", "measured", "fitted")
 SETTINGS_FILE = "settings.json"
+DIGEST_KEY = "_digest"
+
+
+def _kind(value) -> str | None:
+    """A saved setting's kind where the option fixes it (numbers, flags, lists); None where a default is a word
+    that stands for a number chosen later (e.g. --velocity-weight by-method) or there is none."""
+    if isinstance(value, bool):
+        return "flag"
+    if isinstance(value, (int, float)):
+        return "number"
+    if isinstance(value, (list, tuple)):
+        return "list"
+    return None
+
+
+def _settings_digest(saved: dict) -> str:
+    import hashlib
+
+    return hashlib.sha256(json.dumps(saved, sort_keys=True).encode()).hexdigest()
 _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
 
 
@@ -634,9 +655,6 @@ def _restore_settings(args) -> None:
     """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left out takes
     the saved value; one given with another value than the run had is refused, naming it (also one typed at its
     default: the user asked for that value)."""
-    import argparse
-    import json
-
     if args.out is None:
         raise InputError("--resume", "out", "name the folder of the interrupted correction with --out")
     f = Path(args.out) / SETTINGS_FILE
@@ -648,6 +666,10 @@ def _restore_settings(args) -> None:
         raise InputError(str(f), SETTINGS_FILE, f"cannot be read: {e}") from None
     if not isinstance(saved, dict):
         raise InputError(str(f), SETTINGS_FILE, "is not a settings object")
+    digest = saved.pop(DIGEST_KEY, None)  # absent: saved before settings carried one (stop 45), read as before
+    if digest is not None and digest != _settings_digest(saved):
+        raise InputError(str(f), SETTINGS_FILE, "was changed since the run wrote it: its trials belong to the settings "
+                                                "it ran with; start a new run for other settings")
     fresh = argparse.ArgumentParser()
     add_arguments(fresh)
     defaults = vars(fresh.parse_args([]))
@@ -655,6 +677,8 @@ def _restore_settings(args) -> None:
     for key, value in saved.items():
         if key in _NOT_SAVED or key not in defaults:
             continue
+        if value is not None and _kind(defaults[key]) not in (None, _kind(value)):
+            raise InputError(str(f), key, f"is {value!r}, not a {_kind(defaults[key])} as the option takes")
         if key == "device" and isinstance(value, str) and value.startswith("cuda"):
             value = "cuda"  # saved as the run resolved it ("cuda:0"); the option's choice is "cuda"
         given = getattr(args, key, None)
