@@ -281,3 +281,36 @@ def test_same_recording_as_fit_and_validation_reference_is_refused(tmp_path, cap
         first = roles[1]
         assert len(err) == 1 and str(copy) in err[0] and first in err[0] and what in err[0], err
         assert not (tmp_path / "run" / "result.json").exists()
+
+
+def test_a_chain_that_never_hits_itself_is_said_and_its_fit_reports_the_measured_values(tmp_path, capsys):
+    """At 3 links the chain never reaches a self-collision on the fit throws: the loss is the no-hit penalty
+    everywhere, so the search's best is whichever candidate it met first. The fit reports the measured values, says
+    the search found nothing better and that the chain misses every fit throw, and calls no parameter determined;
+    a flow says the same per point (at 4 links the chain misses 2 of 3 throws, which is said too)."""
+    import json
+
+    from wrenorm.cli import main
+
+    out = tmp_path / "fit3"
+    assert main(["fit", "rope", "--segments", "3", "--generations", "5", "--out", str(out), "--no-record",
+                 "--quiet"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    free = [n for n, p in res["parameters"].items() if not p["frozen"]]
+    assert all(p["fitted"] == p["measured"] for p in res["parameters"].values())
+    assert res["search"]["stalled"] and "no values better than the measured" in res["warnings"][0]
+    assert any("does not hit itself on 3 of 3" in w for w in res["warnings"])
+    assert sorted(res["uncertainty"]["undetermined"]) == sorted(free)
+    assert "does not hit itself" in capsys.readouterr().out
+    flow = tmp_path / "flow"
+    assert main(["flow", "rope", "--resolutions", "3", "4", "--restarts", "2", "--generations", "3", "--out",
+                 str(flow), "--no-record", "--quiet"]) == 0
+    p3, p4 = json.loads((flow / "flow.json").read_text())["points"]
+    assert "no values better" in p3["warning"] and sorted(p3["undetermined"]) == sorted(free)
+    assert all(q["fitted"] == q["measured"] for q in p3["parameters"].values())
+    assert "does not hit itself on 2 of 3" in p4["warning"]
+    # a chain that does reach the event says none of this
+    from wrenorm.tasks.rope.reference.generate import builtin_references
+
+    ten = task.RopeProblem(builtin_references("fit"), segments=10)
+    assert ten.fit_warnings(ten.space.measured) == []

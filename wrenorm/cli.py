@@ -317,6 +317,8 @@ def cmd_flow(args) -> int:
                          if not p["frozen"])
         und = f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""
         print(f"{pt['resolution']}: {line}{und}")
+        if pt.get("warning"):
+            print(f"  warning: {pt['warning']}")
     print(f"\nflow: {out / 'flow.json'}  plot: {out / 'flow.png'}")
     return 0
 

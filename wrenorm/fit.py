@@ -70,6 +70,20 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
     }
 
 
+def stalled_search(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> str | None:
+    """A search that found nothing better than the measured values, said in one line (None when it did). Its best
+    candidate is then whichever it met first on a flat objective (a chain that never reaches the observed event,
+    a simulation that diverges everywhere), so the fit reports the measured values instead of that candidate."""
+    if np.array_equal(fitted, measured):  # a search that stayed at the start (an exact start, or a flat one)
+        return None
+    objectives = searches.objective(problem, np.stack([measured, fitted]))
+    if objectives[1] < objectives[0]:
+        return None
+    return (f"the search found no values better than the measured ones (objective {objectives[0]:.4g} measured, "
+            f"{objectives[1]:.4g} at its best): the measured values are reported; the objective does not see the "
+            "parameters here (e.g. the model never shows the observed event, or diverges)")
+
+
 def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettings(), resume: bool = False,
             start: np.ndarray | None = None, record: bool = True, quiet: bool = False,
             identity: dict | None = None, command: str | None = None) -> dict:
@@ -121,6 +135,9 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             fitted = g.best_values
         polish_report = {"iterations": settings.polish, "loss_before": res.best_loss, "loss_after": g.best_loss,
                          "kept": improved}
+    stalled = stalled_search(problem, measured, fitted)
+    if stalled is not None:
+        fitted = measured.copy()
     both = np.stack([measured, fitted])
     # the training error (the observable's units) and, apart, what the search minimised (errors or squared
     # residuals, plus the prior's squared deviations)
@@ -190,6 +207,9 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
                                                       generations=settings.generations, sigma0=settings.sigma0,
                                                       quiet=quiet, method=settings.method)
     result.update(problem.report(fitted, measured))
+    if stalled is not None:
+        result["search"]["stalled"] = stalled
+    result["warnings"] = [*([stalled] if stalled else []), *problem.fit_warnings(fitted), *result.get("warnings", [])]
     t_write = time.perf_counter()
     if record:
         _record(problem, out, result, history, fitted, measured, quiet)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .fit import stalled_search
 from .results import SCHEMA, versions, write_json
 from .runfolder import check_same_settings
 from .search import mean_loss, restarts_together
@@ -72,14 +73,20 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
         else:
             res = seeded_searches(prob, seeds, popsize=popsize, generations=generations, start=start, quiet=quiet)
         best = min(res, key=lambda r: r.best_loss)
+        fitted = best.best_values
+        stalled = stalled_search(prob, prob.space.measured, fitted)
+        if stalled is not None:
+            fitted = prob.space.measured.copy()
         vals = np.array([r.best_values for r in res if np.isfinite(r.best_loss)])
         spread = vals.std(axis=0, ddof=1) if len(vals) > 1 else np.full(len(prob.space.names), np.nan)
-        unc = uncertainty(prob, best.best_values)
-        loss, _ = mean_loss(prob, np.stack([prob.space.measured, best.best_values]), prob.train)
+        if stalled is not None:  # the searches' spread over a flat objective is no uncertainty
+            spread = np.full(len(prob.space.names), np.nan)
+        unc = uncertainty(prob, fitted)
+        loss, _ = mean_loss(prob, np.stack([prob.space.measured, fitted]), prob.train)
         point = {
             "resolution": prob.resolution,
             "parameters": {
-                p.name: {"measured": p.measured, "fitted": float(best.best_values[i]),
+                p.name: {"measured": p.measured, "fitted": float(fitted[i]),
                          "std_restarts": None if p.frozen else float(spread[i]),
                          "std_jacobian": unc["std"].get(p.name), "frozen": p.frozen, "scale": p.scale,
                          "restarts": vals[:, i].tolist()}
@@ -87,12 +94,12 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
             "loss": {"measured": float(loss[0]), "fitted": float(loss[1])},
             "undetermined": unc.get("undetermined", []),
             "correlation": unc.get("correlation"),
-            "warning": unc.get("warning"),
+            "warning": "; ".join(w for w in (stalled, *prob.fit_warnings(fitted), unc.get("warning")) if w) or None,
         }
         if analytic is not None:
             point["analytic"] = analytic(prob, prob.space.as_dict(best.best_values))
         points.append(point)
-        start = best.best_values
+        start = fitted
         write_json(out / POINTS_FILE, {"settings": settings, "points": points, "start": start.tolist(),
                                        "digest": _digest(points, start.tolist())})
     flow = {"schema": SCHEMA.replace("result", "flow"), "task": problems[0].task, "points": points,

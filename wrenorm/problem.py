@@ -93,6 +93,11 @@ class Problem(ABC):
         """Task-specific fields added to result.json (e.g. analytic predictions, speeds)."""
         return {}
 
+    def fit_warnings(self, fitted: np.ndarray) -> list[str]:
+        """What the fitted model fails to show on the training conditions that the loss alone does not say (e.g. a
+        chain that never reaches the observed event on some of them): result.json's and a flow point's warnings."""
+        return []
+
     def charts(self, fitted: np.ndarray, measured: np.ndarray) -> list[str]:
         """SVG charts, one or more per condition: the reference against the model with measured and with fitted
         parameters (report.html shows them; viz/svg.py draws them)."""

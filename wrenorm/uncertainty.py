@@ -60,6 +60,12 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
     r0 = jac.f0
     if not np.all(np.isfinite(r0)):
         out["method"] = "none: residuals not finite at the optimum"
+        if not np.any(np.isfinite(r0)):  # not one residual: nothing the data say reaches the parameters
+            names = [p.name for p in free]
+            out.update(undetermined=names,
+                       warning="no training residual is finite at the fitted values (the model does not show the "
+                               f"observed behaviour, e.g. never reaches the event): the data determine none of "
+                               f"{', '.join(names)}")
         return out
     at_bound = [p.name for p, u in zip(free, u0) if u < 1e-3 or u > 1 - 1e-3]
     out["at_bound"] = at_bound

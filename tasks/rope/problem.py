@@ -292,6 +292,17 @@ class RopeProblem(Problem):
         out["references"], out["warnings"] = self.reference_report()
         return out
 
+    def fit_warnings(self, fitted: np.ndarray) -> list[str]:
+        status = self.error_terms(np.atleast_2d(fitted), self.train)["status"][0]
+        missed = [c.name for c, st in zip(self.train, status) if st != 1]
+        if not missed:
+            return []
+        return [f"the {self.segments}-link chain (dt {self.dt:g} s) with the fitted values does not hit itself on "
+                f"{len(missed)} of {len(self.train)} fit references ({', '.join(missed)}): those cost the no-hit "
+                "penalty and say nothing of the parameters"
+                + (" (none does: the fitted values are not determined by these references)"
+                   if len(missed) == len(self.train) else "")]
+
     @property
     def warnings(self) -> list[str]:
         """What a fit on these references says of them (files left out, events flagged or annotated otherwise than
