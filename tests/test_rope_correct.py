@@ -1564,3 +1564,25 @@ def test_a_resume_refuses_settings_changed_since_the_run_wrote_them(tmp_path):
     f.write_text(json.dumps(saved | {"tolerance": "abc"}))  # a file without a digest (an older run): types checked
     with pytest.raises(InputError, match="tolerance"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path)]))
+
+
+def test_correct_says_what_it_cannot_steer_by(tmp_path, capsys):
+    """The goal's own throw as the start is refused (nothing to correct); a perturbed start clipped to the command
+    box is said; a chain that never hits itself (3 links) stops the run naming that, not the trust radius."""
+    from wrenorm.cli import main
+
+    assert main(["correct", "rope", "--start", "flick_high", "--goal", "flick_high", "--out", str(tmp_path / "g")]) == 2
+    err = capsys.readouterr().err
+    assert "--start" in err and "nothing to correct" in err and len(err.strip().splitlines()) == 1
+    out = tmp_path / "p"
+    assert main([*CORRECT_QUICK[:-4], "--max-trials", "1", "--perturb", "100", "--no-plan-first", "--method", "qp",
+                 "--no-record", "--quiet", "--out", str(out)]) == 0
+    assert "--perturb 100" in capsys.readouterr().err
+    done = json.loads((out / "correct.json").read_text())
+    assert max(abs(x) for x in done["start"]["command_u"]) <= 3.0 + 1e-9
+    out = tmp_path / "c"
+    assert main(["correct", "rope", "--segments", "3", "--params", "measured", "--generations", "3", "--popsize", "8",
+                 "--max-trials", "2", "--no-record", "--quiet", "--out", str(out)]) == 0
+    run = json.loads((out / "correct.json").read_text())["runs"]["measured"]
+    assert "does not hit itself" in run["stopped"] and run["trials_used"] == 1
+    assert "3 links" in (out / "report.md").read_text()

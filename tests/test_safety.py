@@ -251,3 +251,18 @@ def test_reference_rope_never_replaces_a_file_without_force(tmp_path, capsys):
     # a place it cannot write is found before the throw is simulated, not after
     assert main(["reference", "rope", "--out", str(precious / "sub" / "x.npz")]) == 2
     _one_line_error(capsys, "not a writable folder")
+
+
+def test_resume_and_force_together_are_refused_and_an_empty_reference_is_not_the_built_in(tmp_path, capsys):
+    """--resume keeps a run folder and --force empties it: given both, neither is guessed. An empty --reference
+    (an unset shell variable) fitted the built-in reference in silence."""
+    run = tmp_path / "run"
+    assert main([*PD, "--out", str(run)]) == 0
+    before = (run / "result.json").read_bytes()
+    capsys.readouterr()
+    assert main([*PD, "--out", str(run), "--resume", "--force"]) == 2
+    _one_line_error(capsys, "--force", "--resume")
+    assert (run / "result.json").read_bytes() == before
+    assert main([*PD, "--reference", "", "--out", str(tmp_path / "empty")]) == 2
+    _one_line_error(capsys, "--reference", "empty")
+    assert not (tmp_path / "empty").exists()

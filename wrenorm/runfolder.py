@@ -48,6 +48,9 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
         if parent.exists() and not parent.is_dir():
             raise InputError(str(out), "--out", f"cannot be created: {parent} is a file")
     existing = out.exists() and any(out.iterdir())
+    if resume and force:  # one keeps the folder, the other empties it: which was meant is not ours to guess
+        raise InputError(str(out), "--force", "cannot go with --resume: --resume continues the run in this folder, "
+                                              "--force empties it for a new one; give one of them")
     if resume:
         if not out.exists():
             raise InputError(str(out), "--resume", "no such run folder to resume")

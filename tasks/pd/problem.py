@@ -493,6 +493,9 @@ def _check_positive(values: dict) -> None:
 
 def build_problems(args, device: str) -> list[PDProblem]:
     _check_positive({"J": args.J, "K_P": args.K_P, "K_D": args.K_D})
+    if args.reference is not None and not str(args.reference).strip():  # e.g. an unset shell variable
+        raise InputError("--reference", "reference", "is empty: name a measured log (.csv), or leave the option out "
+                                                     "for the built-in reference")
     for f in args.f_sim:
         _check_positive({"f_sim": f})
     if args.arm:

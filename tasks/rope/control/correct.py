@@ -863,6 +863,11 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
             on_trial(trial)
         if np.abs(u - best.u).max() < 1e-9:
             stopped = "the step predicts no better command than the best one"
+            if sens is not None and all(c == "none" for c in sens.columns):
+                pb = model.problem
+                stopped = (f"the coarse chain ({pb.segments} links, dt {pb.dt:g} s) does not hit itself on either side "
+                           "of any command direction where it was linearised: it has no critical state to steer by "
+                           "at this resolution")
             if progress:
                 progress(f"  {stopped}; stopping")
             break

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wrenorm.errors import InputError
+from wrenorm.errors import InputError, warn
 from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
 SYSTEM = "rope"
@@ -361,6 +361,10 @@ def run(args) -> int:
     elif args.builtin_throws and args.engine != "newton":
         raise InputError("--builtin-throws", "builtin_throws", f"the built-in throws are newton's, not {args.engine}'s")
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
+    if args.start == args.goal and args.perturb == 0:
+        raise InputError("--start", "start", f"is the goal's own throw ({args.goal}): its command already reaches the "
+                                             "goal, so there is nothing to correct (choose another --start, or "
+                                             "--perturb the start)")
     space = CommandSpace(start_path)
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
@@ -415,8 +419,12 @@ def run(args) -> int:
             progress(f"  the rope under the start command {args.start} never hits itself: {' and '.join(lost)}")
     u0 = np.zeros(space.dim)
     if args.perturb > 0:
-        u0 = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
-        u0, _ = space.limit_step(np.zeros(space.dim), u0)
+        drawn = np.random.default_rng(args.seed).normal(size=space.dim) * args.perturb
+        u0, _ = space.limit_step(np.zeros(space.dim), drawn)
+        if not np.allclose(u0, drawn):
+            warn(f"--perturb {args.perturb:g}: the perturbed start left the command box or the hand's limits and was "
+                 f"clipped and shortened to {np.linalg.norm(u0) / np.linalg.norm(drawn):.3g} of its length (largest "
+                 f"component {np.abs(u0).max():.3g} units of u; correct.json's start.command_u is the one used)")
     try:
         u_goal = space.encode(goal_path).tolist()
     except InputError:
@@ -528,6 +536,8 @@ def run_verdict(r: dict, tolerance: float) -> str:
     if r["success"]:
         return f"reached the tolerance in {r['trials_to_tolerance']} trials"
     floor = last_floor(r)
+    if r.get("stopped") and "does not hit itself" in r["stopped"]:
+        return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}): {r['stopped']}"
     why = "" if floor is None else (
         f"; at its last step the corrected model predicted no command better than {floor['error']:.4f}"
         + (", so the model, not the trust radius, stopped it" if floor["error"] > tolerance else ""))
