@@ -35,6 +35,11 @@ def test_bench_refuses_nonpositive_batches(tmp_path, capsys):
     (tmp_path / "f").write_text("x")
     assert main(["bench", "--no-fits", "--only", "pd", "--out", str(tmp_path / "f")]) == 2
     assert "--out" in capsys.readouterr().err and (tmp_path / "f").read_text() == "x"
+    # a repeated batch or system gave duplicate rows and tables; an unknown system, a word for a batch: one line
+    for bad in (["--batches", "256", "256"], ["--only", "pd", "pd"], ["--only", "fish"], ["--batches", "abc"]):
+        assert main(["bench", "--no-fits", "--no-cuda-build", "--out", str(tmp_path / "b2"), *bad]) == 2
+        err = capsys.readouterr().err
+        assert bad[0] in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_bench_keeps_earlier_results_without_force(tmp_path, capsys):

@@ -87,6 +87,16 @@ def test_a_recording_goes_to_the_viewer(tmp_path, viewer):
     assert viewer == [[str(rrd)]]
 
 
+def test_a_fit_at_several_resolutions_shows_each_sub_run(tmp_path, viewer):
+    """`fit pd --f-sim 100,400` records f_sim100/ and f_sim400/ and nothing above them; its printed `view` line
+    opened nothing ("no recording")."""
+    for sub in ("f_sim100", "f_sim400"):
+        (tmp_path / sub).mkdir()
+        (tmp_path / sub / "recording.rrd").write_bytes(b"RRF2" + bytes(60))
+    assert main(["view", str(tmp_path)]) == 0
+    assert viewer == [[str(tmp_path / "f_sim100" / "recording.rrd"), str(tmp_path / "f_sim400" / "recording.rrd")]]
+
+
 @pytest.mark.parametrize("name,data,needle", [
     ("rope.npz", b"PK\x03\x04" + bytes(60), "not a Rerun recording"),
     ("x.rrd", b"", "empty"),

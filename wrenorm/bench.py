@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from .errors import InputError
+from .options import add_list, number
 from .results import versions, write_atomic, write_json
 from .system import resolve, systems
 
@@ -32,8 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder for results.{json,md,png} (results-cuda.* on cuda)")
     p.add_argument("--quick", action="store_true", help="small batches only (smoke test)")
     p.add_argument("--no-fits", action="store_true", help="skip the end-to-end default fits")
-    p.add_argument("--batches", type=int, nargs="+", default=None)
-    p.add_argument("--only", choices=list(systems()), nargs="+", default=None, help="systems to bench")
+    add_list(p, "--batches", item=number(integer=True), default=None, metavar="N", help="chains per launch")
+    add_list(p, "--only", default=None, metavar="SYSTEM", help=f"systems to bench: {', '.join(systems())}")
     p.add_argument("--no-cuda-build", action="store_true",
                    help="skip the ahead-of-time sm_90 build of every kernel (registers, stack per thread)")
     p.add_argument("--force", action="store_true", help="replace results already in --out")
@@ -169,6 +170,9 @@ def run(args) -> int:
     if any(not 0 < b <= MAX_BATCH for b in batches):
         raise InputError("--batches", "batches", f"each must be in [1, {MAX_BATCH}], got {batches}")
     registered = systems()
+    unknown = [n for n in args.only or [] if n not in registered]
+    if unknown:
+        raise InputError("--only", "only", f"unknown system {unknown[0]!r}; available: {', '.join(registered)}")
     only = args.only or [n for n, s in registered.items() if s.bench is not None]
     res = {"schema": "wrenorm.bench/2", "date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(device),
            "versions": versions(), "systems": [], "tables": {}}

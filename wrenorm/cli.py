@@ -338,7 +338,8 @@ def cmd_view(args) -> int:
             webbrowser.open(page.resolve().as_uri())
         return 0
     rrd = run / "recording.rrd" if run.is_dir() else run
-    if not rrd.exists():
+    # a fit at several resolutions records one per sub-run (f_sim100/recording.rrd, ...) and none above them
+    if not rrd.exists() and not (run.is_dir() and any(run.glob("*/recording.rrd"))):
         raise InputError(str(run), "recording.rrd", "no recording in this run folder")
     try:
         import rerun  # noqa: F401  (the viewer ships with rerun-sdk)
