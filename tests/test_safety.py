@@ -205,7 +205,9 @@ def test_no_warp_cuda_line_without_a_gpu(tmp_path):
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "CUDA" not in bad.stderr
 
 
-def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path):
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path, sig, code):
+    """Ctrl-C, and SIGTERM (a scheduler's or `timeout`'s stop, which ended the run without the resume line)."""
     out = tmp_path / "run"
     args = ["fit", "rope", "--search", "cmaes", "--generations", "400", "--segments", "6", "--no-record", "--out",
             str(out)]
@@ -217,10 +219,10 @@ def test_ctrl_c_stops_within_a_second_with_130_and_the_run_resumes(tmp_path):
     while time.time() < deadline and not (log.exists() and log.read_text().count("\n") >= 2):  # a generation done
         time.sleep(0.05)
     time.sleep(0.3)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     t0 = time.time()
     rc = proc.wait(timeout=30)
-    assert rc == 130 and time.time() - t0 < 1.5 + 0.5  # the watchdog's second, plus interpreter exit
+    assert rc == code and time.time() - t0 < 1.5 + 0.5  # the watchdog's second, plus interpreter exit
     assert "--resume" in proc.stderr.read()
     generations = log.read_text().count("\n") - 1  # lines after the header
     assert 0 < generations < 400

@@ -414,10 +414,10 @@ def main(argv=None) -> int:
         print(f"wrenorm: fit failed: {e}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
-        from .interrupt import resume_hint
+        from .interrupt import exit_code, resume_hint
 
         print(f"\nwrenorm: interrupted{resume_hint(locals().get('args'))}", file=sys.stderr)
-        return 130
+        return exit_code()
     except OSError as e:
         where = e.filename or "file system"
         print(f"wrenorm: error: {where}: {e.strerror or e.__class__.__name__}", file=sys.stderr)

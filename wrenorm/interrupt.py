@@ -1,7 +1,7 @@
-"""Ctrl-C that always works: the first one raises KeyboardInterrupt as usual and starts a one-second watchdog;
-if the interrupt was swallowed (Python drops exceptions raised inside a finalizer, which Warp and numpy run at
-any time) or the work does not reach a point where it can stop, the watchdog ends the process with exit code
-130. State written so far is complete: every write is atomic (temp file + rename)."""
+"""Ctrl-C (and SIGTERM) that always works: the first one raises KeyboardInterrupt as usual and starts a one-second
+watchdog; if the interrupt was swallowed (Python drops exceptions raised inside a finalizer, which Warp and numpy run
+at any time) or the work does not reach a point where it can stop, the watchdog ends the process with exit code
+128 + the signal (130, 143). State written so far is complete: every write is atomic (temp file + rename)."""
 from __future__ import annotations
 
 import os
@@ -11,7 +11,13 @@ import threading
 
 EXIT_CODE = 130
 GRACE_S = 1.0
-_state = {"hint": ""}
+SIGNALS = (signal.SIGINT, signal.SIGTERM)  # Ctrl-C, and a job scheduler's or `timeout`'s polite stop
+_state = {"hint": "", "signal": signal.SIGINT}
+
+
+def exit_code() -> int:
+    """128 + the signal that stopped the run (130 for Ctrl-C, 143 for SIGTERM), as a shell reports it."""
+    return 128 + int(_state["signal"])
 
 
 def _watchdog():
@@ -19,29 +25,32 @@ def _watchdog():
         sys.stderr.write(f"\nwrenorm: interrupted{_state['hint']}\n")
         sys.stderr.flush()
     finally:
-        os._exit(EXIT_CODE)
+        os._exit(exit_code())
 
 
 def _handler(signum, frame):
+    _state["signal"] = signum
     timer = threading.Timer(GRACE_S, _watchdog)
     timer.daemon = True
     timer.start()
-    signal.signal(signal.SIGINT, lambda *a: _watchdog())  # a second Ctrl-C ends it at once
+    for s in SIGNALS:
+        signal.signal(s, lambda *a: _watchdog())  # a second one ends it at once
     raise KeyboardInterrupt
 
 
 def install(hint: str = ""):
-    """Route SIGINT through the watchdog (main thread only; elsewhere Python's default stays). Returns the
-    handler it replaced, for `restore`."""
-    _state["hint"] = hint
+    """Route SIGINT and SIGTERM through the watchdog (main thread only; elsewhere Python's default stays).
+    Returns the handlers it replaced, for `restore`."""
+    _state["hint"], _state["signal"] = hint, signal.SIGINT
     if threading.current_thread() is threading.main_thread():
-        return signal.signal(signal.SIGINT, _handler)
+        return {s: signal.signal(s, _handler) for s in SIGNALS}
     return None
 
 
 def restore(previous) -> None:
     if previous is not None and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def resume_hint(args) -> str:
