@@ -157,3 +157,18 @@ def test_flow_resume_continues_after_the_last_finished_resolution(tmp_path, caps
     assert main([*args[:-1], "4", "--out", str(cut), "--resume"]) == 2
     (tmp_path / "empty").mkdir()
     assert main([*args, "--out", str(tmp_path / "empty"), "--resume"]) == 2
+
+
+def test_flow_resume_with_other_resolutions_names_them(tmp_path, capsys):
+    """A resume with another resolution list (or another system's folder) names that, not the free parameters that
+    follow from it."""
+    out = tmp_path / "f"
+    tail = ["--quiet", "--no-record", "--restarts", "2", "--generations", "2", "--out", str(out)]
+    assert main(["flow", "rope", "--resolutions", "6", "8", *tail]) == 0
+    capsys.readouterr()
+    assert main(["flow", "rope", "--resolutions", "6", "8", "10", *tail, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert ": resolutions: " in err, err
+    assert main(["flow", "pd", "--out", str(out), "--resume", "--quiet", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert ": task: " in err, err

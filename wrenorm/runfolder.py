@@ -82,10 +82,14 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
     return out
 
 
+FIRST_NAMED = ("task", "resolutions")  # settings the others follow from (a flow's free parameters per resolution)
+
+
 def check_same_settings(source: str, old: dict, new: dict, what: str = "fit") -> None:
-    """A resumed run must repeat the interrupted one's settings: the first that differs (sorted by name) is an
-    InputError naming the state file, the setting and both values."""
-    for key in sorted(set(old) | set(new)):
+    """A resumed run must repeat the interrupted one's settings: the first that differs (the task and resolutions
+    first, then sorted by name) is an InputError naming the state file, the setting and both values."""
+    for key in sorted(set(old) | set(new), key=lambda k: (k not in FIRST_NAMED, FIRST_NAMED.index(k)
+                                                          if k in FIRST_NAMED else 0, k)):
         if old.get(key) != new.get(key):
             raise InputError(source, key, f"the interrupted {what} ran with {old.get(key)!r}, this run with "
                                           f"{new.get(key)!r}; resume with the same settings")
