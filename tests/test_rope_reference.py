@@ -107,6 +107,7 @@ def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
     (lambda d: d.update(marker_arclength=d["marker_arclength"][::-1].copy()), "marker_arclength"),
     (lambda d: d.update(hand=d["hand"] + 0.5), "markers"),  # marker 0 is not at the hand
     (lambda d: d.update(length=0.3), "markers"),  # markers spread over more than the rope length
+    (lambda d: d.update(length=2 * L), "length"),  # ... over half of it, marker_arclength given (was "in contact")
 ])
 def test_named_errors(tmp_path, mutate, field):
     d = as_dict(hanging_ref())
