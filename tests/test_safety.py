@@ -268,3 +268,12 @@ def test_resume_and_force_together_are_refused_and_an_empty_reference_is_not_the
     assert main([*PD, "--reference", "", "--out", str(tmp_path / "empty")]) == 2
     _one_line_error(capsys, "--reference", "empty")
     assert not (tmp_path / "empty").exists()
+
+
+def test_cma_settings_under_least_squares_are_said_to_be_unused(tmp_path, capsys):
+    """fit pd searches by least squares: --generations and --popsize changed nothing, in silence."""
+    assert main([*PD, "--generations", "1", "--popsize", "4", "--out", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err
+    assert "--generations, --popsize" in err and "least-squares" in err
+    assert main([*PD, "--out", str(tmp_path / "q")]) == 0
+    assert "CMA-ES settings" not in capsys.readouterr().err

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import AllCandidatesFailed, InputError
+from .errors import AllCandidatesFailed, InputError, warn
 from .options import OneLineParser, add_list, add_number
 from .system import resolve, systems
 
@@ -237,6 +237,12 @@ def cmd_fit(args) -> int:
     _apply_parameter_set(problems, args)
     if args.search != "cmaes" and not all(p.has_residuals for p in problems):
         raise InputError("--search", "search", f"{args.search} needs residuals, which {args.system} does not expose")
+    if args.search == "least-squares":
+        typed = [f for f in ("--generations", "--popsize", "--sigma0", "--searches")
+                 if any(a == f or a.startswith(f + "=") for a in getattr(args, "_argv", []))]
+        if typed:
+            warn(f"{', '.join(typed)}: CMA-ES settings, which --search least-squares (this fit's search) does not use; "
+                 "--search cmaes or cmaes+least-squares uses them")
     searches, popsize = search_width(system, device, args.searches, args.popsize, len(problems[0].space.free))
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
                            polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
