@@ -125,6 +125,10 @@ def _end(pids) -> None:
     ('task = "fit pd"\n[axes]\nf-sim = []', "axes.f-sim"),
     ('task = "fit pd"\n[axes]\nintegrator = ["explicit", "rk4"]', "axes.integrator"),
     ('task = "fit pd"\n[options]\nf-sim = 100\n[axes]\nf-sim = [200]', "options.f-sim"),
+    ('task = "fit pd"\n[options]\nK_D = 0.9\n[axes]\nK-D = [0.3, 0.5]', "options.K_D"),
+    ('task = "fit pd"\n[options]\nf_sim = [400]\n[axes]\nf-sim = [100, 200]', "options.f_sim"),
+    ('task = "fit pd"\n[axes]\nf-sim = [100, 100.0]', "axes.f-sim"),
+    ('task = "fit swimmer"\n[axes]\ntrain = [[1, 1.75], [1.0, 1.75]]', "axes.train"),
     ('task = "fit pd"\nseeds = [1, 1]', "seeds"),
     ('task = "fit pd"\n[axis]\nf-sim = [100]', "axis"),
     ('task = fit pd', "toml"),
@@ -137,6 +141,23 @@ def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys
     assert err.startswith("wrenorm: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
     assert key in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[options]\nK_D = 0.9\n[axes]\nK-D = [0.3, 0.5]',
+     "options.K_D: is also an axis ([axes] K-D): fix it or vary it, not both"),
+    ('[axes]\nK_D = [0.3]\nK-D = [0.5]', "axes.K-D: is the same option as axes.K_D (--K-D): give it once"),
+    ('[options]\nf_sim = 100\nf-sim = 200', "options.f-sim: is the same option as options.f_sim (--f-sim)"),
+    ('[axes]\nf-sim = [100, 200, 100.0]', "axes.f-sim: repeated value 100.0 (the same as 100)"),
+    ('[axes]\nf-sim = [[100, 200], [100.0, 200]]', "axes.f-sim: repeated value [100.0, 200] (the same as [100, 200])"),
+])
+def test_one_option_or_value_written_two_ways_is_refused(tmp_path, text, message):
+    """`K_D` and `K-D` are one option (the cell's command would keep only the last), 100 and 100.0 one value."""
+    from wrenorm.sweep.spec import load
+
+    with pytest.raises(InputError) as e:
+        load(_write(tmp_path, 'task = "fit pd"\n' + text))
+    assert message in str(e.value), e.value
 
 
 def test_a_spec_expands_into_cells_with_the_tasks_own_command_lines(tmp_path):
@@ -215,6 +236,27 @@ def test_files_and_folders_that_exist_and_labels_pass_the_check(tmp_path, monkey
         assert load(_write(tmp_path, text)).cells, text
     with pytest.raises(InputError, match="nosuch.npz: does not exist"):  # and each part is checked
         load(_write(tmp_path, 'task = "fit rope"\n[options]\nreference = "a.npz,nosuch.npz"'))
+
+
+def test_an_axis_named_like_a_fitted_parameter_keeps_the_swept_value_beside_the_fitted_one(tmp_path):
+    """An axis `J` (the measured inertia each cell is given) and the fitted J are two numbers: the axis column keeps
+    the swept value, the fitted one is `fitted_J` in the table and in what the plot draws."""
+    from wrenorm.sweep import table
+    from wrenorm.sweep.spec import load
+
+    spec = load(_write(tmp_path, 'task = "fit pd"\n[axes]\nJ = [0.03, 0.08]\n'))
+    records = {c.id: {"status": "done"} for c in spec.cells}
+    results = {c.id: {"schema": "wrenorm.result/1", "loss": {"measured": 1.0, "fitted": 0.5},
+                      "parameters": {"J": {"fitted": 0.05 + c.index, "std": 0.001, "frozen": False},
+                                     "K_D": {"fitted": 0.4, "std": 0.01, "frozen": False}}} for c in spec.cells}
+    rows = table.build(spec, records, results)
+    assert [r["J"] for r in rows] == ["0.03", "0.08"]
+    assert [r["fitted_J"] for r in rows] == [0.05, 1.05] and rows[0]["fitted_J_std"] == 0.001
+    assert rows[0]["K_D"] == 0.4 and "fitted_K_D" not in rows[0]
+    assert table.free_names("fit", results, spec.axes) == ["fitted_J", "K_D"]
+    table.write_csv(tmp_path / "sweep.csv", spec, rows)
+    written = _rows(tmp_path)
+    assert [r["J"] for r in written] == ["0.03", "0.08"] and [r["fitted_J"] for r in written] == ["0.05", "1.05"]
 
 
 def test_a_failed_cell_records_the_warnings_that_name_the_file_and_why(tmp_path):
@@ -362,6 +404,119 @@ def test_a_sweep_killed_with_sigkill_resumes_to_the_same_table_running_only_miss
     assert {k: after[k]["started"] for k in kept} == kept  # the finished cells were not run again
     assert len(after) == 6
     assert _stable(_rows(out)) == _stable(_rows(ref))
+
+
+def test_resume_runs_a_cell_again_whose_result_the_table_cannot_read(finished, tmp_path):
+    """A finished cell's result.json replaced by something else is not a finished cell: said, and run again."""
+    _, ref, _ = finished
+    out = tmp_path / "copy"
+    shutil.copytree(ref, out)
+    cell = next(r["cell"] for r in _rows(ref) if r["status"] == "done")
+    bad = out / "cells" / cell / "result.json"
+    bad.write_text('{"schema": "x", "parameters": {}}')
+    before = json.loads((out / "sweep-state.json").read_text())["records"]
+    proc = _sweep(out / "spec.toml", out, "--resume")
+    assert proc.returncode == 3, proc.stderr
+    assert f"wrenorm: warning: {bad}: schema is 'x', not wrenorm.result/*; running cell {cell} again" in proc.stderr
+    after = json.loads((out / "sweep-state.json").read_text())["records"]
+    assert after[cell]["started"] != before[cell]["started"]
+    assert {k: after[k]["started"] for k in before if k != cell} == {k: r["started"] for k, r in before.items()
+                                                                       if k != cell}
+    assert _stable(_rows(out)) == _stable(_rows(ref))
+
+
+def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path):
+    """While cells run, stderr is ray.log: the interrupt's line must still reach the terminal."""
+    _ray()
+    spec = _write(tmp_path, SPEC.replace("restarts = [0, 1]", ""))
+    out = tmp_path / "out"
+    proc = _sweep(spec, out, env={"WRENORM_TEST_SLOW_GENERATION": "0.4"}, wait=False)
+    below, running = [], False
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None and not running:
+            below = sorted(set(below) | set(_descendants(proc.pid)))
+            running = any(_cmdline(p).startswith("ray::run_cell") for p in below)
+            time.sleep(0.1)
+        assert running
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        time.sleep(1.0)
+        _end(p for p in below if "ray" in _cmdline(p))
+    assert proc.returncode == 130, stderr
+    assert f"wrenorm: interrupted; continue with --resume --out {out}" in stderr, stderr
+
+
+def test_resume_refuses_an_input_whose_content_changed_naming_it(tmp_path, capsys, monkeypatch):
+    """The same spec and cells, but `logs/a.csv` edited in place, or the spec resumed from another folder where the
+    relative path names another file: refused, as `fit --resume` refuses it."""
+    _ray()
+    from wrenorm.cli import content_hashes
+    from wrenorm.runfolder import prepare_out
+    from wrenorm.sweep.run import _load_state, _save_state
+    from wrenorm.sweep.spec import load
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "logs").mkdir()
+    log = tmp_path / "logs" / "a.csv"
+    log.write_text("time,q,q_d,qd_d\n0,0,0,0\n")
+    spec_file = _write(tmp_path, 'task = "fit pd"\n[options]\nreference = "logs/a.csv"\n[axes]\nf-sim = [100, 200]\n')
+    spec = load(spec_file)
+    spec.hashes = content_hashes(spec.inputs)
+    out = prepare_out(tmp_path / "out")
+    _save_state(out, spec, {})  # the sweep as it started
+    assert _load_state(out, spec)["inputs"] == {"logs/a.csv": spec.hashes["logs/a.csv"]}  # the same: resumes
+
+    log.write_text("time,q,q_d,qd_d\n0,0.1,0,0\n")
+    assert main(["sweep", str(spec_file), "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'sweep-state.json'}: inputs: logs/a.csv is not what the interrupted " \
+                                    "sweep read" in err, err
+
+    log.write_text("time,q,q_d,qd_d\n0,0,0,0\n")  # back as it was; but from another folder
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "logs").mkdir(parents=True)
+    (elsewhere / "logs" / "a.csv").write_text("time,q,q_d,qd_d\n0,0.2,0,0\n")
+    monkeypatch.chdir(elsewhere)
+    assert main(["sweep", str(spec_file), "--out", str(out), "--resume"]) == 2
+    assert "inputs: logs/a.csv is not what the interrupted sweep read" in capsys.readouterr().err
+
+
+def test_force_never_clears_a_sweep_folder_that_holds_an_input(tmp_path, capsys):
+    _ray()
+    from wrenorm.runfolder import prepare_out
+
+    out = prepare_out(tmp_path / "out")  # an earlier run's folder, where a reference was then put
+    log = out / "log.csv"
+    log.write_text("time,q,q_d,qd_d\n0,0,0,0\n")
+    spec = _write(tmp_path, f'task = "fit pd"\n[options]\nreference = "{log}"\n')
+    assert main(["sweep", str(spec), "--out", str(out), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--out: holds an input of this command ({log})" in err, err
+    assert log.exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--cpus", "1", "--cpus-per-cell", "2"],
+     "--cpus-per-cell: 2: a cell cannot hold more CPUs than the local Ray has (--cpus 1)"),
+    (["--device", "cuda"], "--device: device: cuda requested but no CUDA device is available"),
+])
+def test_a_cell_the_local_ray_cannot_hold_is_refused_before_out_is_made(tmp_path, capsys, extra, message):
+    _ray()
+    if "cuda" in extra:
+        from wrenorm.warp_init import init_warp
+
+        if init_warp("cuda").is_cuda_available():
+            pytest.skip("this machine has a CUDA device")
+    spec = _write(tmp_path, 'task = "fit pd"\n[options]\nno-record = true\n')
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec), "--out", str(out), *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_a_lost_worker_is_recorded_and_the_other_cells_go_on(tmp_path):

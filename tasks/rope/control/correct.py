@@ -288,7 +288,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             first_plan_offset: tuple | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
-    method "gn" (default): trial 0 is the model's own plan (as "plan"); every next command a trust-region
+    method "gn" (default): trial 1 is the model's own plan (as "plan"); every next command a trust-region
       Gauss-Newton step from the best trial through the chain's sensitivity, measured once (with linearise_at
       "matched" where the chain reproduces the first hit's real state) and corrected by every trial (secant.py).
       first_step "space-mapping": trial 2 (after the planned trial 1, with fixed parameters) is space mapping's step
@@ -608,7 +608,7 @@ def _first_plan(model: CoarseModel, goal: crit.Target, u0: np.ndarray, seed: int
     if progress:
         shifted = "" if zero else (f" (+ the rope's offset under the recorded command, where the chain misses the "
                                    f"rope's state by {miss:.3f}: predicted {p['predicted_total']:.3f})")
-        progress(f"  trial 0 (plan on the model {'alone' if zero else 'and offset'}): model error "
+        progress(f"  plan for trial 1 (on the model {'alone' if zero else 'and offset'}): model error "
                  f"{planning['model_total_at_start']:.3f} at the start -> {p['model_total']:.3f}{shifted} at "
                  f"{planning['distance_from_start']:.2f} from it (Euclidean, units of u; weight {opts['reg']:g} per "
                  f"unit squared), {p['evaluations']} coarse rollouts, {p['wall_s']:.1f} s")
