@@ -232,3 +232,16 @@ def test_one_launch_tape_rollout_equals_one_launch_per_step(integrator):
     stepped = p.kpd.simulate_with_grad(x, cmds, p.integrator, p.dt, per_step=True)
     assert np.array_equal(fused[0], stepped[0]) and np.array_equal(fused[1], stepped[1])
     assert np.all(np.abs(fused[1]) > 0)
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "semi-implicit"])
+def test_an_unstable_step_is_said_and_agrees_with_the_kernel(integrator):
+    """One step's spectral radius above 1 (an analytic bound on the update) is exactly where the kernel's joint blows
+    up on the training commands; a fit there warns that its values mean nothing (it said 'expand')."""
+    for f in (5, 10, 20, 30, 50, 100, 400):
+        p = PDProblem(f, integrator)
+        r = p.step_spectral_radius(p.space.measured)
+        traj = p.trajectories(p.space.measured[None], p.train)
+        ref = max(np.abs(c.data["q_ref"]).max() for c in p.train)
+        assert (np.nanmax(np.abs(traj)) > 10 * ref) == (r > 1.0), (f, r)
+        assert bool(p.fit_warnings(p.space.measured)) == (r > 1.0)

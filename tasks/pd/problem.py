@@ -442,6 +442,25 @@ class PDProblem(Problem):
             "fitted_delay_from_J_over_dt": delay_j / dt,
         }
 
+    def step_spectral_radius(self, values) -> float:
+        """The largest |eigenvalue| of one step of the free joint (q_d = 0) under the integrator: above 1 the coarse
+        model diverges at this f_sim whatever J, K_P, K_D stand for (kernels/pd.py's two updates)."""
+        v = self.space.as_dict(values)
+        a, b, dt = -v["K_P"] / v["J"], -v["K_D"] / v["J"], self.dt
+        if self.integrator_name == "explicit":  # q += dt v; v += dt tau / J (both from the old state)
+            M = np.array([[1.0, dt], [dt * a, 1.0 + dt * b]])
+        else:  # v += dt tau / J; q += dt v (the new v)
+            M = np.array([[1.0 + dt * dt * a, dt * (1.0 + dt * b)], [dt * a, 1.0 + dt * b]])
+        return float(np.max(np.abs(np.linalg.eigvals(M))))
+
+    def fit_warnings(self, fitted) -> list[str]:
+        r = self.step_spectral_radius(fitted)
+        if r <= 1.0 + 1e-9:
+            return []
+        return [f"the {self.integrator_name} update at f_sim {self.f_sim:g} Hz is unstable with the fitted values "
+                f"(one step's spectral radius {r:.3g} > 1): the coarse joint diverges, so no parameter of it means "
+                "anything and the verdict says nothing of missing physics; raise --f-sim"]
+
     def report(self, fitted, measured):
         f = self.space.as_dict(fitted)
         return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name,
