@@ -26,7 +26,10 @@ def sections(result: dict) -> list[tuple[str, str]]:
                      f"{num(ref.get('s_a'), 3)} / {num(ref.get('s_b'), 3)}",
                      *_chain(p.get("measured") or {}), *_chain(p.get("fitted") or {})])
     body = ("<p>The observable is the state at the first self-collision. Times in s; contact places as arc-length "
-            "fractions of the two touching points; errors are the weighted sum the fit minimises.</p>"
+            "fractions of the two touching points; errors are the weighted sum the fit minimises, where a chain that "
+            "never hits costs the no-hit penalty. The held-out conditions table scores such a chain by its state at "
+            "the reference's moment instead (the validation's rule), so a held-out throw the chain misses shows two "
+            "different errors.</p>"
             + table(["throw", "", "reference time", "reference place", "measured: hit time", "measured: error",
                      "fitted: hit time", "fitted: error"], rows))
     comp = result.get("held_out_comparison") or {}
