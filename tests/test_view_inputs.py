@@ -53,6 +53,7 @@ def test_a_well_formed_result_still_makes_its_report(tmp_path):
      "points[0].parameters"),
     # a part check_result does not look at, laid out otherwise: still one line naming the file
     (json.dumps(_fit(validation={"conditions": {"held": 5}})), "contents"),
+    (json.dumps(_fit(validation={"verdict": "bogus", "tolerance": 0.1})), "validation.verdict"),  # was shown
 ])
 def test_a_result_the_report_cannot_be_made_from_is_one_line_exit_2(tmp_path, capsys, text, field):
     (tmp_path / "result.json").write_text(text)
@@ -60,6 +61,20 @@ def test_a_result_the_report_cannot_be_made_from_is_one_line_exit_2(tmp_path, ca
     err = _one_line(capsys)
     assert str(tmp_path / "result.json") in err and f": {field}" in err, err
     assert not (tmp_path / "report.html").exists()  # no page from a result it cannot stand behind
+
+
+def test_the_ratio_shown_is_the_values_shown(tmp_path):
+    """A stored ratio_to_measured is not trusted: an edited fitted value (here NaN) showed the old 1.05x beside it."""
+    r = _fit()
+    r["parameters"]["J"].update(fitted=float("nan"), ratio_to_measured=1.05)
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "1.05×" not in page
+    r["parameters"]["J"].update(fitted=0.06)
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    assert "1.2×" in (tmp_path / "report.html").read_text()
 
 
 def test_a_result_that_is_not_text_is_refused(tmp_path, capsys):

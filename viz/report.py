@@ -137,7 +137,9 @@ def _parameter_rows(r: dict) -> list[list]:
                 flags.append(flag("determined", "ok"))
         lo, hi = p.get("bounds", [None, None])
         std = "" if p.get("std") is None else f"± {num(p['std'], 3)}"
-        ratio = "" if p.get("ratio_to_measured") is None else f"{p['ratio_to_measured']:.3g}×"
+        fitted, measured = p.get("fitted"), p.get("measured")  # the ratio from the values shown, not a stored copy
+        ratio = f"{fitted / measured:.3g}×" if fitted is not None and measured and math.isfinite(fitted / measured) \
+            else ""
         rows.append([name, p.get("unit", ""), num(p.get("measured")), num(p.get("fitted")), std, ratio,
                      f"[{num(lo, 3)}, {num(hi, 3)}]", _Html(" ".join(flags))])
     return rows
@@ -421,6 +423,10 @@ def _check_fit(r, src: str, where: str = "") -> None:
         _field(r, key, kind, src, where, required=False)
     _check_parameters(r["parameters"], src, where)
     _field(r["validation"], "conditions", dict, src, where + "validation.", required=False)
+    verdict = _field(r["validation"], "verdict", str, src, where + "validation.", required=False)
+    if verdict is not None and verdict not in VERDICT_STYLE:
+        raise InputError(src, f"{where}validation.verdict", f"{verdict!r} is not a verdict wrenorm gives "
+                                                            f"({', '.join(VERDICT_STYLE)})")
 
 
 def check_result(result, src: str) -> None:
