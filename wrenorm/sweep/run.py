@@ -2,7 +2,8 @@
 
 DIR holds
     spec.toml            the spec as given
-    sweep-state.json     the cells and, per finished cell, its status, error, host and times (what --resume reads)
+    sweep-state.json     the cells, the inputs' content hashes and, per finished cell, its status, error, host
+                         and times (what --resume reads)
     cells/<cell>/        each cell's run folder, exactly as the task's own command writes it
     logs/<cell>.log      what the cell printed
     sweep.json           everything: spec, start-up and cell timings, per-cell records, the table
@@ -25,7 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-from wrenorm.errors import InputError
+from wrenorm.errors import InputError, warn
 from wrenorm.options import add_number
 from wrenorm.results import write_atomic, write_json
 
@@ -74,20 +75,61 @@ def _load_state(out: Path, spec) -> dict:
     if state.get("cells") != _cells_identity(spec):
         raise InputError(str(f), "cells", "the spec expands to other cells than the interrupted sweep's; resume with "
                                           "the same spec (DIR/spec.toml is a copy), or start anew with --force")
+    # the same command lines may read other bytes: a file edited in place, or a relative path from another folder
+    old = state.get("inputs") if isinstance(state.get("inputs"), dict) else {}
+    for name in sorted(set(old) | set(spec.hashes)):
+        if old.get(name) != spec.hashes.get(name):
+            then = f"sha256 {old[name][:12]}" if old.get(name) else "not recorded"
+            now = f"sha256 {spec.hashes[name][:12]}" if spec.hashes.get(name) else "not read"
+            raise InputError(str(f), "inputs", f"{name} is not what the interrupted sweep read (content {then}, now "
+                                               f"{now}); resume with the same inputs from the same folder, or start "
+                                               "anew with --force")
     return state
 
 
 def _save_state(out: Path, spec, records: dict) -> None:
     write_json(out / STATE_FILE, {"schema": "wrenorm.sweep-state/1", "task": spec.task,
-                                  "cells": _cells_identity(spec), "records": records})
+                                  "cells": _cells_identity(spec), "inputs": spec.hashes, "records": records})
 
 
-def _read_result(out: Path, verb: str, cell_id: str) -> dict | None:
+def _result_problem(verb: str, result) -> str | None:
+    """Why the table could not read this as a finished cell's result (None: it can): its command's schema (a
+    command whose result has none, `select`, is taken as it is), and per fit run or flow point the parameters with
+    their fitted values and the loss."""
+    if not isinstance(result, dict):
+        return "is not a JSON object"
+    schema = {"fit": "wrenorm.result/", "flow": "wrenorm.flow/"}.get(verb, f"wrenorm.{verb}/")
+    if (verb in ("fit", "flow") or "schema" in result) and not str(result.get("schema", "")).startswith(schema):
+        return f"schema is {result.get('schema')!r}, not {schema}*"
+    if verb not in ("fit", "flow"):
+        return None
+    parts = result.get("runs", [result]) if verb == "fit" else result.get("points")
+    if not isinstance(parts, list) or not parts:
+        return "has no " + ("runs" if verb == "fit" else "points")
+    for part in parts:
+        params = part.get("parameters") if isinstance(part, dict) else None
+        if not isinstance(params, dict) or not params:
+            return "has no parameters"
+        if not all(isinstance(p, dict) and "fitted" in p for p in params.values()):
+            return "has a parameter without its fitted value"
+        if not isinstance(part.get("loss"), dict):
+            return "has no loss"
+    return None
+
+
+def _read_result(out: Path, verb: str, cell_id: str, say_why: bool) -> dict | None:
+    """A finished cell's result, or None (the cell runs again: said on stderr where say_why)."""
     path = out / "cells" / cell_id / result_file(verb)
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        result = json.loads(path.read_text())
+        problem = _result_problem(verb, result)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as e:
+        problem = f"cannot be read: {e}"
+    if problem and say_why:
+        warn(f"{path}: {problem}; running cell {cell_id} again")
+    return None if problem else result
 
 
 def _todo(out: Path, spec, records: dict, results: dict, retry_failed: bool) -> list:
@@ -100,7 +142,7 @@ def _todo(out: Path, spec, records: dict, results: dict, retry_failed: bool) -> 
             continue
         if status == "done" or (rec is None and spec.verb == "fit"):
             # done, or a fit that finished after the last state write (its result.json is written last, atomically)
-            result = _read_result(out, spec.verb, cell.id)
+            result = _read_result(out, spec.verb, cell.id, say_why=status == "done")
             if result is not None:
                 results[cell.id] = result
                 if rec is None:
@@ -186,6 +228,20 @@ def _token_available() -> bool:
                 or (Path.home() / ".ray" / "auth_token").is_file())
 
 
+def _check_local(args) -> None:
+    """What the embedded local Ray will have is known before it starts: a cell it cannot hold is refused before
+    --out is made (a cluster's resources are known only once joined: _run checks those)."""
+    from wrenorm.cli import _device
+
+    cpus = args.cpus or os.cpu_count() or 1
+    if args.cpus_per_cell > cpus:
+        have = f"--cpus {cpus}" if args.cpus else f"{cpus}, this machine's"
+        raise InputError("--cpus-per-cell", args.cpus_per_cell,
+                         f"a cell cannot hold more CPUs than the local Ray has ({have})")
+    if args.device == "cuda":
+        _device(args.device)  # no CUDA device here: one line naming --device
+
+
 def _slots(info: dict, args) -> int:
     slots = int(info["cpus"] // args.cpus_per_cell)
     if args.device == "cuda":
@@ -206,14 +262,18 @@ def _warm_configs(spec) -> list:
 # --- the command --------------------------------------------------------------------------------------------------
 
 def cmd_sweep(args) -> int:
+    from wrenorm.cli import content_hashes
     from wrenorm.runfolder import prepare_out
 
     from .spec import load
 
     spec = load(args.spec)  # every cell checked: a bad spec ends here, before Ray starts
+    spec.hashes = content_hashes(spec.inputs)  # once, at the start: what --resume must find again
     ray = _import_ray(args.address)
     if args.address:
         _check_address(args.address)
+    else:
+        _check_local(args)
     resume = args.resume or args.retry_failed
     out = args.out or Path("runs") / f"sweep-{spec.system}-{time.strftime('%Y%m%d-%H%M%S')}"
     records, results = {}, {}
@@ -221,7 +281,7 @@ def cmd_sweep(args) -> int:
         out = prepare_out(out, resume=True, state=STATE_FILE, command="sweep")
         records = _load_state(out, spec).get("records", {})
     else:
-        out = prepare_out(out, force=args.force, inputs=[args.spec], command=f"sweep {spec.task}")
+        out = prepare_out(out, force=args.force, inputs=[args.spec, *spec.inputs], command=f"sweep {spec.task}")
         write_atomic(out / "spec.toml", spec.text)
     todo = _todo(out, spec, records, results, args.retry_failed)
     _save_state(out, spec, records)
@@ -237,12 +297,18 @@ def cmd_sweep(args) -> int:
     t_start = time.perf_counter()
     sweep = {"out": out, "spec": spec, "records": records, "results": results, "timing": timing, "ray": None,
              "args": args}
+    interrupted = False
     try:
         if todo:
             with _ray_output_to(out / "ray.log") as terminal:
                 say = (lambda text: None) if args.quiet else (lambda text: print(text, file=terminal, flush=True))
                 try:
                     _run(ray, args, spec, out, todo, token, sweep, say, terminal)
+                except KeyboardInterrupt:  # Ctrl-C or SIGTERM (wrenorm.interrupt)
+                    # stderr is ray.log here, and Ray's shut-down outlasts the interrupt's one-second grace, whose
+                    # line would go there too: say it on the terminal first
+                    print(f"\nwrenorm: interrupted; continue with --resume --out {out}", file=terminal, flush=True)
+                    interrupted = True
                 finally:
                     if ray.is_initialized():
                         t = time.perf_counter()
@@ -251,6 +317,10 @@ def cmd_sweep(args) -> int:
     finally:
         timing["total_s"] = time.perf_counter() - t_start
         _write_tables(sweep)
+    if interrupted:
+        from wrenorm.interrupt import exit_code
+
+        return exit_code()
     _finish(sweep)
     return 0 if all(records.get(c.id, {}).get("status") == "done" for c in spec.cells) else 3
 
@@ -290,7 +360,9 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, t
     slots = _slots(info, args)
     if slots < 1:
         need = f"{args.gpus_per_cell:g} GPU" if args.device == "cuda" else f"{args.cpus_per_cell} CPUs"
-        raise InputError("--address" if args.address else "--device", args.device,
+        flag = "--gpus-per-cell" if args.device == "cuda" else "--cpus-per-cell"
+        raise InputError("--address" if args.address else flag,
+                         args.gpus_per_cell if args.device == "cuda" else args.cpus_per_cell,
                          f"the Ray cluster ({info['cpus']:g} CPUs, {info['gpus']:g} GPUs) cannot hold a cell "
                          f"({need} each)")
     gpus = args.gpus_per_cell if args.device == "cuda" else 0
@@ -422,7 +494,7 @@ def _finish(sweep: dict) -> None:
     out, spec, records, timing, args = sweep["out"], sweep["spec"], sweep["records"], sweep["timing"], sweep["args"]
     rows = table.build(spec, records, sweep["results"])
     names = table.free_names(spec.verb, {k: v for k, v in sweep["results"].items()
-                                         if records.get(k, {}).get("status") == "done"})
+                                         if records.get(k, {}).get("status") == "done"}, spec.axes)
     try:
         from wrenorm.viz.sweep_plot import plot_sweep
 

@@ -15,7 +15,8 @@
 Option names may use "-" or "_" (`f-sim`, `f_sim`); an option that takes several values takes a list (and an axis
 of it a list of lists). `--out`, `--seed`, `--device`, `--resume`, `--force` and `--quiet` belong to the sweep.
 Every cell's command line is checked with the task's own parser before anything runs: an unknown task or option,
-a value out of range, an axis with repeated values is one line naming the key and the problem (exit 2); so is a file
+a value out of range, an axis with repeated values (as the task reads them: 100 and 100.0 are one), an option given
+twice (`K_D` and `K-D` are one, fixed or varied) is one line naming the key and the problem (exit 2); so is a file
 or folder a cell is given (an option whose metavar says FILE or DIR) that does not exist or cannot be read. The spec
 is UTF-8 (a byte-order mark is fine).
 """
@@ -66,6 +67,8 @@ class Spec:
     seeds: list
     description: str = ""
     cells: list = field(default_factory=list)
+    inputs: list = field(default_factory=list)  # the files and folders cells read, as the spec names them
+    hashes: dict = field(default_factory=dict)  # input -> sha256 of its content (wrenorm.cli.content_hashes)
 
     @property
     def task(self) -> str:
@@ -196,13 +199,22 @@ def load(path: str | Path) -> Spec:
     seeds = _seeds(raw.get("seeds", [0]), path)
     head = [verb, system]
 
+    given: dict = {}  # option -> the key that gives it: `K_D` and `K-D` are one option, which the last would win
+    for table, entries in (("options", options), ("axes", axes)):
+        for key in entries:
+            where = f"{table}.{key}"
+            action = _check_key(parser, key, where, path, task)
+            first = given.setdefault(action, where)
+            if first.startswith("options.") and table == "axes":
+                raise InputError(path, first, f"is also an axis ([axes] {key}): fix it or vary it, not both")
+            if first != where:
+                raise InputError(path, where, f"is the same option as {first} "
+                                              f"({next(f for f in action.option_strings if f.startswith('--'))}): "
+                                              "give it once")
+
     fixed: list[str] = []
     for key, value in options.items():
-        where = f"options.{key}"
-        _check_key(parser, key, where, path, task)
-        if key in axes:
-            raise InputError(path, where, f"is also an axis ([axes] {key}): fix it or vary it, not both")
-        fixed += _tokens(_action(parser, key), value, where, path)
+        fixed += _tokens(_action(parser, key), value, f"options.{key}", path)
     _parse(parser, head, [*fixed], "options", path, "")
 
     axis_words: dict[str, list[list[str]]] = {}
@@ -212,10 +224,14 @@ def load(path: str | Path) -> Spec:
         if not isinstance(values, list) or not values:
             raise InputError(path, where, f"expected a non-empty list of values, got {values!r}")
         words = [_tokens(action, v, where, path) for v in values]
+        read = []  # each value as the cell's command reads it: 100 and 100.0 are one value
         for i, w in enumerate(words):
-            if w in words[:i]:
-                raise InputError(path, where, f"repeated value {values[i]!r}")
-            _parse(parser, head, [*fixed, *w], where, path, f"value {values[i]!r}: ")
+            value = getattr(_parse(parser, head, [*fixed, *w], where, path, f"value {values[i]!r}: "), action.dest)
+            if value in read:
+                same = values[read.index(value)]
+                raise InputError(path, where, f"repeated value {values[i]!r}"
+                                              + ("" if repr(same) == repr(values[i]) else f" (the same as {same!r})"))
+            read.append(value)
         axis_words[key] = words
 
     spec = Spec(path=path, text=text, verb=verb, system=system, options=dict(options), axes=dict(axes), seeds=seeds,
@@ -280,7 +296,7 @@ def _path_problem(p: Path, kind: str) -> str | None:
 
 def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
     """Every file and folder the spec gives a cell can be read, checked before any cell runs: a missing one would
-    otherwise start Ray, fail each of its cells and be named only in their logs."""
+    otherwise start Ray, fail each of its cells and be named only in their logs. Lists them in spec.inputs."""
     given = [("options", key, [value]) for key, value in spec.options.items()]
     given += [("axes", key, values) for key, values in spec.axes.items()]
     for table, key, values in given:
@@ -294,10 +310,14 @@ def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
             for v in value if isinstance(value, list) else [value]:
                 for text in _scalar(v, where, spec.path).split(",") if split else [_scalar(v, where, spec.path)]:
                     text = text.strip()
-                    problem = None if not text or text in labels else _path_problem(Path(text), kind)
+                    if not text or text in labels:
+                        continue
+                    problem = _path_problem(Path(text), kind)
                     if problem:
                         raise InputError(spec.path, where,
                                          f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
+                    if text not in spec.inputs:
+                        spec.inputs.append(text)
 
 
 def _whose(spec: Spec, table: str, key: str, value) -> str:

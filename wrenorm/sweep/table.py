@@ -2,7 +2,8 @@
 spreadsheet.
 
 Columns: cell, the axes, seed, status, resolution; per parameter its fitted value (`J`) and standard deviation
-(`J_std`); loss_measured, loss_fitted; per held-out condition heldout_<name>_measured / _fitted, heldout_mean_fitted,
+(`J_std`), as `fitted_J` and `fitted_J_std` where an axis is named `J` too (the axis column keeps the swept value);
+loss_measured, loss_fitted; per held-out condition heldout_<name>_measured / _fitted, heldout_mean_fitted,
 verdict; error; then the columns that differ from run to run of the same cell (VOLATILE): the fit's own
 wall_seconds, the cell's cell_seconds (as the worker saw it), host, started, finished.
 """
@@ -25,21 +26,28 @@ def _text(value) -> str:
     return str(value)
 
 
-def _fitted_columns(point: dict, std_key: str) -> dict:
+def parameter_column(name: str, axes) -> str:
+    """A fitted parameter's column: its name, or fitted_<name> where an axis has that name (an axis `J` is the
+    value the cell was given, the fitted J another number: neither may overwrite the other)."""
+    return f"fitted_{name}" if name in axes else name
+
+
+def _fitted_columns(point: dict, std_key: str, axes) -> dict:
     """resolution, each parameter's fitted value and spread, and the training loss of one fit or flow point."""
     row = {"resolution": _text(point.get("resolution", ""))}
     for name, p in point.get("parameters", {}).items():
-        row[name] = p.get("fitted")
-        row[f"{name}_std"] = p.get(std_key)
+        col = parameter_column(name, axes)
+        row[col] = p.get("fitted")
+        row[f"{col}_std"] = p.get(std_key)
     loss = point.get("loss", {})
     row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
     return row
 
 
-def _fit_rows(r: dict) -> list[dict]:
+def _fit_rows(r: dict, axes) -> list[dict]:
     rows = []
     for run in r.get("runs", [r]):
-        row = _fitted_columns(run, "std")
+        row = _fitted_columns(run, "std", axes)
         v = run.get("validation", {})
         for cond, c in v.get("conditions", {}).items():
             row[f"heldout_{cond}_measured"] = c.get("measured_error")
@@ -51,25 +59,28 @@ def _fit_rows(r: dict) -> list[dict]:
     return rows
 
 
-def _flow_rows(r: dict) -> list[dict]:
+def _flow_rows(r: dict, axes) -> list[dict]:
     rows = []
     for pt in r.get("points", []):
-        row = _fitted_columns(pt, "std_restarts")
+        row = _fitted_columns(pt, "std_restarts", axes)
         row["wall_seconds"] = r.get("wall_seconds")
         rows.append(row)
     return rows
 
 
-def _other_rows(r: dict) -> list[dict]:
-    """Any other command's result: its top-level numbers, strings and switches."""
-    row = {k: v for k, v in r.items() if isinstance(v, (int, float, str, bool)) and k not in ("schema",)}
+def _other_rows(r: dict, axes) -> list[dict]:
+    """Any other command's result: its top-level numbers, strings and switches (result_<key> where an axis has
+    that name)."""
+    row = {(f"result_{k}" if k in axes else k): v for k, v in r.items()
+           if isinstance(v, (int, float, str, bool)) and k not in ("schema",)}
     return [row]
 
 
-def result_rows(verb: str, result: dict | None) -> list[dict]:
+def result_rows(verb: str, result: dict | None, axes=()) -> list[dict]:
+    """axes: the spec's axis keys, which result columns must not take."""
     if not result:
         return [{}]
-    return {"fit": _fit_rows, "flow": _flow_rows}.get(verb, _other_rows)(result) or [{}]
+    return {"fit": _fit_rows, "flow": _flow_rows}.get(verb, _other_rows)(result, set(axes)) or [{}]
 
 
 def build(spec, records: dict, results: dict) -> list[dict]:
@@ -79,7 +90,7 @@ def build(spec, records: dict, results: dict) -> list[dict]:
         rec = records.get(cell.id) or {}
         base = {"cell": cell.id, **{k: _text(v) for k, v in cell.axes.items()}, "seed": cell.seed,
                 "status": rec.get("status", "pending")}
-        extra = result_rows(spec.verb, results.get(cell.id)) if rec.get("status") == "done" else [{}]
+        extra = result_rows(spec.verb, results.get(cell.id), spec.axes) if rec.get("status") == "done" else [{}]
         for part in extra:
             row = dict(base)
             row.update({k: v for k, v in part.items() if k not in VOLATILE})
@@ -116,15 +127,17 @@ def write_csv(path, spec, rows: list[dict]) -> None:
     write_atomic(path, buf.getvalue())
 
 
-def free_names(verb: str, results: dict) -> list[str]:
-    """Parameters fitted (not frozen) in any finished cell, in the order the results list them."""
+def free_names(verb: str, results: dict, axes=()) -> list[str]:
+    """The columns of the parameters fitted (not frozen) in any finished cell, in the order the results list them
+    (parameter_column: not an axis's)."""
     names = []
     for r in results.values():
         if not r:
             continue
         runs = r.get("runs", [r]) if verb == "fit" else r.get("points", []) if verb == "flow" else []
         for run in runs:
-            names += [n for n, p in run.get("parameters", {}).items() if not p.get("frozen") and n not in names]
+            cols = [parameter_column(n, axes) for n, p in run.get("parameters", {}).items() if not p.get("frozen")]
+            names += [c for c in cols if c not in names]
     return names
 
 
