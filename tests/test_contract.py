@@ -106,7 +106,7 @@ TOY = {
         """A toy system: a line y = a x + b through noisy points."""
         from wrenorm.system import SearchDefaults, from_package
 
-        SYSTEM = from_package(__name__, "fit a line", search=SearchDefaults(generations=30), bench=False)
+        SYSTEM = from_package(__name__, "fit a line", search=SearchDefaults(generations=30))
     ''',
     "options.py": '''
         from wrenorm.options import add_number
@@ -114,6 +114,7 @@ TOY = {
 
         def add_arguments(p):
             add_number(p, "--noise", default=0.01, lo=0.0, hi=1.0, help="noise of the points")
+            p.add_argument("--weights", default=None, metavar="FILE.txt", help="a file of point weights (read only)")
     ''',
     "problem.py": '''
         import numpy as np
@@ -166,6 +167,16 @@ def test_a_new_system_is_one_folder_and_one_registry_line(tmp_path, monkeypatch)
         assert result["validation"]["verdict"] == "absorbed"
         assert result["uncertainty"]["method"].startswith("gauss-newton")
         assert main(["fit", "toy", "--noise", "nan", "--out", str(tmp_path / "bad")]) == 2
+        # the system's own input option (metavar FILE...) is an input like the engine's: --force never clears a
+        # folder holding it, and a resume sees its content (it was neither)
+        weights = out / "weights.txt"
+        weights.write_text("1 1 1")
+        assert main(["fit", "toy", "--quiet", "--no-record", "--weights", str(weights), "--out", str(out),
+                     "--force"]) == 2
+        assert weights.exists()
+        # no bench.py: no kernel benchmark, said in one line (was a ModuleNotFoundError)
+        assert registry.systems()["toy"].bench is None
+        assert main(["bench", "--only", "toy", "--no-fits", "--no-cuda-build", "--out", str(tmp_path / "b")]) == 2
     finally:
         sys.modules.pop("toy", None)
 

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from .errors import AllCandidatesFailed, InputError, warn
-from .options import OneLineParser, add_list, add_number
+from .options import OneLineParser, add_list, add_number, path_kind
 from .system import resolve, systems
 
 CORE_VERBS = ("fit", "flow", "view", "bench")
@@ -162,12 +162,26 @@ def _apply_parameter_set(problems, args) -> None:
             raise InputError("--freeze", ",".join(freeze), f"leaves no free parameter of {pb.space.names}")
 
 
+def _command_actions(args) -> list:
+    """The options of the command `args` was parsed for (fit rope, flow pd, ...), from a parser built for it."""
+    p = build_parser([args.command, args.system])
+    for name in (args.command, args.system):
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        p = sub.choices[name]
+    return p._actions
+
+
 def _inputs(args) -> list:
-    """Files and folders the command reads (never cleared by --force)."""
+    """Files and folders the command reads (never cleared by --force, hashed for --resume): every option whose metavar
+    names FILE or DIR (`options.path_kind`, as the sweep finds them), so a system's own input option is one too."""
     out = []
-    for key in ("reference", "validate", "data", "params"):
-        v = getattr(args, key, None)
-        out += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, (str, Path)) and Path(x).exists()]
+    for action in _command_actions(args):
+        kind, labels = path_kind(action)
+        if kind is None:
+            continue
+        v = getattr(args, action.dest, None)
+        out += [x for x in (v if isinstance(v, list) else [v])
+                if isinstance(x, (str, Path)) and str(x) not in labels and Path(x).exists()]
     return out
 
 

@@ -112,3 +112,17 @@ def add_numbers(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=N
     rng = range_text(lo, hi, lo_open)
     add_list(p, flag, default=default, item=number(lo, hi, integer, lo_open),
              help=f"{help} (each {'an integer ' if integer else ''}{rng}{' ' + unit if unit else ''})", **kw)
+
+
+def path_kind(action: argparse.Action) -> tuple[str | None, set]:
+    """Whether an option reads a file or a folder, from its own definition: its metavar names FILE (`FILE.csv`) or
+    DIR. The metavar's other words (`measured|fitted|FILE`) are labels it takes instead of a path. Returns ("file" |
+    "folder" | None, labels). (Not type=Path alone: that may be a folder the command writes.)"""
+    words = action.metavar.split("|") if isinstance(action.metavar, str) else []
+    holders = [w.split(".")[0] for w in words if w.split(".")[0].isupper()]
+    labels = {w for w in words if not w.split(".")[0].isupper()}
+    if any(h.startswith("FILE") for h in holders):
+        return "file", labels
+    if any(h.startswith("DIR") for h in holders):
+        return "folder", labels
+    return None, labels

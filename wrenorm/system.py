@@ -87,11 +87,17 @@ def resolve(ref: Ref) -> Callable:
 
 
 def from_package(package: str, help: str, search: SearchDefaults = SearchDefaults(), flow: Flow | None = None,
-                 commands: tuple = (), bench: bool = True, observable: str = "", omitted: str = "") -> System:
+                 commands: tuple = (), bench: bool | None = None, observable: str = "", omitted: str = "") -> System:
     """A system laid out by convention in tasks/<name>/: options.py `add_arguments`, problem.py `build_problems`,
-    (bench=True) bench.py `bench`, `parity` and `kernel_modules`, and report.py `sections` where it exists."""
+    bench.py `bench`, `parity` and `kernel_modules` and report.py `sections` where they exist (bench=False: no
+    benchmark even with a bench.py; True: one is required)."""
     import importlib.util
 
+    has_bench = importlib.util.find_spec(f"{package}.bench") is not None
+    if bench is None:
+        bench = has_bench
+    elif bench and not has_bench:
+        raise ImportError(f"{package}: bench=True but there is no {package}.bench module")
     options = importlib.import_module(f"{package}.options")
     ref = (lambda module, name: f"{package}.{module}:{name}") if bench else (lambda module, name: None)
     report = f"{package}.report:sections" if importlib.util.find_spec(f"{package}.report") else None

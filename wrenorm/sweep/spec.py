@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from wrenorm.errors import InputError
-from wrenorm.options import ListAction
+from wrenorm.options import ListAction, path_kind
 
 TOP_LEVEL = ("task", "seeds", "options", "axes", "description")
 RESERVED = {"out": "each cell's run folder is DIR/cells/<cell>", "seed": "use `seeds = [...]` at the top level",
@@ -257,20 +257,6 @@ def load(path: str | Path) -> Spec:
     return spec
 
 
-def _path_kind(action: argparse.Action) -> tuple[str | None, set]:
-    """Whether an option reads a file or a folder, from its own definition: its metavar names FILE (`FILE.csv`) or
-    DIR. The metavar's other words (`measured|fitted|FILE`) are labels it takes instead of a path. Returns ("file" |
-    "folder" | None, labels). (Not type=Path alone: that may be a folder the command writes.)"""
-    words = action.metavar.split("|") if isinstance(action.metavar, str) else []
-    holders = [w.split(".")[0] for w in words if w.split(".")[0].isupper()]
-    labels = {w for w in words if not w.split(".")[0].isupper()}
-    if any(h.startswith("FILE") for h in holders):
-        return "file", labels
-    if any(h.startswith("DIR") for h in holders):
-        return "folder", labels
-    return None, labels
-
-
 def _path_problem(p: Path, kind: str) -> str | None:
     """Why a cell could not read p as the option's file or folder (None: it can)."""
     try:
@@ -301,7 +287,7 @@ def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
     given += [("axes", key, values) for key, values in spec.axes.items()]
     for table, key, values in given:
         action = _action(parser, key)
-        kind, labels = _path_kind(action)
+        kind, labels = path_kind(action)
         if kind is None:
             continue
         where, flag = f"{table}.{key}", next(f for f in action.option_strings if f.startswith("--"))
