@@ -77,6 +77,21 @@ def test_the_ratio_shown_is_the_values_shown(tmp_path):
     assert "1.2×" in (tmp_path / "report.html").read_text()
 
 
+def test_a_std_larger_than_its_value_is_not_called_determined(tmp_path):
+    """The page called a parameter "determined" whenever the data did not fail to determine it outright, beside a std
+    of 1100 % of its value; where the uncertainty lists what the data pin, the page follows it."""
+    r = _fit(uncertainty={"method": "gauss-newton", "undetermined": [], "determined_by_data": []})
+    r["parameters"]["J"]["std"] = 0.06
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "loosely determined" in page and ">determined<" not in page
+    r["uncertainty"]["determined_by_data"] = ["J"]
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    assert "loosely determined" not in (tmp_path / "report.html").read_text()
+
+
 def test_a_result_that_is_not_text_is_refused(tmp_path, capsys):
     (tmp_path / "result.json").write_bytes(b"\xff\xfe\x00binary")
     assert main(["view", str(tmp_path), "--report"]) == 2

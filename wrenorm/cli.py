@@ -299,8 +299,9 @@ def _print_summary(result: dict, out: Path) -> None:
             print(f"  {name:>10}: measured {p['measured']:<10.5g} fitted {p['fitted']:.5g}{std}{tag}")
         v = r["validation"]
         print(f"  held-out verdict: {v['verdict']}" + (
-            f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g},"
-            f" tolerance {v['tolerance']})" if "mean_measured_error" in v else ""))
+            f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g}; the "
+            f"verdict's worst fitted {v['worst_fitted_error']:.4g} against the tolerance {v['tolerance']})"
+            if "mean_measured_error" in v else ""))
         for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
             spread = r.get(key) or {}
             if spread.get("optima"):

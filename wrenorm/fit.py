@@ -80,8 +80,9 @@ def stalled_search(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -
     if objectives[1] < objectives[0]:
         return None
     return (f"the search found no values better than the measured ones (objective {objectives[0]:.4g} measured, "
-            f"{objectives[1]:.4g} at its best): the measured values are reported; the objective does not see the "
-            "parameters here (e.g. the model never shows the observed event, or diverges)")
+            f"{objectives[1]:.4g} at its best): the measured values are reported; either the objective does not see "
+            "the parameters here (the model never shows the observed event, or diverges) or the search was too "
+            "short to find better")
 
 
 def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettings(), resume: bool = False,

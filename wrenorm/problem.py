@@ -32,7 +32,8 @@ class Problem(ABC):
     space:       ParameterSpace (measured values are the search's starting point)
     train:       conditions the search fits
     held_out:    conditions kept back for validation
-    tolerance:   held-out error (same units as `errors`) under which the verdict is `absorbed`
+    tolerance:   the largest held-out error (same units as `errors`; the worst condition, not the mean) under
+                 which the verdict is `absorbed`
     resolution:  what sets the coarse model's resolution, e.g. {"f_sim": 100.0}
     device:      Warp device string ("cpu" or "cuda:0")
     error_doc:   one sentence saying what `errors` measures (goes into result.json)
