@@ -164,7 +164,7 @@ def test_flow_resume_with_other_resolutions_names_them(tmp_path, capsys):
     follow from it."""
     out = tmp_path / "f"
     tail = ["--quiet", "--no-record", "--restarts", "2", "--generations", "2", "--out", str(out)]
-    assert main(["flow", "rope", "--resolutions", "6", "8", *tail]) == 0
+    assert main(["flow", "rope", "--resolutions", "6,8", *tail]) == 0  # commas, as every list takes (was refused)
     capsys.readouterr()
     assert main(["flow", "rope", "--resolutions", "6", "8", "10", *tail, "--resume"]) == 2
     err = capsys.readouterr().err

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from .errors import AllCandidatesFailed, InputError, warn
-from .options import OneLineParser, add_list, add_number, path_kind
+from .options import OneLineParser, add_list, add_number, number, path_kind
 from .system import resolve, systems
 
 CORE_VERBS = ("fit", "flow", "view", "bench")
@@ -78,7 +78,7 @@ def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
 
 def _flow_arguments(p: argparse.ArgumentParser, system) -> None:
     _run_arguments(p)
-    p.add_argument("--resolutions", type=float, nargs="+", default=None, help=system.flow.resolutions_help)
+    add_list(p, "--resolutions", item=number(), default=None, metavar="R", help=system.flow.resolutions_help)
     add_number(p, "--restarts", default=4, lo=2, hi=1000, integer=True,
                help="seeded CMA-ES searches side by side per resolution (their spread is the uncertainty)")
     add_number(p, "--generations", default=system.flow.generations, lo=1, hi=100000, integer=True)
