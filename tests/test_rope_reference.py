@@ -108,6 +108,7 @@ def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
     (lambda d: d.update(hand=d["hand"] + 0.5), "markers"),  # marker 0 is not at the hand
     (lambda d: d.update(length=0.3), "markers"),  # markers spread over more than the rope length
     (lambda d: d.update(length=2 * L), "length"),  # ... over half of it, marker_arclength given (was "in contact")
+    (lambda d: d.update(length=1.1 * L), "length"),  # 10 % long: a confident contact 23 ms early
 ])
 def test_named_errors(tmp_path, mutate, field):
     d = as_dict(hanging_ref())
