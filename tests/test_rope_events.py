@@ -581,3 +581,34 @@ def test_an_edited_or_renamed_event_cache_entry_is_detected_again(monkeypatch, t
     other_entry.write_text(entry.read_text())  # flick's answer under flick_fast's name
     assert detect_reference(load_reference(builtin_reference_path("flick_fast", "default"))).event.time == \
         pytest.approx(theirs.event.time)
+
+
+def test_evaluate_says_what_it_did_not_score_or_make(tmp_path, capsys):
+    """A missing or empty folder scored '0 silent' (a typo read as a perfect detector); a foreign file stopped the
+    whole score; numbers out of range passed or raised; `generate` kept a file made with other settings in
+    silence."""
+    assert evaluate.main(["score", str(tmp_path / "nope")]) == 2
+    (tmp_path / "empty").mkdir()
+    assert evaluate.main(["score", str(tmp_path / "empty")]) == 2
+    for bad in (["--markers", "1"], ["--noise", "-0.001"], ["--noise", "nan"], ["--occlude", "-3"], ["--seed", "-5"]):
+        with pytest.raises(SystemExit) as e:
+            evaluate.main(["score", str(DATA), *bad])
+        assert e.value.code == 2
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "a.npz").write_bytes((DATA / "mujoco_default_flick_fast.npz").read_bytes())
+    d = dict(np.load(DATA / "mujoco_default_flick_fast.npz", allow_pickle=False))
+    d.pop("dense_nodes")
+    np.savez(mixed / "b.npz", **d)  # 12 markers and no dense nodes: nothing to score against
+    capsys.readouterr()
+    assert evaluate.main(["score", str(mixed), "--markers", "8", "--json", str(tmp_path / "s.json")]) == 0
+    out = capsys.readouterr()
+    assert "b.npz: left out" in out.err and json.loads((tmp_path / "s.json").read_text())["results"]["8"][
+        "summary"]["files"] == 1
+    assert evaluate.main(["score", str(mixed), "--markers", "8", "--json", str(tmp_path / "s.json")]) == 2  # no --force
+    gen = ["generate", "--engine", "newton", "--out", str(tmp_path / "g"), "--paths", "flick", "--duration", "0.05",
+           "--segments", "16"]
+    assert evaluate.main(gen) == 0
+    assert evaluate.main(gen) == 0 and "kept" in capsys.readouterr().out
+    assert evaluate.main([*gen, "--frame-rate", "100"]) == 2  # the only throw exists, made otherwise
+    assert "other settings" in capsys.readouterr().err

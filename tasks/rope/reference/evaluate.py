@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
+from wrenorm.options import add_number, add_numbers, number
 
 TOL = 0.02  # s
 KISS = 5e-4  # m
@@ -43,7 +44,7 @@ def _truth_and_nodes(path: Path):
     elif z["markers"].shape[1] >= 33:  # a file that kept every node as its markers
         nodes = z["markers"].astype(np.float64)
     else:
-        raise SystemExit(f"{path}: no dense_nodes: generate with --dense (or keep every node as markers)")
+        raise InputError(str(path), "dense_nodes", "missing: generate with --dense (or keep every node as markers)")
     length, radius = float(z["length"]), float(z["radius"])
     t_sim = float(z["sim_contact_time"]) if "sim_contact_time" in z.files else None
     if t_sim is None:  # the physics definition on the dense centre line
@@ -100,7 +101,11 @@ def score(files, markers: int, noise: float = 0.0, occlude: int = 0, seed: int =
     rng = np.random.default_rng(seed)
     rows = []
     for f in files:
-        time, nodes, hand, length, radius, t_true = _truth_and_nodes(f)
+        try:
+            time, nodes, hand, length, radius, t_true = _truth_and_nodes(f)
+        except (InputError, KeyError, ValueError, OSError) as e:  # one foreign file costs that file
+            print(f"{f}: left out: {e}", file=sys.stderr, flush=True)
+            continue
         mk0, s = resample_nodes(nodes, markers)
         if gaps:
             if t_true is None:
@@ -178,16 +183,27 @@ def generate(args) -> int:
         print("generate: nothing to make: --paths and --perturb-seeds are both empty", file=sys.stderr)
         return 2
     failed, said = 0, set()
+    made_with = json.dumps({k: getattr(args, k) for k in ("frame_rate", "timestep", "markers", "duration", "segments",
+                                                          "annotate")}, sort_keys=True)
     for variant, path, seed in jobs:
         name = f"{args.engine}_{variant}_{path}" + ("" if seed is None else f"_p{seed}")
         f = out / f"{name}.npz"
         if f.exists():
+            with np.load(f, allow_pickle=False) as z:
+                before = str(z["generate_settings"]) if "generate_settings" in z.files else None
+            if before is not None and before != made_with:
+                print(f"{f}: made with other settings ({before}; now {made_with}): left as it is and not made again; "
+                      "use another --out", file=sys.stderr, flush=True)
+                failed += 1
+            else:
+                print(f"{name}: kept (already in {out})", flush=True)
             continue
         t0 = _time.perf_counter()
         try:
             ref = generate_reference(path, f, variant=variant, engine=args.engine, frame_rate=args.frame_rate,
                                      timestep=args.timestep, markers=args.markers, perturb=seed, dense=True,
-                                     duration=args.duration, annotate=args.annotate,
+                                     duration=args.duration, annotate=args.annotate, extra={"generate_settings":
+                                                                                            np.array(made_with)},
                                      **({} if args.segments is None else {"segments": args.segments}))
         except InputError as e:  # one throw this engine cannot make costs that throw, not the set
             if str(e) not in said:  # an option every throw shares fails every throw: said once
@@ -216,7 +232,7 @@ def main(argv=None) -> int:
                    help="built-in paths thrown as they are (none: only the perturbed throws)")
     g.add_argument("--perturb-paths", nargs="+", default=["flick", "flick_fast", "flick_wide", "flick_high",
                                                           "flick_slow"], help="seed i perturbs path i mod their number")
-    g.add_argument("--perturb-seeds", nargs="*", type=int, default=[])
+    g.add_argument("--perturb-seeds", nargs="*", type=number(lo=0, integer=True), default=[])
     g.add_argument("--frame-rate", type=float, default=200.0)
     g.add_argument("--timestep", type=float, default=None,
                    help="the fine rope's longest physics step (default the engine's: newton 5e-4, mujoco 2.5e-4 s); "
@@ -228,23 +244,32 @@ def main(argv=None) -> int:
     g.add_argument("--annotate", action="store_true", help="store the simulator's contact as critical_time")
     s = sub.add_parser("score", help="score the detector on a folder of references")
     s.add_argument("dirs", nargs="+")
-    s.add_argument("--markers", type=int, nargs="+", default=[8, 12, 24])
-    s.add_argument("--noise", type=float, default=0.0, help="marker noise sigma (m)")
-    s.add_argument("--occlude", type=int, default=0, help="occlusions per file (1-4 frames each)")
+    add_numbers(s, "--markers", default=[8, 12, 24], lo=2, integer=True, help="marker counts to score")
+    add_number(s, "--noise", default=0.0, lo=0.0, unit="m", help="marker noise sigma")
+    add_number(s, "--occlude", default=0, lo=0, integer=True, help="occlusions per file (1-4 frames each)")
     s.add_argument("--gaps", type=int, default=0,
                    help="score each file with a contact this many times, each with 1-3 markers next to the contact "
                         "missing for 30-500 ms over it (files without a contact are skipped)")
     s.add_argument("--gaps-at", choices=("contact", "before"), default="contact",
                    help="where --gaps lie: over the contact, beside its markers (contact), or on any markers, ending "
                         "at least 50 ms before it (before)")
-    s.add_argument("--seed", type=int, default=1)
+    add_number(s, "--seed", default=1, lo=0, integer=True)
     s.add_argument("--json", default=None, help="write every row and the summaries here")
+    s.add_argument("--force", action="store_true", help="replace an existing --json file")
     s.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
     if a.cmd == "generate":
         return generate(a)
     if a.gaps < 0:
         print(f"score: --gaps: {a.gaps} is below 0 (gaps per file with a contact)", file=sys.stderr)
+        return 2
+    for d in a.dirs:
+        if not Path(d).is_dir() or not any(Path(d).glob("*.npz")):
+            print(f"score: {d}: {'is not a folder' if not Path(d).is_dir() else 'holds no .npz reference'} (a folder "
+                  "that `generate` wrote)", file=sys.stderr)
+            return 2
+    if a.json and Path(a.json).exists() and not a.force:
+        print(f"score: {a.json}: --json: exists; --force replaces it", file=sys.stderr)
         return 2
     files = sorted(f for d in a.dirs for f in Path(d).glob("*.npz"))
     result = {}

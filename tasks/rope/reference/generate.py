@@ -412,7 +412,7 @@ def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, va
                        duration: float = DEFAULT_DURATION, markers: int | None = None,
                        frame_rate: float | None = None, timestep: float | None = None, iterations: int = 10,
                        device: str = "cpu", progress=None, engine: str = "newton", perturb: int | None = None,
-                       dense: bool = False, annotate: bool = False) -> RopeReference:
+                       dense: bool = False, annotate: bool = False, extra: dict | None = None) -> RopeReference:
     """Simulate a fine rope (newton's rod or MuJoCo's) along a hand path and (if out is given) save it.
 
     markers: number of markers at evenly spaced arc length (both ends included); default every node of the
@@ -480,9 +480,9 @@ def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, va
         source=f"{what}: path={label} variant={variant} frame_rate={frame_rate:g}Hz wall={wall:.1f}s",
         sim_contact_time=sim_t, sim_contact_s=sim_s,
         critical_time=sim_t if annotate and np.isfinite(sim_t) and sim_t > time[0] else None)
-    extra = {}
+    extra = dict(extra or {})  # further arrays stored in the file beside the format's (e.g. evaluate's settings)
     if dense:
-        extra = {"dense_nodes": nodes.astype(np.float32), "dense_arclength": np.linspace(0.0, 1.0, n_nodes)}
+        extra |= {"dense_nodes": nodes.astype(np.float32), "dense_arclength": np.linspace(0.0, 1.0, n_nodes)}
     if command is not None:
         extra["command_u"] = command
     if out is not None:
