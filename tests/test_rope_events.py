@@ -612,3 +612,23 @@ def test_evaluate_says_what_it_did_not_score_or_make(tmp_path, capsys):
     assert evaluate.main(gen) == 0 and "kept" in capsys.readouterr().out
     assert evaluate.main([*gen, "--frame-rate", "100"]) == 2  # the only throw exists, made otherwise
     assert "other settings" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("repeats", [1, 3, 10])
+def test_frames_repeated_while_the_hand_moves_are_flagged(repeats):
+    """A tracker that holds its last value repeats a frame exactly and delays every later one: the contact came
+    10-40 ms late with high confidence. Repeats while the hand moves are flagged; a rope at rest repeating is not."""
+    from wrenorm.tasks.rope.reference.generate import resample_nodes
+
+    ref = load_reference(builtin_reference_path("flick", "default"))
+    mk, s = resample_nodes(ref.markers, 12)
+    at = 100
+    markers = np.concatenate([mk[:at + 1], np.repeat(mk[at:at + 1], repeats, 0), mk[at + 1:]])
+    hand = np.concatenate([ref.hand[:at + 1], np.repeat(ref.hand[at:at + 1], repeats, 0), ref.hand[at + 1:]])
+    time = ref.time[0] + ref.dt * np.arange(len(markers))
+    det = detect(time, markers, s, ref.length, ref.radius, hand=hand)
+    assert det.status == "contact" and det.confidence == "low" and "repeat" in det.diagnostics["rules_fired"]
+    assert det.diagnostics["repeated_frames"] == repeats and any("repeat the one before" in r for r in det.reasons)
+    rest = detect(ref.time[0] + ref.dt * np.arange(len(mk) + 50), np.concatenate([np.repeat(mk[:1], 50, 0), mk]), s,
+                  ref.length, ref.radius, hand=np.concatenate([np.repeat(ref.hand[:1], 50, 0), ref.hand]))
+    assert rest.confidence == "high" and rest.diagnostics["repeated_frames"] == 0

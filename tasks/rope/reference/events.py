@@ -39,7 +39,7 @@ import numpy as np
 
 from wrenorm.jumps import largest_doublet, largest_jump
 
-VERSION = 14  # bump when the detector's answer can change (keys the event cache)
+VERSION = 15  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -887,6 +887,14 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                            "missing from the recording? then the contact time is early by the frames lost")
             if "jump" not in low:
                 low.append("jump")
+    if hand is not None and "jump" in rules:
+        repeated = _repeated_moving_frames(X[:k + 1], np.asarray(hand, dtype=np.float64)[:k + 1])
+        diag["repeated_frames"] = len(repeated)
+        if repeated:
+            reasons.append(f"{len(repeated)} frame(s) repeat the one before exactly while the hand moves (first at "
+                           f"t={time[repeated[0]]:.3f} s), before the contact: a tracker holding its last value? then "
+                           "the contact time is late by the frames repeated")
+            low.append("repeat")
     if tip_k is not None and time[tip_k] < t_event - time_tolerance:
         reasons.append(f"{tip_reason} ({1000 * (t_event - time[tip_k]):.0f} ms before the detected contact): the "
                        "free end may have touched first")
@@ -896,6 +904,20 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     ev = CollisionEvent(k, t_event, sa, sb, float(gap_series[k - 1] + level), float(gap[k] + level), "detected", conf,
                         tuple(reasons))
     return result("contact", conf, ev)
+
+
+def _repeated_moving_frames(markers: np.ndarray, hand: np.ndarray, moving: float = 1e-3) -> list[int]:
+    """Frames j whose markers and hand equal frame j - 1's exactly, in runs over which the hand moves more than
+    `moving` (m) from the frame before the run to the frame after it: no tracker measures a moving rope twice to the
+    bit, a hold-last-value fill does (and delays every later frame); a rope and hand at rest may repeat."""
+    same = np.all(markers[1:] == markers[:-1], axis=(1, 2)) & np.all(hand[1:] == hand[:-1], axis=1)
+    frames = np.flatnonzero(same) + 1
+    out = []
+    for run in np.split(frames, np.flatnonzero(np.diff(frames) > 1) + 1) if len(frames) else []:
+        before, after = max(0, run[0] - 2), min(len(hand) - 1, run[-1] + 1)
+        if np.linalg.norm(hand[after] - hand[before]) > moving:
+            out += [int(j) for j in run]
+    return out
 
 
 # ------------------------------------------------------------------------------ the event a reference uses
@@ -955,7 +977,7 @@ def _to_json(det: Detection) -> dict:
             "earliest_plausible_time", "earliest_possible_time", "approach_episode_start_time", "rules_fired",
             "fastest_motion_time", "after_fastest_s", "event_chord_over_arc", "depth_m", "noise_sigma_m",
             "largest_jump_over_neighbourhood", "hand_doublet_over_neighbourhood", "unmarked_tail_m",
-            "unmarked_tip_reach_time")
+            "unmarked_tip_reach_time", "repeated_frames")
     d = {k: det.diagnostics.get(k) for k in keep if k in det.diagnostics}
     e = det.event
     return {"status": det.status, "confidence": det.confidence, "reasons": list(det.reasons),
