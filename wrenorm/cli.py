@@ -439,6 +439,10 @@ def main(argv=None) -> int:
 
         print(f"\nwrenorm: interrupted{resume_hint(locals().get('args'))}", file=sys.stderr)
         return exit_code()
+    except BrokenPipeError:  # `... | head`: the reader left; nothing went wrong here
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's own flush at exit would hit the closed pipe again
+        return 0
     except OSError as e:
         where = e.filename or "file system"
         print(f"wrenorm: error: {where}: {e.strerror or e.__class__.__name__}", file=sys.stderr)

@@ -472,7 +472,8 @@ def generate_reference(path_name, out=None, segments: int = DEFAULT_SEGMENTS, va
     n_nodes = segments + 1
     m = n_nodes if markers is None else int(markers)
     if not 2 <= m <= n_nodes:
-        raise InputError("--markers", "markers", f"{m} is outside [2, {n_nodes}]")
+        raise InputError("--markers", "markers", f"{m} is outside [2, {n_nodes}] (at most the rod's {segments} "
+                                                 "segments + 1 nodes)")
     mk, s = (nodes, np.linspace(0.0, 1.0, n_nodes)) if m == n_nodes else resample_nodes(nodes, m)
     ref = RopeReference(
         time=time, markers=mk, hand=hand, length=material.length, mass=material.mass, radius=material.radius,
@@ -573,7 +574,8 @@ def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
                help="the fine rope's longest physics step (default: newton 5e-4, mujoco 2.5e-4); each frame interval "
                     "is split into equal steps no longer than this (an even number on newton)")
     add_number(parser, "--markers", default=None, lo=2, hi=1025, integer=True,
-               help="markers at evenly spaced arc length, ends included (default: every node)")
+               help="markers at evenly spaced arc length, ends included, at most the rod's nodes (--segments + 1) "
+                    "(default: every node)")
     parser.add_argument("--dense", action="store_true",
                         help="also store every node (dense_nodes) so other marker sets can be made from the file")
     parser.add_argument("--annotate", action="store_true",
