@@ -174,6 +174,12 @@ def test_a_new_system_is_one_folder_and_one_registry_line(tmp_path, monkeypatch)
         assert main(["fit", "toy", "--quiet", "--no-record", "--weights", str(weights), "--out", str(out),
                      "--force"]) == 2
         assert weights.exists()
+        # a resume after the system's code changed is refused (it mixed two problems' losses in silence)
+        from wrenorm.cli import code_digest
+
+        before = code_digest("toy")
+        (pkg / "problem.py").write_text((pkg / "problem.py").read_text().replace("20)", "21)"))
+        assert code_digest("toy") != before
         # no bench.py: no kernel benchmark, said in one line (was a ModuleNotFoundError)
         assert registry.systems()["toy"].bench is None
         assert main(["bench", "--only", "toy", "--no-fits", "--no-cuda-build", "--out", str(tmp_path / "b")]) == 2

@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from wrenorm.cli import build_parser, main
+from wrenorm.system import systems
 
 PD = ["fit", "pd", "--quiet", "--no-record", "--f-sim", "50"]
 
@@ -116,7 +117,7 @@ def _numeric_options(system: str) -> list[tuple[str, object]]:
             if a.option_strings and getattr(a.type, "__name__", "") in ("number", "integer")]
 
 
-@pytest.mark.parametrize("system", ["pd", "rope", "swimmer"])
+@pytest.mark.parametrize("system", list(systems()))  # every registered system, a new one too
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_every_numeric_option_rejects_nonsense_in_one_line(tmp_path_factory, system, data):
@@ -277,3 +278,16 @@ def test_cma_settings_under_least_squares_are_said_to_be_unused(tmp_path, capsys
     assert "--generations, --popsize" in err and "least-squares" in err
     assert main([*PD, "--out", str(tmp_path / "q")]) == 0
     assert "CMA-ES settings" not in capsys.readouterr().err
+
+
+def test_a_resume_after_the_code_changed_is_refused(tmp_path, capsys, monkeypatch):
+    """The sources a fit's numbers come from are part of what a resume must share (options, inputs, versions)."""
+    import wrenorm.cli
+
+    cmd = ["fit", "rope", "--search", "cmaes", "--generations", "2", "--segments", "6", "--no-record", "--quiet",
+           "--out", str(tmp_path / "r")]
+    assert main(cmd) == 0
+    (tmp_path / "r" / "result.json").unlink()  # as if interrupted after its search log
+    monkeypatch.setattr(wrenorm.cli, "code_digest", lambda system: "0" * 64)
+    assert main([*cmd, "--resume"]) == 2
+    assert "code" in capsys.readouterr().err

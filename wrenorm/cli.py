@@ -185,6 +185,27 @@ def _inputs(args) -> list:
     return out
 
 
+def code_digest(system: str) -> str:
+    """sha256 of the sources a fit's numbers come from (the engine's modules, the kernels, the system's package), so a
+    resume after the code changed under the same version (a contributor iterating on a system) is refused rather
+    than mixing two problems' losses."""
+    import hashlib
+    import importlib
+
+    import wrenorm.kernels
+
+    build = systems()[system].build
+    module = build.partition(":")[0] if isinstance(build, str) else build.__module__
+    roots = [(Path(__file__).parent, False), (Path(wrenorm.kernels.__file__).parent, True),
+             (Path(importlib.import_module(module).__file__).parent, True)]
+    h = hashlib.sha256()
+    for root, recursive in roots:
+        for f in sorted(root.rglob("*.py") if recursive else root.glob("*.py")):
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def content_hashes(paths) -> dict:
     """sha256 of every input file (a folder: of its files, in name order), so a resumed run can tell that an input
     changed under the same name."""
@@ -266,7 +287,8 @@ def cmd_fit(args) -> int:
     if not args.quiet:
         print(f"wrenorm fit {args.system}: writing {out}", file=sys.stderr)
     identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
-                "versions": {k: v for k, v in versions().items() if k in ("wrenorm", "warp-lang", "cma", "numpy")}}
+                "versions": {k: v for k, v in versions().items() if k in ("wrenorm", "warp-lang", "cma", "numpy")},
+                "code": code_digest(args.system)}
     result = run_fits(problems, out, settings, resume=args.resume, record=not args.no_record, quiet=args.quiet,
                       identity=identity, command=command_line(args))
     _print_summary(result, out)
@@ -328,7 +350,8 @@ def cmd_flow(args) -> int:
     out = prepare_out(args.out or _default_out(f"flow-{args.system}"), resume=args.resume, force=args.force,
                       state=POINTS_FILE, inputs=_inputs(args), command=f"flow {args.system}")
     analytic = resolve(system.flow.analytic) if system.flow.analytic else None
-    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args))}
+    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
+                "code": code_digest(args.system)}
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
                     resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record,
                     identity=identity, command=command_line(args),
