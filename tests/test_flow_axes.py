@@ -172,3 +172,29 @@ def test_flow_resume_with_other_resolutions_names_them(tmp_path, capsys):
     assert main(["flow", "pd", "--out", str(out), "--resume", "--quiet", "--no-record"]) == 2
     err = capsys.readouterr().err
     assert ": task: " in err, err
+
+
+def test_a_flow_interrupted_after_a_point_without_an_uncertainty_resumes(tmp_path, monkeypatch):
+    """A stalled point (3 links: the chain never hits) stores its spreads as null (NaN in memory): the resume's
+    digest must be of what was stored, or the flow's own file reads as edited."""
+    import wrenorm.flow
+
+    calls = []
+    real = wrenorm.flow.uncertainty
+
+    def stop_at_the_second(prob, values, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(prob, values, **kw)
+
+    out = tmp_path / "f"
+    args = ["flow", "rope", "--resolutions", "3,6", "--restarts", "2", "--generations", "2", "--quiet", "--no-record",
+            "--out", str(out)]
+    monkeypatch.setattr(wrenorm.flow, "uncertainty", stop_at_the_second)
+    assert main(args) == 130
+    assert len(json.loads((out / "flow_points.json").read_text())["points"]) == 1
+    monkeypatch.setattr(wrenorm.flow, "uncertainty", real)
+    assert main([*args, "--resume"]) == 0
+    p3, p6 = json.loads((out / "flow.json").read_text())["points"]
+    assert "no values better" in p3["warning"] and p6["resolution"]["segments"] == 6

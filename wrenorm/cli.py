@@ -357,8 +357,9 @@ def cmd_flow(args) -> int:
                     identity=identity, command=command_line(args),
                     together=device.startswith("cuda") if args.together is None else args.together)
     for pt in flow["points"]:
-        line = ", ".join(f"{n}={p['fitted']:.5g}±{p['std_restarts']:.2g}" for n, p in pt["parameters"].items()
-                         if not p["frozen"])
+        std = {n: float("nan") if p["std_restarts"] is None else p["std_restarts"]  # None: a NaN read back
+               for n, p in pt["parameters"].items()}
+        line = ", ".join(f"{n}={p['fitted']:.5g}±{std[n]:.2g}" for n, p in pt["parameters"].items() if not p["frozen"])
         und = f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""
         print(f"{pt['resolution']}: {line}{und}")
         if pt.get("warning"):

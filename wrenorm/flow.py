@@ -18,7 +18,7 @@ import numpy as np
 
 from .errors import InputError
 from .fit import stalled_search
-from .results import SCHEMA, versions, write_json
+from .results import SCHEMA, jsonable, versions, write_json
 from .runfolder import check_same_settings
 from .search import mean_loss, restarts_together
 from .search import restarts as seeded_searches
@@ -34,8 +34,10 @@ def _settings(problems, seed, restarts, popsize, generations, identity, together
 
 
 def _digest(points: list, start) -> str:
-    """What the finished points hold, as written: a resume continues only from points this run wrote itself."""
-    return hashlib.sha256(json.dumps([points, start], sort_keys=True).encode()).hexdigest()
+    """What the finished points hold, as written (non-finite numbers as null, as write_json stores them): a resume
+    continues only from points this run wrote itself."""
+    stored = json.loads(json.dumps(jsonable([points, start])))
+    return hashlib.sha256(json.dumps(stored, sort_keys=True).encode()).hexdigest()
 
 
 def _resumed(out: Path, settings: dict, problems: list) -> tuple[list, object]:
@@ -97,7 +99,7 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
             "warning": "; ".join(w for w in (stalled, *prob.fit_warnings(fitted), unc.get("warning")) if w) or None,
         }
         if analytic is not None:
-            point["analytic"] = analytic(prob, prob.space.as_dict(best.best_values))
+            point["analytic"] = analytic(prob, prob.space.as_dict(fitted))
         points.append(point)
         start = fitted
         write_json(out / POINTS_FILE, {"settings": settings, "points": points, "start": start.tolist(),
