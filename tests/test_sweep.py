@@ -425,8 +425,10 @@ def test_resume_runs_a_cell_again_whose_result_the_table_cannot_read(finished, t
     assert _stable(_rows(out)) == _stable(_rows(ref))
 
 
-def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path):
-    """While cells run, stderr is ray.log: the interrupt's line must still reach the terminal."""
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path, sig, code):
+    """While cells run, stderr is ray.log: the interrupt's line must still reach the terminal. SIGTERM too (Ray's init
+    puts its own handler in place: sys.exit(15), no line)."""
     _ray()
     spec = _write(tmp_path, SPEC.replace("restarts = [0, 1]", ""))
     out = tmp_path / "out"
@@ -439,7 +441,7 @@ def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path):
             running = any(_cmdline(p).startswith("ray::run_cell") for p in below)
             time.sleep(0.1)
         assert running
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         _, stderr = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
@@ -447,7 +449,7 @@ def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path):
             proc.wait()
         time.sleep(1.0)
         _end(p for p in below if "ray" in _cmdline(p))
-    assert proc.returncode == 130, stderr
+    assert proc.returncode == code, stderr
     assert f"wrenorm: interrupted; continue with --resume --out {out}" in stderr, stderr
 
 

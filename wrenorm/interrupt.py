@@ -47,6 +47,12 @@ def install(hint: str = ""):
     return None
 
 
+def take_sigterm() -> None:
+    """SIGTERM back to the watchdog after a library (Ray's init) replaced the handler `install` set."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is _handler:
+        signal.signal(signal.SIGTERM, _handler)
+
+
 def restore(previous) -> None:
     if previous is not None and threading.current_thread() is threading.main_thread():
         for s, handler in previous.items():

@@ -183,6 +183,9 @@ def _start_ray(ray, args) -> dict:
         where = "--address" if args.address else "ray"
         raise InputError(where, args.address or "local", f"cannot start or join Ray: {str(e).splitlines()[0]}") \
             from None
+    from wrenorm.interrupt import take_sigterm
+
+    take_sigterm()  # ray.init put its own SIGTERM handler (sys.exit) in place of ours: no resume line, exit 15
     res = ray.cluster_resources()
     return {"address": args.address or "local", "version": ray.__version__, "nodes": len(ray.nodes()),
             "cpus": float(res.get("CPU", 0)), "gpus": float(res.get("GPU", 0))}
