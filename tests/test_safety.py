@@ -290,4 +290,13 @@ def test_a_resume_after_the_code_changed_is_refused(tmp_path, capsys, monkeypatc
     (tmp_path / "r" / "result.json").unlink()  # as if interrupted after its search log
     monkeypatch.setattr(wrenorm.cli, "code_digest", lambda system: "0" * 64)
     assert main([*cmd, "--resume"]) == 2
-    assert "code" in capsys.readouterr().err
+    assert ": code: wrenorm's sources" in capsys.readouterr().err
+    # a run saved before the digest existed resumes as before
+    log = tmp_path / "r" / "search_log.jsonl"
+    lines = log.read_text().splitlines()
+    head = json.loads(lines[0])
+    found = [k for k in ("settings", "identity") if isinstance(head.get(k), dict) and "code" in head[k]]
+    assert found, head.keys()
+    del head[found[0]]["code"]
+    log.write_text("\n".join([json.dumps(head), *lines[1:]]) + "\n")
+    assert main([*cmd, "--resume"]) == 0

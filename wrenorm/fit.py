@@ -80,9 +80,9 @@ def stalled_search(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -
     if objectives[1] < objectives[0]:
         return None
     return (f"the search found no values better than the measured ones (objective {objectives[0]:.4g} measured, "
-            f"{objectives[1]:.4g} at its best): the measured values are reported; either the objective does not see "
-            "the parameters here (the model never shows the observed event, or diverges) or the search was too "
-            "short to find better")
+            f"{objectives[1]:.4g} at its best), so the measured values are reported: they are already as good as "
+            "anything found, or the objective does not see the parameters here (the model never shows the observed "
+            "event, or diverges), or the search was too short")
 
 
 def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettings(), resume: bool = False,
@@ -139,6 +139,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     stalled = stalled_search(problem, measured, fitted)
     if stalled is not None:
         fitted = measured.copy()
+        jac = None  # the least-squares Jacobian was taken at its own optimum, not at the values now reported
     both = np.stack([measured, fitted])
     # the training error (the observable's units) and, apart, what the search minimised (errors or squared
     # residuals, plus the prior's squared deviations)
@@ -197,7 +198,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         "versions": versions(),
     }
     optima = history.get("cmaes", [{}])[-1].get("optima") if history.get("cmaes") else None
-    if settings.searches > 1 and optima:
+    if settings.searches > 1 and optima and stalled is None:  # a stalled search's optima say nothing of a spread
         # width-first: the searches run side by side anyway, so their optima give the spread for free
         result["searches_spread"] = spread_of_optima(
             problem, fitted, [o["seed"] for o in optima], np.array([o["values"] for o in optima]),

@@ -87,9 +87,15 @@ FIRST_NAMED = ("task", "resolutions")  # settings the others follow from (a flow
 
 def check_same_settings(source: str, old: dict, new: dict, what: str = "fit") -> None:
     """A resumed run must repeat the interrupted one's settings: the first that differs (the task and resolutions
-    first, then sorted by name) is an InputError naming the state file, the setting and both values."""
-    for key in sorted(set(old) | set(new), key=lambda k: (k not in FIRST_NAMED, FIRST_NAMED.index(k)
-                                                          if k in FIRST_NAMED else 0, k)):
+    first, then sorted by name, the sources' digest last) is an InputError naming the state file, the setting and
+    both values."""
+    keys = sorted((set(old) | set(new)) - {"code"}, key=lambda k: (k not in FIRST_NAMED, FIRST_NAMED.index(k)
+                                                                   if k in FIRST_NAMED else 0, k))
+    for key in keys:
         if old.get(key) != new.get(key):
             raise InputError(source, key, f"the interrupted {what} ran with {old.get(key)!r}, this run with "
                                           f"{new.get(key)!r}; resume with the same settings")
+    if "code" in old and old["code"] != new.get("code"):  # a run saved before the digest (stop 45) has none
+        raise InputError(source, "code", f"wrenorm's sources (engine, kernels or the {old.get('task', 'system')}'s "
+                                         f"modules) changed since the interrupted {what} ran: finish it with the code "
+                                         "it started with, or start it again")
