@@ -486,6 +486,13 @@ def test_resume_refuses_an_input_whose_content_changed_naming_it(tmp_path, capsy
     monkeypatch.chdir(elsewhere)
     assert main(["sweep", str(spec_file), "--out", str(out), "--resume"]) == 2
     assert "inputs: logs/a.csv is not what the interrupted sweep read" in capsys.readouterr().err
+    # a sweep saved before it kept its inputs' hashes resumes, unchecked, and says so
+    monkeypatch.chdir(tmp_path)
+    state = json.loads((out / "sweep-state.json").read_text())
+    del state["inputs"]
+    (out / "sweep-state.json").write_text(json.dumps(state))
+    assert _load_state(out, spec)["cells"] == state["cells"]
+    assert "did not record its inputs' content" in capsys.readouterr().err
 
 
 def test_force_never_clears_a_sweep_folder_that_holds_an_input(tmp_path, capsys):

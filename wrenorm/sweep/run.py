@@ -76,7 +76,12 @@ def _load_state(out: Path, spec) -> dict:
         raise InputError(str(f), "cells", "the spec expands to other cells than the interrupted sweep's; resume with "
                                           "the same spec (DIR/spec.toml is a copy), or start anew with --force")
     # the same command lines may read other bytes: a file edited in place, or a relative path from another folder
-    old = state.get("inputs") if isinstance(state.get("inputs"), dict) else {}
+    if not isinstance(state.get("inputs"), dict):  # saved before sweeps kept their inputs' hashes (stop 45)
+        if spec.hashes:
+            warn(f"{f}: inputs: the interrupted sweep did not record its inputs' content; resuming without checking "
+                 f"{', '.join(sorted(spec.hashes))}")
+        return state
+    old = state["inputs"]
     for name in sorted(set(old) | set(spec.hashes)):
         if old.get(name) != spec.hashes.get(name):
             then = f"sha256 {old[name][:12]}" if old.get(name) else "not recorded"
