@@ -1584,5 +1584,6 @@ def test_correct_says_what_it_cannot_steer_by(tmp_path, capsys):
     assert main(["correct", "rope", "--segments", "3", "--params", "measured", "--generations", "3", "--popsize", "8",
                  "--max-trials", "2", "--no-record", "--quiet", "--out", str(out)]) == 0
     run = json.loads((out / "correct.json").read_text())["runs"]["measured"]
-    assert "does not hit itself" in run["stopped"] and run["trials_used"] == 1
+    assert run["stop_reason"] == "chain_never_hits" and "does not hit itself" in run["stopped"]
+    assert run["trials_used"] == 1
     assert "3 links" in (out / "report.md").read_text()

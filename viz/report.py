@@ -117,8 +117,8 @@ def _parameter_rows(r: dict) -> list[list]:
     unc = r.get("uncertainty", {}) or {}
     undetermined, at_bound = set(unc.get("undetermined", [])), set(unc.get("at_bound", []))
     by_prior = set(unc.get("held_by_prior", []))
-    # where the uncertainty says which the data pin (std within DETERMINED of the value), "determined" means that;
-    # the rest of the not-undetermined ones are loose (a std larger than a third of the value is no determination)
+    # where the uncertainty says which the data pin (std within DETERMINED, 30 %, of the value), "determined" means
+    # that; the rest of the not-undetermined ones are loose
     by_data = set(unc["determined_by_data"]) if isinstance(unc.get("determined_by_data"), list) else None
     not_pinned = set((r.get("restarts") or {}).get("not_pinned", [])) | set(
         (r.get("searches_spread") or {}).get("not_pinned", []))
@@ -136,7 +136,9 @@ def _parameter_rows(r: dict) -> list[list]:
                 flags.append(flag("at bound", "warn"))
             if name in not_pinned:
                 flags.append(flag("differs across seeds", "warn"))
-            if not flags and by_data is not None and name not in by_data:
+            if not flags and by_data is not None and name not in by_data and p.get("fitted"):
+                # relative to a value near zero (a freed feed-forward gain measured 0) every std is large: the
+                # undetermined rule, against the bounds, speaks for those
                 flags.append(flag("loosely determined", "warn"))
             if not flags:
                 flags.append(flag("determined", "ok"))

@@ -294,14 +294,16 @@ class RopeProblem(Problem):
 
     def fit_warnings(self, fitted: np.ndarray) -> list[str]:
         status = self.error_terms(np.atleast_2d(fitted), self.train)["status"][0]
-        missed = [c.name for c, st in zip(self.train, status) if st != 1]
-        if not missed:
-            return []
-        return [f"the {self.segments}-link chain (dt {self.dt:g} s) with the fitted values does not hit itself on "
-                f"{len(missed)} of {len(self.train)} fit references ({', '.join(missed)}): those cost the no-hit "
-                "penalty and say nothing of the parameters"
-                + (" (none does: the fitted values are not determined by these references)"
-                   if len(missed) == len(self.train) else "")]
+        chain, n = f"the {self.segments}-link chain (dt {self.dt:g} s) with the fitted values", len(self.train)
+        out = []
+        for code, what in ((0, "does not hit itself on"), (2, "blows up on")):
+            names = [c.name for c, st in zip(self.train, status) if st == code]
+            if names:
+                out.append(f"{chain} {what} {len(names)} of {n} fit references ({', '.join(names)}): those cost the "
+                           "no-hit penalty and say nothing of the parameters"
+                           + (" (none hits: the fitted values are not determined by these references)"
+                              if len(names) == n else ""))
+        return out
 
     @property
     def warnings(self) -> list[str]:

@@ -803,7 +803,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     trials: list[Trial] = []
     best: Trial | None = None
     sens: gauss_newton.Sensitivity | None = None
-    plan_radius, stopped = 2.0 * space.bound, None
+    plan_radius, stopped, stop_reason = 2.0 * space.bound, None, None
     for k in range(max_trials):
         trial = _real_trial(real, model, goal, k, u, best, trust, plan_radius, predicted, scale_used,
                             _model_total(model, goal, u), pred_state)
@@ -862,9 +862,10 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         if on_trial:
             on_trial(trial)
         if np.abs(u - best.u).max() < 1e-9:
-            stopped = "the step predicts no better command than the best one"
+            stopped, stop_reason = "the step predicts no better command than the best one", "no_better_command"
             if sens is not None and all(c == "none" for c in sens.columns):
                 pb = model.problem
+                stop_reason = "chain_never_hits"
                 stopped = (f"the coarse chain ({pb.segments} links, dt {pb.dt:g} s) does not hit itself on either side "
                            "of any command direction where it was linearised: it has no critical state to steer by "
                            "at this resolution")
@@ -877,6 +878,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "secant": bool(secant), "plan_first": bool(plan_first), "trial0_plan": planning, "trials_used": len(trials),
         "trials_to_tolerance": (next(t.index + 1 for t in trials if t.total <= tolerance) if success else None),
         "best_error": best.total, "best_trial": best.index + 1, "best_u": best.u, "stopped": stopped,
+        "stop_reason": stop_reason if stopped else None,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,

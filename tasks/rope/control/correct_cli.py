@@ -538,7 +538,7 @@ def run_verdict(r: dict, tolerance: float) -> str:
     if r["success"]:
         return f"reached the tolerance in {r['trials_to_tolerance']} trials"
     floor = last_floor(r)
-    if r.get("stopped") and "does not hit itself" in r["stopped"]:
+    if r.get("stop_reason") == "chain_never_hits":
         return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}): {r['stopped']}"
     why = "" if floor is None else (
         f"; at its last step the corrected model predicted no command better than {floor['error']:.4f}"

@@ -58,7 +58,7 @@ HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the g
 # Confidence rules applied by default. "fold" (the contact closes a loop within two neighbouring marker intervals) is
 # kept for measurements only: on the dev sets it never caught a wrong event that no other rule caught, and it
 # flagged 8 (12 markers) and 11 (8 markers) right newton events.
-RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip")
+RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip", "repeat")
 MAX_MARKER_JUMP = 10.0  # x the markers' largest frame-to-frame step around it (wrenorm.jumps): the built-in and test
 # references reach 2.1-3.9, 50 frames cut out of a flick with its clock made uniform again 33
 MAX_HAND_DOUBLET = 10.0  # x the hand's second difference around it (wrenorm.jumps.largest_doublet): newton's and
@@ -887,7 +887,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                            "missing from the recording? then the contact time is early by the frames lost")
             if "jump" not in low:
                 low.append("jump")
-    if hand is not None and "jump" in rules:
+    if hand is not None and "repeat" in rules:
         repeated = _repeated_moving_frames(X[:k + 1], np.asarray(hand, dtype=np.float64)[:k + 1])
         diag["repeated_frames"] = len(repeated)
         if repeated:

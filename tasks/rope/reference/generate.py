@@ -206,17 +206,16 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # a throw (a rope hanging at rest, a taut swing; the built-in and test references reach 1.000-1.009 in median):
     # tip markers dropped leave intervals that never come near their arc's length (two of twelve: a contact "found"
     # at 0.08 s instead of 0.88 s, with high confidence). Given marker_arclength, the file says where they are.
-    if not has_arclength and M >= 4:
+    if M >= 4:
         straightest = float(np.median(np.max(np.where(seen, chord, 0.0), axis=0) / arc))
-        if straightest < MIN_STRAIGHTEST_CHORD:
+        if straightest < MIN_STRAIGHTEST_CHORD and not has_arclength:
             raise InputError(src, "marker_arclength", f"not in the file, so the {M} markers are taken as evenly spaced "
                              f"over the whole rope, but their intervals never straighten (each interval's straightest "
                              f"chord / arc, median over intervals: {straightest:.3f}, below "
                              f"{MIN_STRAIGHTEST_CHORD}): markers missing at the tip? give marker_arclength")
-    # the same on the file's own spacing: a length 10 % long put the contact 23 ms early and 0.12 of the rope off, with
-    # confidence; even a throw cut to start late straightens every interval (built-ins from 0.6 s: 1.002-1.007)
-    if has_arclength and M >= 4:
-        straightest = float(np.median(np.max(np.where(seen, chord, 0.0), axis=0) / arc))
+        # the same on the file's own spacing: a length 10 % long put the contact 23 ms early and 0.12 of the rope
+        # off, with confidence; even a throw cut to start late straightens every interval (built-ins from 0.6 s:
+        # 1.002-1.007)
         if straightest < MIN_STRAIGHTEST_CHORD:
             raise InputError(src, "length", f"{length:g} m puts the markers' intervals at arcs they never straighten "
                              f"to (each interval's straightest chord / arc, median over intervals: {straightest:.3f}, "
