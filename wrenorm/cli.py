@@ -439,14 +439,14 @@ def _dispatch(args) -> int:
 
 
 def main(argv=None) -> int:
-    previous_sigint = None
+    previous_handlers = None
     try:
         args = build_parser(argv).parse_args(argv)
         args._argv = list(sys.argv[1:] if argv is None else argv)
         from .interrupt import install, resume_hint
         from .warp_init import init_warp
 
-        previous_sigint = install(resume_hint(args))
+        previous_handlers = install(resume_hint(args))
         # before any task module initialises Warp: no banner or missing-driver line in users' output
         init_warp(getattr(args, "device", "cpu") or "cpu", args.verbose)
         return _dispatch(args)
@@ -463,7 +463,10 @@ def main(argv=None) -> int:
 
         print(f"\nwrenorm: interrupted{resume_hint(locals().get('args'))}", file=sys.stderr)
         return exit_code()
-    except BrokenPipeError:  # `... | head`: the reader left; nothing went wrong here
+    except BrokenPipeError as e:  # `... | head`: the reader left; nothing went wrong here
+        if e.filename is not None or sys.stdout.isatty():  # a file or a child's pipe: a real error, said
+            print(f"wrenorm: error: {e.filename or 'pipe'}: {e.strerror or 'broken pipe'}", file=sys.stderr)
+            return 2
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python's own flush at exit would hit the closed pipe again
         return 0
@@ -474,6 +477,6 @@ def main(argv=None) -> int:
     finally:
         from .interrupt import restore
 
-        restore(previous_sigint)
+        restore(previous_handlers)
         # Python's last collections walk Warp's ~100k objects (half a second at exit): they live until exit anyway
         gc.freeze()

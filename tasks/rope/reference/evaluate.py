@@ -25,6 +25,7 @@ import argparse
 import json
 import sys
 import time as _time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +104,7 @@ def score(files, markers: int, noise: float = 0.0, occlude: int = 0, seed: int =
     for f in files:
         try:
             time, nodes, hand, length, radius, t_true = _truth_and_nodes(f)
-        except (InputError, KeyError, ValueError, OSError) as e:  # one foreign file costs that file
+        except (InputError, KeyError, ValueError, OSError, zipfile.BadZipFile) as e:  # one foreign file: that file
             print(f"{f}: left out: {e}", file=sys.stderr, flush=True)
             continue
         mk0, s = resample_nodes(nodes, markers)
@@ -189,8 +190,13 @@ def generate(args) -> int:
         name = f"{args.engine}_{variant}_{path}" + ("" if seed is None else f"_p{seed}")
         f = out / f"{name}.npz"
         if f.exists():
-            with np.load(f, allow_pickle=False) as z:
-                before = str(z["generate_settings"]) if "generate_settings" in z.files else None
+            try:
+                with np.load(f, allow_pickle=False) as z:
+                    before = str(z["generate_settings"]) if "generate_settings" in z.files else None
+            except (OSError, ValueError, zipfile.BadZipFile) as e:
+                print(f"{f}: exists and cannot be read ({e}): left as it is; use another --out", file=sys.stderr)
+                failed += 1
+                continue
             if before is not None and before != made_with:
                 print(f"{f}: made with other settings ({before}; now {made_with}): left as it is and not made again; "
                       "use another --out", file=sys.stderr, flush=True)
