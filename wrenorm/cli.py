@@ -282,11 +282,12 @@ def cmd_fit(args) -> int:
     settings = FitSettings(seed=args.seed, generations=args.generations, popsize=popsize, sigma0=args.sigma0,
                            polish=args.polish, restarts=args.restarts, searches=searches, method=args.search)
     _refuse_earlier_state(args, STATE_FILE)
+    inputs = _inputs(args)
     out = prepare_out(args.out or _default_out(args.system), resume=args.resume, force=args.force,
-                      state=STATE_FILE, inputs=_inputs(args), command=f"fit {args.system}")
+                      state=STATE_FILE, inputs=inputs, command=f"fit {args.system}")
     if not args.quiet:
         print(f"wrenorm fit {args.system}: writing {out}", file=sys.stderr)
-    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
+    identity = {"system_options": _system_options(args), "inputs": content_hashes(inputs),
                 "versions": {k: v for k, v in versions().items() if k in ("wrenorm", "warp-lang", "cma", "numpy")},
                 "code": code_digest(args.system)}
     result = run_fits(problems, out, settings, resume=args.resume, record=not args.no_record, quiet=args.quiet,
@@ -347,10 +348,11 @@ def cmd_flow(args) -> int:
     device = _device(args.device)
     problems = resolve(system.flow.build)(args, device)
     _apply_parameter_set(problems, args)
+    inputs = _inputs(args)
     out = prepare_out(args.out or _default_out(f"flow-{args.system}"), resume=args.resume, force=args.force,
-                      state=POINTS_FILE, inputs=_inputs(args), command=f"flow {args.system}")
+                      state=POINTS_FILE, inputs=inputs, command=f"flow {args.system}")
     analytic = resolve(system.flow.analytic) if system.flow.analytic else None
-    identity = {"system_options": _system_options(args), "inputs": content_hashes(_inputs(args)),
+    identity = {"system_options": _system_options(args), "inputs": content_hashes(inputs),
                 "code": code_digest(args.system)}
     flow = run_flow(problems, out, seed=args.seed, restarts=args.restarts, popsize=args.popsize, quiet=args.quiet,
                     resume=args.resume, generations=args.generations, analytic=analytic, record=not args.no_record,
