@@ -140,7 +140,10 @@ class PDCommands:
         self.qd_des = wp.array(qd_des, dtype=wp.float64, device=device)
         self.qdd_des = wp.array(qdd_des, dtype=wp.float64, device=device)
         self.q_ref = wp.array(q_ref, dtype=wp.float64, device=device)
-        scale = np.sqrt(np.mean(q_ref[:, 1:] ** 2, axis=1))
+        # the motion from where each condition starts: an encoder's zero (a joint working around 2 rad) must not
+        # shrink the relative error (it turned a friction log's "expand" into "absorbed"); the built-in commands
+        # start at q = 0, where this is the RMS of q itself
+        scale = np.sqrt(np.mean((q_ref[:, 1:] - q_ref[:, :1]) ** 2, axis=1))
         self.ref_scale = wp.array(np.maximum(scale, 1e-12), dtype=wp.float64, device=device)
         self.init = wp.array(init, dtype=wp.float64, device=device)
 

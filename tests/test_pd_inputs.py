@@ -122,3 +122,23 @@ def test_a_coarse_log_is_warned_and_a_still_held_out_part_gives_no_verdict(tmp_p
     r = json.loads((out / "result.json").read_text())
     assert r["validation"]["verdict"] == "unvalidated"
     assert any("hardly moves" in w for w in r["warnings"]) and "hardly moves" in capsys.readouterr().err
+
+
+def test_the_joints_zero_does_not_change_the_errors(tmp_path):
+    """The relative error was divided by the RMS of q itself: the same log with the encoder's zero 2 rad away (a
+    joint working around 115 degrees) read 7x better, and a friction log's "expand" became "absorbed". Now the motion
+    from each condition's start is the scale: the same errors either way."""
+    from wrenorm.tasks.pd.problem import Command, PDProblem, continuous_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(0, 6.0, 0.001)
+    q_d, qd_d, _ = cmd(t)
+    q = continuous_reference(cmd, 0.05, 20.0, 0.5, t) + 0.01 * np.sin(7 * t)  # a little the model does not have
+    errors = []
+    for offset in (0.0, 2.0):
+        f = tmp_path / f"log{offset}.csv"
+        np.savetxt(f, np.c_[t, q + offset, q_d + offset, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
+        p = PDProblem(100.0, log=load_log(f))
+        values = p.space.measured[None]
+        errors.append(np.concatenate([p.errors(values, p.train)[0], p.errors(values, p.held_out)[0]]))
+    np.testing.assert_allclose(errors[1], errors[0], rtol=1e-6)

@@ -327,7 +327,8 @@ UNSTABLE_GROWTH = 10.0  # growth of a free oscillation over the longest command 
 class PDProblem(Problem):
     task = "pd"
     least_squares = True  # the trajectory residuals are the observable: fit their sum of squares
-    error_doc = "RMS of q_sim - q_ref over the command, divided by the RMS of q_ref (per condition)"
+    error_doc = ("RMS of q_sim - q_ref over the command, divided by the RMS of q_ref's motion from its start (per "
+                 "condition)")
 
     def __init__(self, f_sim: float, integrator: str = "semi-implicit", device: str = "cpu",
                  J: float = MEASURED["J"], KP: float = MEASURED["K_P"], KD: float = MEASURED["K_D"],
