@@ -189,6 +189,28 @@ def test_duplicated_frames_are_refused(tmp_path, rates):
         sd.load_dir(rot)
 
 
+@pytest.mark.parametrize("how", ["every tenth written twice", "held for 11 frames"])
+def test_a_few_repeated_or_held_frames_are_refused(tmp_path, rates, how):
+    """Under the old 20 % share, every tenth frame written twice slowed every speed 9 % and 11 held frames moved the
+    slender drag 4x, both in silence; two repeats in a row still pass (a pixel's rounding may repeat once)."""
+    m = rates[1].markers
+    if how.startswith("every"):
+        bad = np.repeat(m, [2 if i % 10 == 0 else 1 for i in range(len(m))], axis=0)
+    else:
+        bad = m.copy()
+        bad[201:212] = bad[200]
+    _write_pixels(tmp_path, rates[1], markers=bad)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_00.csv" in e.value.source and "repeat" in e.value.problem
+    if how.startswith("held"):
+        assert e.value.field == "frames 202-212"
+    fine = m.copy()
+    fine[101:103] = fine[100]
+    _write_pixels(tmp_path, rates[1], markers=fine)
+    assert len(sd.load_dir(tmp_path)) == 1
+
+
 def test_columns_written_x_then_y_are_refused_naming_the_layout(tmp_path, rates):
     """x0..x8, y0..y8 instead of x0, y0, x1, y1, ...: the "markers" read as pairs do not lie one behind another along
     the body; the refusal names the layout the file must have (it used to say only 'fewer than 3 distinct tail

@@ -40,7 +40,10 @@ MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest ra
 MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
-MAX_REPEATED_FRAMES = 0.2  # share of frames equal to the previous one; tracked video never repeats exactly
+MAX_REPEATED_FRAMES = 0.05  # share of frames equal to the previous one; tracked video never repeats exactly (the five
+# clips: none), and 9 % (every tenth frame written twice) had slowed every speed 9 % in silence
+MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
+# one clip moved the slender drag 4x and the viscosity 2.3x, with the head's jump under its limit)
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
 MAX_HEAD_JUMP = 10.0  # x the head's median step around it (wrenorm.jumps): built-in clips 1.4-3.3, a second cut out 47
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
@@ -133,6 +136,13 @@ def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
         raise InputError(str(path), "rows", f"{int(repeated.sum())} of {len(markers)} frames ({100 * share:.0f} %) "
                          "repeat the previous frame exactly: duplicated frames; remove the copies and give the "
                          "clip's true frame rate with --fps")
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], repeated.astype(int), [0]]))))[::2]
+    if len(runs) and runs.max() >= MAX_HELD_FRAMES:
+        n = int(runs.max())
+        first = int(np.flatnonzero(np.convolve(repeated, np.ones(n), "valid") == n)[0]) + 2  # 1-based, the first copy
+        raise InputError(str(path), f"frames {first}-{first + n - 1}", f"{n} frames in a row "
+                         "repeat the one before exactly: a tracker holding its last position? give the clip with those "
+                         "frames tracked, or cut before them")
 
 
 def _check_jumps(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
