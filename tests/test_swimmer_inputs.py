@@ -211,6 +211,20 @@ def test_a_few_repeated_or_held_frames_are_refused(tmp_path, rates, how):
     assert len(sd.load_dir(tmp_path)) == 1
 
 
+@pytest.mark.parametrize("stretch", [1.4, 0.7])
+def test_a_clip_of_another_body_is_refused(tmp_path, rates, stretch):
+    """A tail 1.4x as long (markers 2-8 stretched about marker 1) was fitted as this robot, every coefficient
+    'determined' and the angular drag 8x: the tail base is rigid with the head, 0.286 m from its midpoint."""
+    m = rates[1].markers.astype(np.float64).copy()
+    m[:, 2:] = m[:, 1:2] + stretch * (m[:, 2:] - m[:, 1:2])
+    _write_pixels(tmp_path, rates[1], markers=m)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.field == "marker 2" and "another fish" in e.value.problem
+    _write_pixels(tmp_path, rates[1])  # the robot's own clip loads
+    assert len(sd.load_dir(tmp_path)) == 1
+
+
 def test_columns_written_x_then_y_are_refused_naming_the_layout(tmp_path, rates):
     """x0..x8, y0..y8 instead of x0, y0, x1, y1, ...: the "markers" read as pairs do not lie one behind another along
     the body; the refusal names the layout the file must have (it used to say only 'fewer than 3 distinct tail

@@ -40,6 +40,7 @@ MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest ra
 MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
+TAIL_BASE_RANGE = (0.85, 1.15)  # x the robot's head-to-tail-base distance; the five clips 0.92-0.99
 MAX_REPEATED_FRAMES = 0.05  # share of frames equal to the previous one; tracked video never repeats exactly (the five
 # clips: none), and 9 % (every tenth frame written twice) had slowed every speed 9 % in silence
 MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
@@ -187,6 +188,22 @@ def read_rotated_markers(path: Path) -> np.ndarray:
         raise InputError(str(path), "units", f"head markers 0 and 1 are {apart:.4g} (file units) apart on average, "
                          f"{HEAD_MARKER_DISTANCE} m on the robot: metres expected (millimetres or centimetres?)")
     return markers
+
+
+def _check_body(path, markers: np.ndarray) -> None:
+    """The tail-base marker is rigid with the head: its distance from the head's midpoint is this robot's
+    (body.TAIL_BASE_X - HEAD_REF_X, 0.286 m; the five clips 0.263-0.282 in median). Far from it the clip is of
+    another body, whose tail the model's fixed geometry cannot be: a tail 1.4x as long was fitted, every coefficient
+    "determined", angular drag 8x."""
+    from wrenorm.tasks.swimmer.body import HEAD_REF_X, TAIL_BASE_X
+
+    nominal = TAIL_BASE_X - HEAD_REF_X
+    d = float(np.median(np.linalg.norm(markers[:, 2] - 0.5 * (markers[:, 0] + markers[:, 1]), axis=1)))
+    lo, hi = (nominal * f for f in TAIL_BASE_RANGE)
+    if not lo <= d <= hi:
+        raise InputError(str(path), "marker 2", f"the tail base lies {d:.3f} m from the head's midpoint (median), "
+                         f"{nominal:.3f} m on this robot (accepted {lo:.3f}-{hi:.3f}): another fish, or markers in "
+                         "another order? the model's body is this robot's")
 
 
 def check_fps(fps, source: str = "--fps") -> float:
@@ -359,6 +376,7 @@ def analyse(rate: Rate) -> Rate:
         raise InputError(rate.source or rate.name, f"tail marker {i}",
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
+    _check_body(rate.source or rate.name, rate.markers)
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)
     if np.floor(frames / rate.fps * rate.tail_freq + 1e-6) < 1:  # the features are per complete beat
