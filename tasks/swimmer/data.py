@@ -12,7 +12,8 @@ Label X.YZ (motor rate in Hz) comes from the file name (markers_fX.YZ.csv and an
 that starts like a clip, markers_f1.csv or markers_f1_00_take2.csv, is refused); the frame rate is the format's 60
 fps unless given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
 dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many frames repeat
-the previous one exactly (duplicated frames), frames cut out of a clip (the head's jump, in either format).
+the previous one exactly (duplicated frames) or a few in a row do (a held tracker), frames cut out of a clip (the
+head's jump, in either format), a tail base not where this robot's is (another body).
 Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
