@@ -142,3 +142,15 @@ def test_the_joints_zero_does_not_change_the_errors(tmp_path):
         values = p.space.measured[None]
         errors.append(np.concatenate([p.errors(values, p.train)[0], p.errors(values, p.held_out)[0]]))
     np.testing.assert_allclose(errors[1], errors[0], rtol=1e-6)
+
+
+def test_q_in_degrees_beside_a_command_in_radians_is_refused(tmp_path):
+    """q 57x its command (degrees beside radians) fitted every gain to its bound and said only "expand"."""
+    t = np.arange(0, 4.0, 0.001)
+    f = tmp_path / "mixed.csv"
+    cols = np.c_[t, np.degrees(0.3 * np.sin(2 * t)), 0.3 * np.sin(2 * t + 0.1), 0.6 * np.cos(2 * t + 0.1)]
+    np.savetxt(f, cols, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(f)
+    assert e.value.field == "q" and "degrees" in e.value.problem
+    load_log(_write(tmp_path / "same.csv"))  # both in radians: read

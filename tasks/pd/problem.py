@@ -181,6 +181,7 @@ MAX_GAP_STEPS = 5.0  # the longest time step a log may have, in median steps (lo
 MIN_GAP_S = 0.02  # ... unless shorter than this: a fast logger's scheduling stall of a few ms bridges harmlessly
 MIN_STEP_FRACTION = 0.1  # the shortest step a log may have, in median steps (jitter of a steady logger: > 0.5)
 MAX_RATE_MISMATCH = 10.0  # qd_d over dq_d/dt beyond this (or below its inverse): another clock or unit
+MAX_FOLLOW_MISMATCH = 20.0  # std(q) / std(q_d) beyond this (or below its inverse): q and q_d in other units
 STILL_FRACTION = 0.05  # a held-out part whose q varies less than this share of the training part's tests nothing
 
 
@@ -274,6 +275,12 @@ def load_log(path: str | Path) -> MeasuredLog:
         if not 1.0 / MAX_RATE_MISMATCH <= scale <= MAX_RATE_MISMATCH:
             raise InputError(src, "time", f"qd_d is {scale:.3g} x the rate of change of q_d on this time axis: "
                                           "time in milliseconds (or qd_d in other units than q_d per second)?")
+    # q follows q_d: their motions are of one size. Degrees in one column and radians in the other differ 57x (that log
+    # fitted every gain to its bound and said only "expand")
+    motion = float(np.std(arr[:, 1])) / max(float(np.std(arr[:, 2])), 1e-300)
+    if not 1.0 / MAX_FOLLOW_MISMATCH <= motion <= MAX_FOLLOW_MISMATCH:
+        raise InputError(src, "q", f"moves {motion:.3g} x as much as q_d (standard deviations): the joint follows its "
+                                   "command, so q and q_d in different units (degrees and radians)?")
     return MeasuredLog(src, t - t[0], arr[:, 1], arr[:, 2], arr[:, 3])
 
 
