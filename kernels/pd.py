@@ -132,18 +132,19 @@ def rms_kernel(acc: wp.array(dtype=wp.float64), cond: wp.array(dtype=int), ref_s
 class PDCommands:
     """Commands and reference trajectories of C conditions, sampled at the simulator's steps."""
 
-    def __init__(self, q_des, qd_des, qdd_des, q_ref, init, device: str):
-        # q_des, qd_des, qdd_des: (C, n_steps); q_ref: (C, n_steps + 1); init: (C, 2)
+    def __init__(self, q_des, qd_des, qdd_des, q_ref, init, device: str, origin=None):
+        # q_des, qd_des, qdd_des: (C, n_steps); q_ref: (C, n_steps + 1); init: (C, 2); origin: (C,) or None (0)
         self.n_cond, self.n_steps = q_des.shape
         self.device = device
         self.q_des = wp.array(q_des, dtype=wp.float64, device=device)
         self.qd_des = wp.array(qd_des, dtype=wp.float64, device=device)
         self.qdd_des = wp.array(qdd_des, dtype=wp.float64, device=device)
         self.q_ref = wp.array(q_ref, dtype=wp.float64, device=device)
-        # the motion from where each condition starts: an encoder's zero (a joint working around 2 rad) must not
-        # shrink the relative error (it turned a friction log's "expand" into "absorbed"); the built-in commands
-        # start at q = 0, where this is the RMS of q itself
-        scale = np.sqrt(np.mean((q_ref[:, 1:] - q_ref[:, :1]) ** 2, axis=1))
+        # the motion about each condition's origin: a log's own middle, so that an encoder's zero (a joint working
+        # around 2 rad) does not shrink the relative error (it turned a friction log's "expand" into "absorbed");
+        # the built-in commands move about q = 0, where this is the RMS of q itself
+        origin = np.zeros(len(q_ref)) if origin is None else np.asarray(origin, np.float64)
+        scale = np.sqrt(np.mean((q_ref[:, 1:] - origin[:, None]) ** 2, axis=1))
         self.ref_scale = wp.array(np.maximum(scale, 1e-12), dtype=wp.float64, device=device)
         self.init = wp.array(init, dtype=wp.float64, device=device)
 

@@ -154,3 +154,20 @@ def test_q_in_degrees_beside_a_command_in_radians_is_refused(tmp_path):
         load_log(f)
     assert e.value.field == "q" and "degrees" in e.value.problem
     load_log(_write(tmp_path / "same.csv"))  # both in radians: read
+
+
+def test_the_held_out_scale_does_not_follow_where_the_log_is_cut(tmp_path):
+    """Measured from each part's first sample, the held-out third's scale ran 0.354-0.578 with the phase at the cut
+    of one 0.5 rad sine log (review of stop 45): one origin per log, its median q."""
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    scales = []
+    for span in (6.0, 6.25, 6.5, 6.75):
+        t = np.arange(0, span, 0.001)
+        f = tmp_path / f"sine{span}.csv"
+        w = 2 * np.pi * 0.5
+        np.savetxt(f, np.c_[t, 0.5 * np.sin(w * t) + 2.0, 0.5 * np.sin(w * t + 0.05) + 2.0,
+                            0.5 * w * np.cos(w * t + 0.05)], delimiter=",", header="time,q,q_d,qd_d", comments="")
+        p = PDProblem(100.0, log=load_log(f))
+        scales.append(float(p._commands(p.held_out).ref_scale.numpy()[0]))
+    np.testing.assert_allclose(scales, 0.5 / np.sqrt(2), rtol=0.1)

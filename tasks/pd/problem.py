@@ -280,7 +280,8 @@ def load_log(path: str | Path) -> MeasuredLog:
     motion = float(np.std(arr[:, 1])) / max(float(np.std(arr[:, 2])), 1e-300)
     if not 1.0 / MAX_FOLLOW_MISMATCH <= motion <= MAX_FOLLOW_MISMATCH:
         raise InputError(src, "q", f"moves {motion:.3g} x as much as q_d (standard deviations): the joint follows its "
-                                   "command, so q and q_d in different units (degrees and radians)?")
+                                   "command, so q and q_d in different units (degrees and radians)? or a command far "
+                                   "faster than the joint follows, which shows nothing of it")
     return MeasuredLog(src, t - t[0], arr[:, 1], arr[:, 2], arr[:, 3])
 
 
@@ -334,8 +335,8 @@ UNSTABLE_GROWTH = 10.0  # growth of a free oscillation over the longest command 
 class PDProblem(Problem):
     task = "pd"
     least_squares = True  # the trajectory residuals are the observable: fit their sum of squares
-    error_doc = ("RMS of q_sim - q_ref over the command, divided by the RMS of q_ref's motion from its start (per "
-                 "condition)")
+    error_doc = ("RMS of q_sim - q_ref over the command, divided by the RMS of q_ref about its origin (0 for the "
+                 "built-in commands, a log's median q) (per condition)")
 
     def __init__(self, f_sim: float, integrator: str = "semi-implicit", device: str = "cpu",
                  J: float = MEASURED["J"], KP: float = MEASURED["K_P"], KD: float = MEASURED["K_D"],
@@ -387,7 +388,9 @@ class PDProblem(Problem):
             conds.append(Condition(name, {
                 "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
                 "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
-                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a, q_spline)}, {"source": log.path}))
+                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a, q_spline),
+                "origin": float(np.median(log.q))}, {"source": log.path}))  # one for both parts: the cut's phase
+                # must not scale the held-out error
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
             self.warnings.append(f"{log.path}: sampled every {step:g} s, coarser than the simulation's step "
@@ -409,7 +412,8 @@ class PDProblem(Problem):
                 np.stack([c.data["q_d"][:n] for c in conditions]), np.stack([c.data["qd_d"][:n] for c in conditions]),
                 np.stack([c.data["qdd_d"][:n] for c in conditions]),
                 np.stack([c.data["q_ref"][:n + 1] for c in conditions]),
-                np.array([c.data["init"] for c in conditions], np.float64), self.device)
+                np.array([c.data["init"] for c in conditions], np.float64), self.device,
+                origin=[c.data.get("origin", 0.0) for c in conditions])
         return self._cache[key]
 
     def errors(self, values, conditions):
