@@ -209,6 +209,9 @@ def test_a_few_repeated_or_held_frames_are_refused(tmp_path, rates, how):
     fine[101:103] = fine[100]
     _write_pixels(tmp_path, rates[1], markers=fine)
     assert len(sd.load_dir(tmp_path)) == 1
+    # a fish filmed still before it swims repeats exactly (half-pixel steps): not a held tracker (review of stop 45)
+    _write_pixels(tmp_path, rates[1], markers=np.concatenate([np.repeat(m[:1], 40, axis=0), m]))
+    assert len(sd.load_dir(tmp_path)) == 1
 
 
 @pytest.mark.parametrize("stretch", [1.4, 0.7])
