@@ -9,7 +9,6 @@ where the system exposes residuals, the Gauss-Newton std at the best optimum is 
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 
 from .errors import InputError
 from .fit import stalled_search
-from .results import SCHEMA, jsonable, versions, write_json
+from .results import SCHEMA, stored_digest, versions, write_json
 from .runfolder import check_same_settings
 from .search import mean_loss, restarts_together
 from .search import restarts as seeded_searches
@@ -34,10 +33,8 @@ def _settings(problems, seed, restarts, popsize, generations, identity, together
 
 
 def _digest(points: list, start) -> str:
-    """What the finished points hold, as written (non-finite numbers as null, as write_json stores them): a resume
-    continues only from points this run wrote itself."""
-    stored = json.loads(json.dumps(jsonable([points, start])))
-    return hashlib.sha256(json.dumps(stored, sort_keys=True).encode()).hexdigest()
+    """What the finished points hold, as written: a resume continues only from points this run wrote itself."""
+    return stored_digest([points, start])
 
 
 def _resumed(out: Path, settings: dict, problems: list) -> tuple[list, object]:
@@ -80,9 +77,9 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
         if stalled is not None:
             fitted = prob.space.measured.copy()
         vals = np.array([r.best_values for r in res if np.isfinite(r.best_loss)])
-        spread = vals.std(axis=0, ddof=1) if len(vals) > 1 else np.full(len(prob.space.names), np.nan)
-        if stalled is not None:  # the searches' spread over a flat objective is no uncertainty
-            spread = np.full(len(prob.space.names), np.nan)
+        # the searches' spread over a flat objective (stalled) is no uncertainty
+        spread = vals.std(axis=0, ddof=1) if len(vals) > 1 and stalled is None else np.full(len(prob.space.names),
+                                                                                               np.nan)
         unc = uncertainty(prob, fitted)
         loss, _ = mean_loss(prob, np.stack([prob.space.measured, fitted]), prob.train)
         point = {

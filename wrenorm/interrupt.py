@@ -9,7 +9,6 @@ import signal
 import sys
 import threading
 
-EXIT_CODE = 130
 GRACE_S = 1.0
 SIGNALS = (signal.SIGINT, signal.SIGTERM)  # Ctrl-C, and a job scheduler's or `timeout`'s polite stop
 _state = {"hint": "", "signal": signal.SIGINT}

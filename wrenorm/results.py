@@ -34,6 +34,15 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def stored_digest(obj) -> str:
+    """sha256 of `obj` as write_json stores it (arrays as lists, non-finite numbers as null, keys sorted): a file
+    read back hashes the same as the object that was written, so a resume can tell an edited state file."""
+    import hashlib
+
+    stored = json.loads(json.dumps(jsonable(obj), default=str))
+    return hashlib.sha256(json.dumps(stored, sort_keys=True).encode()).hexdigest()
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str, durable: bool = True) -> Path:
     """Write to a temporary file in the same folder, then rename over `path`: a reader sees the old file or the
     new one, never a part. durable: fsync before the rename, so the new file also survives a power loss (a

@@ -256,7 +256,7 @@ def run(args) -> int:
     from wrenorm.cli import command_line
     from wrenorm.fit import write_report_or_warn
     from wrenorm.progress import Progress
-    from wrenorm.results import jsonable, versions, write_atomic, write_json
+    from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.control.command import DEFAULT_BOUND, CommandSpace
@@ -369,9 +369,7 @@ def run(args) -> int:
     out = prepare_out(args.out or Path("runs") / f"correct-rope-{time.strftime('%Y%m%d-%H%M%S')}",
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
     if not args.resume:
-        # as write_json stores it (a non-finite number as null), so the digest is of what a resume reads
-        saved = json.loads(json.dumps(jsonable({k: v for k, v in vars(args).items() if k not in _NOT_SAVED}),
-                                      default=str))
+        saved = {k: v for k, v in vars(args).items() if k not in _NOT_SAVED}
         write_json(out / SETTINGS_FILE, saved | {DIGEST_KEY: _settings_digest(saved)})
     t_all = time.perf_counter()
 
@@ -619,9 +617,11 @@ def _kind(value) -> str | None:
 
 
 def _settings_digest(saved: dict) -> str:
-    import hashlib
+    from wrenorm.results import stored_digest
 
-    return hashlib.sha256(json.dumps(saved, sort_keys=True).encode()).hexdigest()
+    return stored_digest(saved)
+
+
 _NOT_SAVED = ("out", "resume", "force", "quiet", "no_record", "command", "system", "func")
 
 

@@ -985,13 +985,6 @@ def _to_json(det: Detection) -> dict:
             "diagnostics": d}
 
 
-def _cache_digest(body: dict) -> str:
-    import hashlib
-    import json
-
-    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
-
-
 def _from_json(d: dict) -> Detection:
     e = d["event"]
     ev = None if e is None else CollisionEvent(int(e[0]), *map(float, e[1:]), "detected", d["confidence"],
@@ -1004,6 +997,8 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
     takes 0.1-1 s per file; a fit reads the same files again and again)."""
     import json
 
+    from wrenorm.results import jsonable, stored_digest, write_atomic
+
     cached = getattr(ref, "_detection", None)
     if cached is not None:
         return cached
@@ -1015,7 +1010,7 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
             saved = json.loads(path.read_text())
             body = saved["detection"]
             # a file renamed, cut or edited since it was written is not this recording's answer: detect again
-            if saved["key"] == key and saved["digest"] == _cache_digest(body):
+            if saved["key"] == key and saved["digest"] == stored_digest(body):
                 det = _from_json(body)
         except (OSError, ValueError, KeyError, TypeError, IndexError):
             det = None
@@ -1024,10 +1019,8 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
                      missing=getattr(ref, "missing", None), hand=ref.hand)
         if path is not None:
             try:
-                from wrenorm.results import jsonable, write_atomic
-
-                body = json.loads(json.dumps(jsonable(_to_json(det))))
-                write_atomic(path, json.dumps({"key": key, "digest": _cache_digest(body), "detection": body}))
+                body = jsonable(_to_json(det))
+                write_atomic(path, json.dumps({"key": key, "digest": stored_digest(body), "detection": body}))
             except OSError:  # a read-only cache only costs time
                 pass
     try:
