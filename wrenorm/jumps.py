@@ -51,3 +51,16 @@ def largest_doublet(points: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int,
     quiet = np.maximum(before, after) < 0.5 * both
     return _most_unusual(np.where((cos < -0.5) & (both > 0) & quiet, both, 0.0), size, 2, window)
 
+
+def repeated_runs(frames: np.ndarray, mover: np.ndarray) -> list[tuple[int, int, float, int]]:
+    """Runs of frames equal to the one before to the bit: (first copy, copies, how far `mover` goes from the frame
+    before the original to the frame after the last copy, over how many frames). A tracker that holds its last value
+    repeats a moving body exactly; a body at rest may repeat too, which the distance the mover covers tells apart."""
+    frames = np.asarray(frames)
+    same = np.all((frames[1:] == frames[:-1]).reshape(len(frames) - 1, -1), axis=1)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(int), [0]])))
+    out = []
+    for a, b in zip(edges[::2], edges[1::2]):  # same[a:b]: frames a+1 .. b equal frame a
+        before, after = max(a - 1, 0), min(b + 1, len(mover) - 1)
+        out.append((int(a) + 1, int(b - a), float(np.linalg.norm(mover[after] - mover[before])), int(after - before)))
+    return out

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.jumps import largest_jump
+from wrenorm.jumps import largest_jump, repeated_runs
 from wrenorm.tasks.swimmer.options import FPS  # the fishsim format's frame rate, the --fps default
 
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
@@ -133,27 +133,20 @@ def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
     """Tracked video jitters by at least a pixel's rounding from frame to frame while the fish swims: many frames equal
     to the one before are a lower frame rate written out twice (or more), which would halve the speed and the
     tail-beat frequency, and a few in a row a tracker holding its last position. A fish at rest may repeat (half-pixel
-    steps), so only repeats inside motion count: the head moves over the frames around them."""
-    repeated = np.all(markers[1:] == markers[:-1], axis=(1, 2))
+    steps), so only repeats inside motion count: the head goes at least half its usual pace across them."""
     head = 0.5 * (markers[:, 0] + markers[:, 1])
     step = np.linalg.norm(np.diff(head, axis=0), axis=1)
     usual = float(np.median(step[step > 0])) if np.any(step > 0) else 0.0
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], repeated.astype(int), [0]])))
-    moving = np.zeros_like(repeated)
-    for a, b in zip(edges[::2], edges[1::2]):  # repeated[a:b]: frames a+1..b equal frame a
-        before, after = max(a - 1, 0), min(b + 1, len(head) - 1)
-        if np.linalg.norm(head[after] - head[before]) > 0.5 * usual * (after - before):
-            moving[a:b] = True
-    share = float(moving.mean())
+    runs = [(first, n) for first, n, moved, span in repeated_runs(markers, head) if moved > 0.5 * usual * span]
+    copies = sum(n for _, n in runs)
+    share = copies / (len(markers) - 1)
     if share >= MAX_REPEATED_FRAMES:
-        raise InputError(str(path), "rows", f"{int(moving.sum())} of {len(markers)} frames ({100 * share:.0f} %) "
+        raise InputError(str(path), "rows", f"{copies} of {len(markers)} frames ({100 * share:.0f} %) "
                          "repeat the previous frame exactly while the fish swims: duplicated frames; remove the copies "
                          "and give the clip's true frame rate with --fps")
-    runs = [(a, b - a) for a, b in zip(edges[::2], edges[1::2]) if moving[a]]
     if runs and max(n for _, n in runs) >= MAX_HELD_FRAMES:
-        a, n = max(runs, key=lambda r: r[1])
-        first = a + 2  # 1-based, the first copy
-        raise InputError(str(path), f"frames {first}-{first + n - 1}", f"{n} frames in a row repeat the one before "
+        first, n = max(runs, key=lambda r: r[1])
+        raise InputError(str(path), f"frames {first + 1}-{first + n}", f"{n} frames in a row repeat the one before "
                          "exactly while the fish swims: a tracker holding its last position? give the clip with those "
                          "frames tracked, or cut before them")
 

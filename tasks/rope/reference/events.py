@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wrenorm.jumps import largest_doublet, largest_jump
+from wrenorm.jumps import largest_doublet, largest_jump, repeated_runs
 
 VERSION = 15  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
@@ -907,17 +907,11 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
 
 
 def _repeated_moving_frames(markers: np.ndarray, hand: np.ndarray, moving: float = 1e-3) -> list[int]:
-    """Frames j whose markers and hand equal frame j - 1's exactly, in runs over which the hand moves more than
-    `moving` (m) from the frame before the run to the frame after it: no tracker measures a moving rope twice to the
-    bit, a hold-last-value fill does (and delays every later frame); a rope and hand at rest may repeat."""
-    same = np.all(markers[1:] == markers[:-1], axis=(1, 2)) & np.all(hand[1:] == hand[:-1], axis=1)
-    frames = np.flatnonzero(same) + 1
-    out = []
-    for run in np.split(frames, np.flatnonzero(np.diff(frames) > 1) + 1) if len(frames) else []:
-        before, after = max(0, run[0] - 2), min(len(hand) - 1, run[-1] + 1)
-        if np.linalg.norm(hand[after] - hand[before]) > moving:
-            out += [int(j) for j in run]
-    return out
+    """Frames whose markers and hand equal the frame before's exactly, in runs over which the hand moves more than
+    `moving` (m): no tracker measures a moving rope twice to the bit, a hold-last-value fill does (and delays every
+    later frame); a rope and hand at rest may repeat."""
+    both = np.concatenate([markers.reshape(len(markers), -1), hand], axis=1)
+    return [j for first, n, moved, _ in repeated_runs(both, hand) if moved > moving for j in range(first, first + n)]
 
 
 # ------------------------------------------------------------------------------ the event a reference uses

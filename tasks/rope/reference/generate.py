@@ -202,10 +202,10 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if worst > 1.1 + 0.002 / max(arc.min(), 1e-9):
         raise InputError(src, "markers", f"marker spacing up to {worst:.3g}x the arc length between markers "
                                          f"(length {length:g} m): wrong units or wrong length?")
-    # ... and, with no marker_arclength, markers read as evenly spaced over the whole rope must straighten somewhere in
-    # a throw (a rope hanging at rest, a taut swing; the built-in and test references reach 1.000-1.009 in median):
-    # tip markers dropped leave intervals that never come near their arc's length (two of twelve: a contact "found"
-    # at 0.08 s instead of 0.88 s, with high confidence). Given marker_arclength, the file says where they are.
+    # ... and the marker intervals must straighten somewhere in a throw (a rope hanging at rest, a taut swing; the
+    # built-in and test references reach 1.000-1.009 in median). Without marker_arclength, tip markers dropped leave
+    # intervals that never come near their arc's length (two of twelve: a contact "found" at 0.08 s instead of 0.88 s,
+    # with high confidence); with it, a length too long does.
     if M >= 4:
         straightest = float(np.median(np.max(np.where(seen, chord, 0.0), axis=0) / arc))
         if straightest < MIN_STRAIGHTEST_CHORD and not has_arclength:
