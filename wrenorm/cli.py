@@ -345,6 +345,12 @@ def cmd_flow(args) -> int:
     from .runfolder import prepare_out
 
     system = systems()[args.system]
+    # a flow's --axis A varies the option --A over --resolutions (the systems' flow options default it to None, so
+    # a value typed for it is seen): refused rather than ignored
+    axis = getattr(args, "axis", None)
+    if axis and getattr(args, axis, None) is not None:
+        raise InputError(f"--{axis}", axis, f"--axis {axis} varies it over --resolutions; give the values there (or "
+                                            "vary the other axis)")
     device = _device(args.device)
     problems = resolve(system.flow.build)(args, device)
     _apply_parameter_set(problems, args)

@@ -381,6 +381,7 @@ class PDProblem(Problem):
         if T * self.f_sim < 30:
             raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
         q_spline = CubicSpline(log.time, log.q)
+        origin = float(np.median(log.q))  # the errors' origin, one for both parts: the cut's phase must not scale them
         conds = []
         for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items():
             n = int(np.floor((b - a) * self.f_sim))
@@ -388,9 +389,8 @@ class PDProblem(Problem):
             conds.append(Condition(name, {
                 "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
                 "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
-                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a, q_spline),
-                "origin": float(np.median(log.q))}, {"source": log.path}))  # one for both parts: the cut's phase
-                # must not scale the held-out error
+                "q_ref": q_spline(t), "init": start_state(log.time, log.q, a, q_spline), "origin": origin},
+                {"source": log.path}))
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
             self.warnings.append(f"{log.path}: sampled every {step:g} s, coarser than the simulation's step "

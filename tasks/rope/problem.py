@@ -610,10 +610,6 @@ def flow_problems(args, device: str) -> list[RopeProblem]:
     from wrenorm.tasks.rope.reference.paths import FIT_PATHS, HELD_OUT_PATHS
 
     by_dt = getattr(args, "axis", "segments") == "dt"
-    varied = "--dt" if by_dt else "--segments"
-    if getattr(args, varied[2:], None) is not None:
-        raise InputError(varied, varied[2:], f"--axis {varied[2:]} varies it over --resolutions; give the values there "
-                                             f"(or vary the other axis)")
     segments = getattr(args, "segments", None) or SEGMENTS_DEFAULT
     dt = getattr(args, "dt", None) or DT_DEFAULT
     points = []

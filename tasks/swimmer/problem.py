@@ -606,9 +606,6 @@ def flow_problems(args, device: str) -> list[SwimmerProblem]:
     """One problem per resolution, finest first: time steps [s] (--axis dt, the default) or tail
     body counts (--axis bodies), the other held at --dt / --bodies."""
     axis = getattr(args, "axis", "dt")
-    if getattr(args, axis, None) is not None:
-        raise InputError(f"--{axis}", axis, f"--axis {axis} varies it over --resolutions; give the values there (or "
-                                            f"vary the other axis)")
     rates, source = _rates(args)
     labels = data.parse_labels(args.train, rates)
     if axis == "bodies":
