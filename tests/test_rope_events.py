@@ -632,3 +632,21 @@ def test_frames_repeated_while_the_hand_moves_are_flagged(repeats):
     rest = detect(ref.time[0] + ref.dt * np.arange(len(mk) + 50), np.concatenate([np.repeat(mk[:1], 50, 0), mk]), s,
                   ref.length, ref.radius, hand=np.concatenate([np.repeat(ref.hand[:1], 50, 0), ref.hand]))
     assert rest.confidence == "high" and rest.diagnostics["repeated_frames"] == 0
+
+
+def test_a_recording_that_ends_as_the_rope_closes_in_is_no_silent_no_contact(tmp_path):
+    """Cut one frame before its contact, a throw read as "no self-contact" with nothing said, though its gap had
+    closed from 21 to 7.5 mm in the last frame. The end of the recording may hide the contact, said; cut well before
+    the rope closes in, the answer stays "no contact"."""
+    name = "mujoco_default_flick_wide.npz"
+    z = {k: v for k, v in np.load(DATA / name).items() if not k.startswith(("sim_", "dense_"))}
+    full = critical(load_reference(DATA / name))
+    assert full.event is not None
+    f = tmp_path / "cut.npz"
+    for before, closing in ((0.004, True), (0.3, False)):
+        k = int(np.searchsorted(z["time"], full.event.time - before))
+        np.savez(f, **(z | {"time": z["time"][:k], "markers": z["markers"][:k], "hand": z["hand"][:k]}))
+        c = critical(load_reference(f))
+        assert c.event is None
+        assert ("ends while the rope closes in" in c.problem) == closing, c.problem
+        assert c.detection.status == ("unusable" if closing else "no_contact")

@@ -196,6 +196,24 @@ def test_loader_errors_name_file_field_problem(tmp_path, rates):
     assert "markers_f1_00.csv" in str(e.value) and e.value.field == "row 21 markers 0 and 1"
 
 
+@pytest.mark.parametrize("a,b,start", [(5, 6, 200), (2, 3, 100), (7, 8, 297)])
+def test_tail_markers_that_swap_identity_mid_clip_are_refused(tmp_path, rates, a, b, start):
+    """A tracker that swaps two tail markers' identities mid-clip was read through in silence: the tail wave was
+    fitted to a tail folding on itself. Each next tail marker lies behind the one before it along the body in every
+    frame of the five clips; three frames the other way round are refused, naming the markers."""
+    px = rates[1].markers.reshape(len(rates[1].markers), -1) * 900.0
+    px = px.reshape(len(px), 9, 2)
+    px[start:, [a, b]] = px[start:, [b, a]]
+    np.savetxt(tmp_path / "markers_f1_00.csv", px.reshape(len(px), -1), delimiter=",")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert "markers_f1_00.csv" in str(e.value) and e.value.field == f"tail markers {a} and {b}"
+    assert f"first frame {start + 1}" in e.value.problem and "swap" in e.value.problem
+    # the same clip with its identities kept loads
+    np.savetxt(tmp_path / "markers_f1_00.csv", rates[1].markers.reshape(len(px), -1) * 900.0, delimiter=",")
+    sd.load_dir(tmp_path)
+
+
 def test_builtin_file_regenerates_from_csvs(tmp_path, rates):
     for r in rates:
         _write_pixels(tmp_path, r, scale=1000.0)

@@ -175,3 +175,27 @@ def test_known_truth_features_and_determined_coefficients_recovered(rates):
     for n in unc["determined_by_data"]:
         i = prob.space.index(n)
         assert abs(np.log(res.best_values[i] / hidden[i])) < 3 * unc["std"][n] / res.best_values[i] + 0.02, n
+
+
+def test_a_slow_clip_is_judged_by_its_own_speed_and_clips_the_checks_doubt_do_not_decide(rates):
+    """The held-out tolerance was 0.02 m/s for every clip, so a slow clip (0.022 m/s) could miss by 45 % and count as
+    reproduced; it is now a quarter of the clip's speed where that is less. Clips read at the wrong frame rate are
+    flagged by the tail-beat check, and with every held-out clip flagged the verdict is withheld."""
+    from wrenorm.fit import _validation
+
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
+    by_label = {c.meta["label"]: c for c in prob.held_out}
+    slow, fast = by_label[0.5], by_label[2.25]
+    assert prob.tolerance_for(slow) == pytest.approx(0.25 * slow.meta["speed"]) and prob.tolerance_for(slow) < 0.006
+    assert prob.tolerance_for(fast) == swimmer.TOLERANCE
+    measured = prob.space.measured
+    v = _validation(prob, measured, measured)
+    assert v["conditions"]["f0.50"]["tolerance"] == pytest.approx(prob.tolerance_for(slow))
+    assert "flagged_conditions" not in v and v["verdict"] in ("absorbed", "expand")
+
+    doubled = [sd.analyse(sd.Rate(label=r.label, markers=r.markers, source=r.name, fps=2 * r.fps)) for r in rates]
+    wrong = swimmer.SwimmerProblem(doubled, [1.0, 1.75], dt=0.016)
+    assert all(wrong.data_flags(c) for c in wrong.held_out)
+    v = _validation(wrong, measured, measured)
+    assert v["verdict"] == "unvalidated" and "flag every held-out condition" in v["note"]
+    assert "worst_fitted_error" not in v and all(c["data_flags"] for c in v["conditions"].values())

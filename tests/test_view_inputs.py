@@ -107,7 +107,23 @@ def viewer(monkeypatch):
 
     calls = []
     monkeypatch.setattr(subprocess, "call", lambda argv, *a, **k: calls.append(argv[3:]) or 0)
+    monkeypatch.setenv("DISPLAY", ":0")
     return calls
+
+
+def test_without_a_display_the_viewer_is_not_started_and_the_web_viewer_is_offered(tmp_path, viewer, monkeypatch,
+                                                                                   capsys):
+    """Without a display the native viewer failed in Rerun's many lines of windowing errors."""
+    rrd = tmp_path / "recording.rrd"
+    rrd.write_bytes(b"RRF2" + bytes(60))
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    assert main(["view", str(tmp_path)]) == 1 and viewer == []
+    err = _one_line(capsys)
+    assert "no display" in err and "--web" in err and str(rrd) in err
+    assert main(["view", str(tmp_path), "--web"]) == 0
+    assert viewer == [[str(rrd), "--web-viewer"]]
 
 
 def test_a_recording_goes_to_the_viewer(tmp_path, viewer):

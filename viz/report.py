@@ -24,7 +24,8 @@ VERDICT_STYLE = {
     "expand": ("#9a4b00", "#fdf0e1", "The fitted parameters do not keep every held-out condition within tolerance: "
                "the omission is not absorbed by this parameter set. Free another parameter (--free) or refine the "
                "resolution, then fit again."),
-    "unvalidated": ("#555", "#eee", "No held-out condition: nothing says whether the omission was absorbed."),
+    "unvalidated": ("#555", "#eee", "No held-out condition decides (none given, or the data checks flag each): "
+                    "nothing says whether the omission was absorbed."),
 }
 
 CSS = """
@@ -89,8 +90,11 @@ def _verdict_block(v: dict) -> str:
     numbers = ""
     if "mean_measured_error" in v:
         numbers = (f" Mean held-out error with the measured parameters {num(v['mean_measured_error'])}, with the "
-                   f"fitted ones {num(v['mean_fitted_error'])} (worst {num(v.get('worst_fitted_error'))}; "
-                   f"tolerance {num(v.get('tolerance'))}).")
+                   f"fitted ones {num(v['mean_fitted_error'])}")
+        numbers += (f" (worst {num(v.get('worst_fitted_error'))}, {v.get('worst_condition', '')}; its tolerance "
+                    f"{num(v.get('worst_tolerance', v.get('tolerance')))})." if "worst_fitted_error" in v else ".")
+    if v.get("flagged_conditions"):
+        numbers += f" Note: {v.get('note', '')}."
     return (f'<div class="verdict" style="color:{fg};background:{bg}"><b>{esc(verdict)}</b> &nbsp; '
             f"{esc(meaning)}{esc(numbers)}</div>")
 
@@ -162,14 +166,19 @@ def _held_out(r: dict) -> str:
     tol = v.get("tolerance")
     rows = []
     for name, c in cond.items():
-        fe = c.get("fitted_error")
-        ok = fe is not None and tol is not None and fe <= tol
-        rows.append([name, num(c.get("measured_error")), num(fe),
-                     flag("within tolerance", "ok") if ok else flag("outside tolerance", "bad")])
+        fe, own = c.get("fitted_error"), c.get("tolerance", tol)
+        ok = fe is not None and own is not None and fe <= own
+        mark = flag("within tolerance", "ok") if ok else flag("outside tolerance", "bad")
+        if c.get("data_flags"):
+            mark = _Html(mark + " " + flag("data flagged: not deciding", "warn"))
+        rows.append([name, num(c.get("measured_error")), num(fe), num(own), mark])
+    own_tols = {c.get("tolerance", tol) for c in cond.values()}
     chart = bar_chart(list(cond), {"measured parameters": [c.get("measured_error") for c in cond.values()],
                                    "fitted parameters": [c.get("fitted_error") for c in cond.values()]},
-                      "held-out error per condition", "error", hline=tol, hline_label="tolerance")
-    return table(["condition", "error, measured parameters", "error, fitted parameters", ""], rows) + chart
+                      "held-out error per condition", "error", hline=tol,
+                      hline_label="tolerance" if own_tols <= {tol} else "largest tolerance")
+    return table(["condition", "error, measured parameters", "error, fitted parameters", "tolerance", ""],
+                 rows) + chart
 
 
 def _search(r: dict) -> str:

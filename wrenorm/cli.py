@@ -135,6 +135,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     view.add_argument("run", type=Path)
     view.add_argument("--report", action="store_true",
                       help="(re)write the run's report.html from its result and open it in a browser where one is")
+    view.add_argument("--web", action="store_true",
+                      help="serve the recording to Rerun's web viewer in a browser instead of a native window (also "
+                           "where this machine has no display)")
     bench = sub.add_parser("bench", help="throughput of each kernel and end-to-end fit times")
     if verb == "bench":
         from .bench import add_arguments
@@ -323,8 +326,10 @@ def _print_summary(result: dict, out: Path) -> None:
         v = r["validation"]
         print(f"  held-out verdict: {v['verdict']}" + (
             f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g}; the "
-            f"verdict's worst fitted {v['worst_fitted_error']:.4g} against the tolerance {v['tolerance']})"
-            if "mean_measured_error" in v else ""))
+            f"verdict's worst fitted {v['worst_fitted_error']:.4g} ({v.get('worst_condition', '?')}) against its "
+            f"tolerance {v.get('worst_tolerance', v['tolerance']):.4g})" if "worst_fitted_error" in v else ""))
+        if v.get("flagged_conditions"):
+            print(f"  {v['note']}")
         for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
             spread = r.get(key) or {}
             if spread.get("optima"):
@@ -404,6 +409,14 @@ def cmd_view(args) -> int:
     files = [f for f in files if Path(f).exists()]
     for f in files:
         _check_recording(Path(f))
+    if args.web:
+        return subprocess.call([sys.executable, "-m", "rerun", *files, "--web-viewer"])
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        # the native viewer would fail here in many lines of windowing errors
+        print(f"wrenorm: no display here (DISPLAY and WAYLAND_DISPLAY are unset), so the viewer has no window: run "
+              f"`python -m wrenorm view {run} --web` and open the address it prints in a browser, or copy "
+              f"{' '.join(files)} to a machine with a display and run `rerun FILE`", file=sys.stderr)
+        return 1
     return subprocess.call([sys.executable, "-m", "rerun", *files])
 
 

@@ -47,19 +47,37 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
                 "note": "no held-out conditions: nothing to validate on"}
     errs, details = problem.validation_errors(np.stack([measured, fitted]), problem.held_out)
     errs = finite_or_inf(errs)
+    tolerances = np.array([problem.tolerance_for(c) for c in problem.held_out], dtype=np.float64)
+    flags = [list(problem.data_flags(c)) for c in problem.held_out]
     conditions = {
-        c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j])} | dict(details[j])
+        c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j]),
+                 "tolerance": float(tolerances[j]), "within_tolerance": bool(errs[1, j] <= tolerances[j])}
+        | ({"data_flags": flags[j]} if flags[j] else {}) | dict(details[j])
         for j, c in enumerate(problem.held_out)
     }
-    worst = float(np.max(errs[1]))
-    verdict = "absorbed" if worst <= problem.tolerance else "expand"
-    return {
+    out = {
         "conditions": conditions,
         "mean_measured_error": float(np.mean(errs[0])),
         "mean_fitted_error": float(np.mean(errs[1])),
         "ratio_of_means": float(np.mean(errs[1]) / np.mean(errs[0])) if np.mean(errs[0]) > 0 else None,
-        "worst_fitted_error": worst,
         "tolerance": problem.tolerance,
+    }
+    deciding = np.array([not f for f in flags])
+    flagged = [c.name for c, f in zip(problem.held_out, flags) if f]
+    if flagged:
+        out["flagged_conditions"] = flagged
+    if not deciding.any():
+        return out | {"verdict": "unvalidated",
+                      "note": f"the data checks flag every held-out condition ({', '.join(flagged)}): a verdict on "
+                              "them would rest on data the checks doubt; see each condition's data_flags"}
+    # the condition furthest outside (or least inside) its own tolerance decides
+    over = np.where(deciding, errs[1] / tolerances, -np.inf)
+    j = int(np.argmax(over))
+    verdict = "absorbed" if over[j] <= 1.0 else "expand"
+    out |= {
+        "worst_fitted_error": float(errs[1, j]),
+        "worst_condition": problem.held_out[j].name,
+        "worst_tolerance": float(tolerances[j]),
         "verdict": verdict,
         "meaning": (
             "absorbed: the fitted parameters reproduce conditions the search never saw within tolerance, so the "
@@ -68,6 +86,10 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
             "simulator must grow"
         ),
     }
+    if flagged:
+        out["note"] = (f"decided by {int(deciding.sum())} of {len(deciding)} held-out conditions: the data checks "
+                       f"flag {', '.join(flagged)}, shown but not deciding")
+    return out
 
 
 def stalled_search(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> str | None:
@@ -254,9 +276,11 @@ def _summary_markdown(result: dict) -> str:
     lines += ["", f"loss: measured {result['loss']['measured']:.4g}, fitted {result['loss']['fitted']:.4g}",
               f"validation verdict: **{v['verdict']}** (tolerance {v['tolerance']})"]
     for name, c in v["conditions"].items():
-        lines.append(f"- {name}: measured-parameter error {c['measured_error']:.4g}, fitted {c['fitted_error']:.4g}")
-    if v.get("meaning"):
-        lines += ["", v["meaning"]]
+        tol = f" (tolerance {c['tolerance']:.4g})" if c.get("tolerance", v["tolerance"]) != v["tolerance"] else ""
+        flagged = " (data flagged: not deciding)" if c.get("data_flags") else ""
+        lines.append(f"- {name}: measured-parameter error {c['measured_error']:.4g}, fitted {c['fitted_error']:.4g}"
+                     f"{tol}{flagged}")
+    lines += [text for text in ("", v.get("meaning"), v.get("note")) if text is not None]
     lines += ["", "Colours: reference grey / white, measured parameters orange, fitted parameters blue, analytic "
                   "green. report.html beside this recording has the same result as a page."]
     return "\n".join(lines)

@@ -99,6 +99,16 @@ class Problem(ABC):
         chain that never reaches the observed event on some of them): result.json's and a flow point's warnings."""
         return []
 
+    def tolerance_for(self, condition: Condition) -> float:
+        """The held-out error up to which `condition` counts as reproduced: `tolerance` for every condition unless a
+        system's conditions differ in scale (a slow clip beside a fast one) and it tightens it per condition."""
+        return float(self.tolerance)
+
+    def data_flags(self, condition: Condition) -> list[str]:
+        """What the system's checks doubt in this condition's data (said, not refused). A held-out condition so
+        flagged is shown but does not decide the verdict; with every one flagged the fit stays unvalidated."""
+        return []
+
     def charts(self, fitted: np.ndarray, measured: np.ndarray) -> list[str]:
         """SVG charts, one or more per condition: the reference against the model with measured and with fitted
         parameters (report.html shows them; viz/svg.py draws them)."""

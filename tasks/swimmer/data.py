@@ -13,7 +13,8 @@ that starts like a clip, markers_f1.csv or markers_f1_00_take2.csv, is refused);
 fps unless given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
 dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many frames repeat
 the previous one exactly (duplicated frames) or a few in a row do (a held tracker), frames cut out of a clip (the
-head's jump, in either format), a tail base not where this robot's is (another body).
+head's jump, in either format), a tail base not where this robot's is (another body), tail markers that swap order
+along the body during the clip (a tracker swapping identities).
 Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
@@ -47,6 +48,7 @@ MAX_REPEATED_FRAMES = 0.05  # share of frames equal to the previous one; tracked
 MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
 # one clip moved the slender drag 4x and the viscosity 2.3x, with the head's jump under its limit)
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
+MAX_SWAPPED_FRAMES = 3  # frames in which a tail marker lies that far ahead of the one before it (the five clips: none)
 MAX_HEAD_JUMP = 10.0  # x the head's median step around it (wrenorm.jumps): built-in clips 1.4-3.3, a second cut out 47
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
@@ -362,6 +364,26 @@ def tail_markers(local: np.ndarray, min_gap: float = TAIL_MARKER_MIN_GAP) -> lis
     return keep
 
 
+def _check_swaps(source: str, local: np.ndarray, keep: list[int]) -> None:
+    """Tail markers keep their order along the body in every frame (the five clips: each next marker at least 1.5 mm
+    further back along the head's axis in every frame). A tracker that swaps two markers' identities mid-clip puts
+    one ahead of the other for the rest of the clip, and the order check on the clip's mean can merge the two as one
+    point instead: the tail wave is then fitted to a tail that folds on itself."""
+    dx = np.diff(local[:, keep, 0], axis=1)
+    behind = dx < -TAIL_MARKER_MIN_GAP
+    frames = np.flatnonzero(behind.any(axis=1))
+    if len(frames) >= MAX_SWAPPED_FRAMES:
+        pair = int(np.argmax(behind.sum(axis=0)))
+        _swap_error(source, keep[pair], keep[pair + 1], behind[:, pair])
+
+
+def _swap_error(source: str, a: int, b: int, ahead: np.ndarray):
+    raise InputError(source, f"tail markers {a} and {b}",
+                     f"marker {b} lies ahead of marker {a} along the body in {int(ahead.sum())} of {len(ahead)} frames "
+                     f"(first frame {int(np.argmax(ahead)) + 1}), behind it in the others: their identities swap "
+                     "during the clip? give the tracks with each marker's identity kept")
+
+
 def analyse(rate: Rate) -> Rate:
     """Fill tail_freq, speed and the head-frame tail markers (meta) of a rate."""
     local = head_frame(rate.markers)
@@ -378,9 +400,14 @@ def analyse(rate: Rate) -> Rate:
         # markers lost onto one point lie together (label 2.25's 4-7), but one that lies clearly ahead of a marker
         # written before it is a column order error, and tail_markers would drop it in silence
         i = ahead[0]
+        j = 2 + int(np.argmax(mean_x[2:i]))
+        behind = local[:, i, 0] > local[:, j, 0] + TAIL_MARKER_MIN_GAP
+        if behind.sum() >= MAX_SWAPPED_FRAMES:  # in order in some frames, reversed in others: identities swapped
+            _swap_error(rate.source or rate.name, j, i, ~behind & (local[:, i, 0] < local[:, j, 0]))
         raise InputError(rate.source or rate.name, f"tail marker {i}",
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
+    _check_swaps(rate.source or rate.name, local, keep)
     _check_body(rate.source or rate.name, rate.markers)
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)

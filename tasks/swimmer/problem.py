@@ -41,6 +41,8 @@ PUBLISHED = {"blunt_drag": 0.4, "slender_drag": 7.79, "angular_drag": 2.81, "kut
 COEFFICIENTS = tuple(PUBLISHED)
 DEFAULT_TRAIN = "1.00,1.75"
 TOLERANCE = 0.02  # m/s
+RELATIVE_TOLERANCE = 0.25  # of a clip's real speed (issue #13: no rate off by more than 25 %): 0.02 m/s alone called a
+# 45 % error on a slow clip "absorbed"; never below 3 sigma of the clip's measured speed
 # per-beat noise (SI: m, m/s, rad) below which a feature does not vary from beat to beat: video markers resolve
 # ~1 mm and ~10 mrad, so anything at this level is a constant of the clip (or rounding), and dividing by it
 # would weigh that feature ~1e9 times over every other
@@ -219,6 +221,13 @@ class SwimmerProblem(Problem):
         nz = self.noise[name]
         s = nz["per_beat"] * (abs(cond.meta["features"][name]) if nz["relative"] else 1.0)
         return float(s / np.sqrt(cond.meta["feature_spread"]["beats"]))
+
+    def tolerance_for(self, cond) -> float:
+        """0.02 m/s, or a quarter of the clip's real speed when that is less (3 sigma of its speed at the least)."""
+        return float(min(TOLERANCE, max(RELATIVE_TOLERANCE * abs(cond.meta["speed"]), 3.0 * self.sigma(cond, "speed"))))
+
+    def data_flags(self, cond) -> list[str]:
+        return data.tail_beat_check([cond.data])["flagged"]
 
     def batch(self, conditions):
         key = tuple(c.name for c in conditions)

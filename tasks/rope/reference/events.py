@@ -28,7 +28,7 @@ Method (README, "Events in motion capture", has the measurements behind every th
    each other instead of staying together, bridged (occluded) markers bounding the contact, near it, or
    stretching the rope before it, or a marker missing for longer than 20 ms before it where the rope hidden there
    could have touched itself (the contact may lie in the gap; with no contact seen, such a gap leaves no usable
-   answer), an event long after the rope's fastest
+   answer, as does a recording that ends while the rope closes in), an event long after the rope's fastest
    motion. Marker noise widens the uncertainty; it never moves the contact level.
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ import numpy as np
 
 from wrenorm.jumps import largest_doublet, largest_jump, repeated_runs
 
-VERSION = 15  # bump when the detector's answer can change (keys the event cache)
+VERSION = 16  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -54,6 +54,8 @@ NEAR_GAP = 0.02  # m: interval pairs whose rigorous bound is below this get the 
 CONTACT_LEVEL = 5e-4  # m: surfaces this close touch. Fine simulators' first impacts last 1.5-3 ms, after which the
 #                      pieces rest with gaps within +-0.2 mm (MuJoCo dev set): a 200 Hz frame grid lands on those gaps,
 #                      not on the impact; 2.5x that band. Real ropes are fuzzier than that.
+END_HORIZON = 0.1  # s: a recording whose last frames close the rope's gap fast enough to touch within this ends too
+# early to say "no contact" (built-in throws cut 2-30 ms before their contact: 1-150 ms to touch at the last speed)
 HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the gap's uncertainty (dev data)
 # Confidence rules applied by default. "fold" (the contact closes a loop within two neighbouring marker intervals) is
 # kept for measurements only: on the dev sets it never caught a wrong event that no other rule caught, and it
@@ -536,6 +538,17 @@ def _crossing(gap: np.ndarray, start: int = 0):
     return k, float(np.clip(frac, 0.0, 1.0))
 
 
+def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int) -> float | None:
+    """The speed (m/s) at which the rope's gap closes over its last `frames` frames, when at that speed it would touch
+    within END_HORIZON after the recording's end; else None. Only a reconstructed gap (below NEAR_GAP) counts: above
+    it the series is a lower bound."""
+    n = min(int(frames), len(gap) - 1)
+    if n < 1 or not gap[-1] < NEAR_GAP:
+        return None
+    speed = float(gap[-1 - n] - gap[-1]) / (n * dt)
+    return speed if speed > 0.0 and gap[-1] <= speed * END_HORIZON else None
+
+
 def _first_per_frame(tt: np.ndarray, value: np.ndarray, T: int):
     """Index into tt/value of each frame's smallest value, and the frames that have one."""
     order = np.lexsort((value, tt))
@@ -752,6 +765,13 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             return result("unusable", "none")
         if kq is None and hidden:
             reasons.append(f"no contact on the reconstructed rope, but {hidden}: a contact may lie in the gap")
+            return result("unusable", "none")
+        closing = _closing_at_the_end(gap_series, dt, tol_frames)
+        if kq is None and closing is not None:
+            reasons.append(f"no contact before the recording ends, but it ends while the rope closes in (gap "
+                           f"{1000 * (gap_series[-1] + level):.1f} mm at its last frame, t={time[-1]:.3f} s, closing "
+                           f"at {closing:.2f} m/s): a contact just after its end cannot be excluded; give the "
+                           "recording through the throw")
             return result("unusable", "none")
         if kq is None:
             reasons.append(f"no self-contact: the reconstructed rope stays {1000 * (gap_series[kmin] + level):.1f} mm "
