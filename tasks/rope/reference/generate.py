@@ -37,6 +37,7 @@ DEFAULT_SEGMENTS = 64  # rod segments of the fine rope, and of every built-in re
 DENSITY_RANGE = (50.0, 20000.0)
 MIN_RADIUS = 1e-6  # m
 GRAVITY_MIN_RESULTANT = 0.3  # the rope's mean direction must be at least this consistent to be judged
+HELD_END_OFFSET = 0.01  # m: marker 0 farther than this (and two radii) from the hand is not at the held end
 GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
 GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
 
@@ -220,8 +221,16 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
             raise InputError(src, "length", f"{length:g} m puts the markers' intervals at arcs they never straighten "
                              f"to (each interval's straightest chord / arc, median over intervals: {straightest:.3f}, "
                              f"below {MIN_STRAIGHTEST_CHORD}): is the length too long for these markers?")
-    reach = np.linalg.norm(markers[:, 0] - hand, axis=1)[~missing[:, 0]]
-    reach = reach.max() if reach.size else 0.0
+    offset = np.linalg.norm(markers[:, 0] - hand, axis=1)[~missing[:, 0]]
+    # Without marker_arclength marker 0 is taken to sit at the held end, where the hand is (the built-in and test
+    # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
+    # confident contact 20-240 ms early at another place.
+    steady = float(np.median(offset)) if offset.size else 0.0
+    if not has_arclength and steady > max(2.0 * radius, HELD_END_OFFSET):
+        raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
+                         f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
+                         "do the markers sit? give marker_arclength (0 for a marker at the held end)")
+    reach = offset.max() if offset.size else 0.0
     allowed = s[0] * length * 1.1 + 0.05 * length + 0.01
     if reach > allowed:
         raise InputError(src, "markers", f"first marker is up to {reach:.3g} m from the hand, expected within "
