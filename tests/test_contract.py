@@ -104,9 +104,15 @@ def test_a_tiny_fit_runs_end_to_end(tmp_path, name):
 TOY = {
     "__init__.py": '''
         """A toy system: a line y = a x + b through noisy points."""
-        from wrenorm.system import SearchDefaults, from_package
+        from wrenorm.system import Flow, SearchDefaults, from_package
 
-        SYSTEM = from_package(__name__, "fit a line", search=SearchDefaults(generations=30))
+
+        def add_flow_arguments(p):  # the engine adds --resolutions; the toy's flow has no options of its own
+            pass
+
+
+        SYSTEM = from_package(__name__, "fit a line", search=SearchDefaults(generations=30),
+                              flow=Flow(add_flow_arguments, "toy.problem:flow_problems", "points", generations=20))
     ''',
     "options.py": '''
         from wrenorm.options import add_number
@@ -126,13 +132,13 @@ TOY = {
         class Line(Problem):
             task = "toy"
 
-            def __init__(self, noise):
-                x = np.linspace(0, 1, 20)
+            def __init__(self, noise, points=20):
+                x = np.linspace(0, 1, points)
                 y = 2.0 * x + 0.5 + noise * np.random.default_rng(0).normal(size=x.size)
                 self.space = ParameterSpace([Parameter("a", 1.0, 0.0, 5.0), Parameter("b", 0.0, -2.0, 2.0)])
                 self.train = [Condition("left", (x[::2], y[::2]))]
                 self.held_out = [Condition("right", (x[1::2], y[1::2]))]
-                self.tolerance, self.resolution = 0.05, {"points": 20}
+                self.tolerance, self.resolution = 0.05, {"points": points}
 
             def residuals(self, values, conditions):
                 return np.concatenate([values[:, :1] * c.data[0] + values[:, 1:] - c.data[1] for c in conditions], 1)
@@ -144,6 +150,10 @@ TOY = {
 
         def build_problems(args, device):
             return [Line(args.noise)]
+
+
+        def flow_problems(args, device):
+            return [Line(0.01, int(n)) for n in (args.resolutions or [40, 20, 10])]
     ''',
 }
 
@@ -180,6 +190,18 @@ def test_a_new_system_is_one_folder_and_one_registry_line(tmp_path, monkeypatch)
         before = code_digest("toy")
         (pkg / "problem.py").write_text((pkg / "problem.py").read_text().replace("20)", "21)"))
         assert code_digest("toy") != before
+        # recorded and reported like the built-in systems, with nothing system-specific written for either
+        recorded = tmp_path / "recorded"
+        assert main(["fit", "toy", "--quiet", "--out", str(recorded)]) == 0
+        assert (recorded / "recording.rrd").read_bytes()[:4] == b"RRF2"
+        page = (recorded / "report.html").read_text()
+        assert "toy fit" in page and "absorbed" in page and "right" in page  # the system, verdict, held-out
+        # a flow over the system's own resolution axis, one fit per point
+        flow = tmp_path / "flow"
+        assert main(["flow", "toy", "--resolutions", "40", "10", "--quiet", "--no-record", "--out", str(flow)]) == 0
+        points = json.loads((flow / "flow.json").read_text())["points"]
+        assert [p["resolution"]["points"] for p in points] == [40, 10]
+        assert all(abs(p["parameters"]["a"]["fitted"] - 2.0) < 0.1 for p in points)
         # no bench.py: no kernel benchmark, said in one line (was a ModuleNotFoundError)
         assert registry.systems()["toy"].bench is None
         assert main(["bench", "--only", "toy", "--no-fits", "--no-cuda-build", "--out", str(tmp_path / "b")]) == 2
