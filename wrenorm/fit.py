@@ -48,6 +48,8 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
     errs, details = problem.validation_errors(np.stack([measured, fitted]), problem.held_out)
     errs = finite_or_inf(errs)
     tolerances = np.array([problem.tolerance_for(c) for c in problem.held_out], dtype=np.float64)
+    if not np.all(tolerances > 0):  # a system's contract: the verdict divides by them
+        raise ValueError(f"{problem.task}: tolerance_for gave {tolerances.tolist()}; each must be a number > 0")
     flags = [list(problem.data_flags(c)) for c in problem.held_out]
     conditions = {
         c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j]),
