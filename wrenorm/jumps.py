@@ -18,6 +18,20 @@ def largest_jump(steps: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int, flo
     return _most_unusual(steps, steps, 1, window)
 
 
+def largest_jump_on_both_sides(steps: np.ndarray, window: int = JUMP_WINDOW) -> tuple[int, float]:
+    """As largest_jump, but the step is compared with the larger of the median steps before it and after it: a seam
+    between two moving stretches stands out against both, while the first step of a motion out of rest stands out
+    only against the rest before it (a fish filmed still, then swimming)."""
+    steps = np.asarray(steps, dtype=np.float64)
+    best, ratio = -1, 0.0
+    for i in np.argsort(steps)[::-1][:8]:
+        sides = [np.median(side) for side in (steps[max(0, i - window):i], steps[i + 1:i + 1 + window]) if side.size]
+        usual = max(sides) if sides else 0.0
+        if usual > 0 and steps[i] / usual > ratio:
+            best, ratio = int(i), float(steps[i] / usual)
+    return best, ratio
+
+
 def _most_unusual(score: np.ndarray, series: np.ndarray, width: int, window: int) -> tuple[int, float]:
     """(i, ratio): among the 8 largest scores, the one that is the largest multiple of the median of `series` within
     `window` entries either side of entries i .. i + width - 1 (left out), and that multiple; (-1, 0.0) if none."""

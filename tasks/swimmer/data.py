@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.jumps import largest_jump, repeated_runs
+from wrenorm.jumps import largest_jump, largest_jump_on_both_sides, repeated_runs
 from wrenorm.tasks.swimmer.options import FPS  # the fishsim format's frame rate, the --fps default
 
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
@@ -50,6 +50,18 @@ MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holdin
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
 MAX_SWAPPED_FRAMES = 3  # frames in which a tail marker lies that far ahead of the one before it (the five clips: none)
 MAX_HEAD_JUMP = 10.0  # x the head's median step around it (wrenorm.jumps): built-in clips 1.4-3.3, a second cut out 47
+# What a clip's own motion says about how it was filmed and swum (clip_flags; flagged, not refused). Each limit is
+# about twice the largest the five fishsim clips show, and each case past it moved coefficients by several of their
+# stds in silence (a probe of stop 46):
+MAX_BEAT_SPEED_CHANGE = 0.2  # a complete beat's speed off the clip's median beat by this share: not cruising (the five
+# clips: 0.05; a start from rest over 2 s: 0.37-0.86, slender and angular drag 3.5x)
+MAX_TURN_DEG = 25.0  # the beat-averaged heading's range over the clip (the five: 1-16; a 1 m circle: 55, viscosity 0)
+MAX_HEAD_SCATTER = 0.028  # std of the second difference of the head markers' distance / that distance: tracking noise
+# (the five: 0.011-0.014; 2 px of noise 0.050-0.056, slender drag 3x)
+MAX_HEAD_DRIFT = 0.10  # the head markers' pixel distance, last third of the clip against the first: the pixel scale
+# changes along the path, as under a tilted camera (the five: -0.016 to -0.051; tilted 20-30 deg: up to 0.16)
+MAX_TAIL_JUMP = 10.0  # x the larger median step of a tail marker before and after it, in the head frame: two takes
+# joined (the five clips: at most 4.6-6.3; seams whose head track was made continuous: 12-19)
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
 # off by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by)
@@ -428,8 +440,72 @@ def analyse(rate: Rate) -> Rate:
                          f"the head does not move forward (speed {rate.speed:.4f} m/s along the heading, "
                          f"{travel:.3f} m from start to end): a swimming clip moves head first")
     rate.yaw_amp = yaw_amplitude(rate.markers, rate.tail_freq, rate.fps)
+    _check_tail_jumps(rate.source or rate.name, local)
     rate.meta = {"local": local, "tail_markers": keep}
+    rate.meta["flags"] = clip_flags(rate)
     return rate
+
+
+def _check_tail_jumps(source: str, local: np.ndarray) -> None:
+    """Two takes joined with the head's track made continuous leave no jump of the head, but the tail's phase jumps
+    at the seam (the tail-beat frequency moved 9 %, Magnus lift 40x, in silence)."""
+    for i in range(2, N_MARKERS):
+        p = local[:, i]
+        steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        frame, ratio = largest_jump_on_both_sides(steps)
+        step = steps[frame] if frame >= 0 else 0.0
+        # one sample off and back (a tracking glitch of one frame) is no seam: the fishsim features do not see it
+        back = [np.linalg.norm(p[a] - p[b]) for a, b in ((frame + 2, frame), (frame + 1, frame - 1))
+                if 0 <= b and a < len(p)]
+        if ratio > MAX_TAIL_JUMP and not (back and min(back) < 0.5 * step):
+            raise InputError(source, f"marker {i}", f"the tail marker jumps {ratio:.0f} x its frame-to-frame step "
+                             f"around there, in the head's frame, between frames {frame + 1} and {frame + 2}: two "
+                             "takes joined, or frames missing? give one continuous take")
+
+
+def beat_speeds(rate: Rate) -> np.ndarray:
+    """The forward speed over each complete tail beat of a clip (the straight-line rule of measured_speed)."""
+    per = rate.fps / rate.tail_freq
+    n = int(np.floor(len(rate.markers) / per + 1e-9))
+    edges = np.round(np.arange(n + 1) * per).astype(int)
+    return np.array([measured_speed(rate.markers[a:b], rate.fps) for a, b in zip(edges[:-1], edges[1:]) if b - a > 2])
+
+
+def clip_flags(rate: Rate) -> list[str]:
+    """What the clip's own motion says it is not: a steady straight swim filmed at one scale with a tracker of the
+    fishsim clips' precision. Said, not refused (a held-out clip so flagged does not decide the verdict)."""
+    name, flags = rate.source or rate.name, []
+    speeds = beat_speeds(rate)
+    if len(speeds) >= 2 and np.median(speeds) > 0:
+        change = np.abs(speeds / np.median(speeds) - 1.0)
+        if change.max() > MAX_BEAT_SPEED_CHANGE:
+            k = int(np.argmax(change))
+            flags.append(f"{name}: beat {k + 1} of {len(speeds)} swims {speeds[k]:.3f} m/s against the clip's median "
+                         f"beat {np.median(speeds):.3f} m/s: the fish is not cruising (starting, stopping?); the fit "
+                         "takes the clip's speed as a cruising speed: cut the clip to its steady part")
+    if rate.frame != "world":
+        return flags
+    e = rate.markers[:, 0] - rate.markers[:, 1]
+    heading = np.unwrap(np.arctan2(e[:, 1], e[:, 0]))
+    per = max(1, int(round(rate.fps / rate.tail_freq)))
+    if len(heading) > per:
+        turn = float(np.degrees(np.ptp(np.convolve(heading, np.ones(per) / per, mode="valid"))))
+        if turn > MAX_TURN_DEG:
+            flags.append(f"{name}: the fish turns {turn:.0f} deg over the clip (beat-averaged heading): the model "
+                         "swims straight, and the speed and head-motion features are read as from a straight swim")
+    dist = np.linalg.norm(e, axis=1)
+    scatter = float(np.std(np.diff(dist, 2)) / np.mean(dist))
+    if scatter > MAX_HEAD_SCATTER:
+        flags.append(f"{name}: the rigid head markers' distance scatters {1000 * scatter:.0f} per mille from frame to "
+                     f"frame (tracking noise; the fishsim clips: 11-14): the head-motion features are noisier than "
+                     "the fit's noise model holds")
+    third = len(dist) // 3
+    drift = float(np.mean(dist[-third:]) / np.mean(dist[:third]) - 1.0)
+    if abs(drift) > MAX_HEAD_DRIFT:
+        flags.append(f"{name}: the head markers' pixel distance changes {100 * drift:+.0f} % from the first third of "
+                     "the clip to the last: the pixel scale changes along the path (a camera not square to the "
+                     "water?), and one scale is used for the whole clip")
+    return flags
 
 
 # --- built-in data -----------------------------------------------------------------------------

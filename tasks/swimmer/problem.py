@@ -195,7 +195,8 @@ class SwimmerProblem(Problem):
                                  f"{', '.join(self.unmeasurable)} cannot be measured and are left out of the fit "
                                  f"(fitted: {', '.join(self.features)})")
         self.data_checks = data.tail_beat_check(rates)
-        self.warnings += self.data_checks["flagged"]
+        self.data_checks["clip_flags"] = {r.name: r.meta.get("flags", []) for r in rates}
+        self.warnings += self.data_checks["flagged"] + [f for r in rates for f in r.meta.get("flags", [])]
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
                            "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
@@ -227,7 +228,7 @@ class SwimmerProblem(Problem):
         return float(min(TOLERANCE, max(RELATIVE_TOLERANCE * abs(cond.meta["speed"]), 3.0 * self.sigma(cond, "speed"))))
 
     def data_flags(self, cond) -> list[str]:
-        return data.tail_beat_check([cond.data])["flagged"]
+        return data.tail_beat_check([cond.data])["flagged"] + list(cond.data.meta.get("flags", []))
 
     def batch(self, conditions):
         key = tuple(c.name for c in conditions)
