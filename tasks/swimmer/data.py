@@ -48,7 +48,7 @@ MAX_REPEATED_FRAMES = 0.05  # share of frames equal to the previous one; tracked
 MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
 # one clip moved the slender drag 4x and the viscosity 2.3x, with the head's jump under its limit)
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
-MAX_SWAPPED_FRAMES = 3  # frames in which a tail marker lies that far ahead of the one before it (the five clips: none)
+MAX_SWAPPED_FRAMES = 3  # frames in a row with a tail marker that far ahead of the one before it (the five clips: none)
 MAX_HEAD_JUMP = 10.0  # x the head's median step around it (wrenorm.jumps): built-in clips 1.4-3.3, a second cut out 47
 # What a clip's own motion says about how it was filmed and swum (clip_flags; flagged, not refused). Each limit is
 # about twice the largest the five fishsim clips show, and each case past it moved coefficients by several of their
@@ -383,17 +383,25 @@ def _check_swaps(source: str, local: np.ndarray, keep: list[int]) -> None:
     point instead: the tail wave is then fitted to a tail that folds on itself."""
     dx = np.diff(local[:, keep, 0], axis=1)
     behind = dx < -TAIL_MARKER_MIN_GAP
-    frames = np.flatnonzero(behind.any(axis=1))
-    if len(frames) >= MAX_SWAPPED_FRAMES:
-        pair = int(np.argmax(behind.sum(axis=0)))
+    # a swap lasts (for the rest of the clip, or until swapped back); tracking noise puts a marker ahead in lone frames
+    runs = [max((n for _, n in true_runs(behind[:, j])), default=0) for j in range(behind.shape[1])]
+    if max(runs, default=0) >= MAX_SWAPPED_FRAMES:
+        pair = int(np.argmax(runs))
         _swap_error(source, keep[pair], keep[pair + 1], behind[:, pair])
+
+
+def true_runs(mask: np.ndarray):
+    """(first, length) of each run of True in a boolean series."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)))
 
 
 def _swap_error(source: str, a: int, b: int, ahead: np.ndarray):
     raise InputError(source, f"tail markers {a} and {b}",
                      f"marker {b} lies ahead of marker {a} along the body in {int(ahead.sum())} of {len(ahead)} frames "
                      f"(first frame {int(np.argmax(ahead)) + 1}), behind it in the others: their identities swap "
-                     "during the clip? give the tracks with each marker's identity kept")
+                     "during the clip (or the body curls so far that they lie side by side)? give the tracks with "
+                     "each marker's identity kept")
 
 
 def analyse(rate: Rate) -> Rate:
@@ -426,6 +434,11 @@ def analyse(rate: Rate) -> Rate:
     if np.floor(frames / rate.fps * rate.tail_freq + 1e-6) < 1:  # the features are per complete beat
         # a clip that short gets a frequency from its trend, not from a beat (121 frames of the 1.00 Hz clip: 0.05 Hz)
         expected = TAIL_BEAT_PER_LABEL * rate.label
+        if expected > 0 and frames / rate.fps * expected >= 2:  # long enough: the tail's signal has no clear beat
+            raise InputError(rate.source or rate.name, f"marker {keep[-1]}",
+                             f"no tail beat found: the tail's lateral motion in the head's frame gives "
+                             f"{rate.tail_freq:.3f} Hz, no complete beat in {frames / rate.fps:.2f} s, where this "
+                             f"robot beats at ~{expected:.3g} Hz (a sharp turn, a tail not tracked, the wrong label?)")
         need = (f"; this robot beats at ~{expected:.3g} Hz here: give at least two beats, "
                 f"{int(np.ceil(2 * rate.fps / expected))} frames") if expected > 0 else ""
         raise InputError(rate.source or rate.name, "rows",
