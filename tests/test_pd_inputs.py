@@ -171,3 +171,53 @@ def test_the_held_out_scale_does_not_follow_where_the_log_is_cut(tmp_path):
         p = PDProblem(100.0, log=load_log(f))
         scales.append(float(p._commands(p.held_out).ref_scale.numpy()[0]))
     np.testing.assert_allclose(scales, 0.5 / np.sqrt(2), rtol=0.1)
+
+
+def _multisine_log(path, t0=0.0, rate=1000.0, noise=0.0, qd_scale=1.0, seed=0):
+    """The joint's exact response (J 0.05, K_P 20, K_D 0.5) to the built-in multisine, logged from t0."""
+    from wrenorm.tasks.pd.problem import Command, exact_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(int(round(6.0 * rate)) + 1) / rate
+    q = exact_reference(cmd, 0.05, 20.0, 0.5, t) + noise * np.random.default_rng(seed).standard_normal(len(t))
+    q_d, qd_d, _ = cmd(t)
+    keep = t >= t0
+    np.savetxt(path, np.c_[t[keep], q[keep], q_d[keep], qd_d[keep] * qd_scale], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    return path
+
+
+@pytest.mark.parametrize("f_sim", [100.0, 20.0])
+def test_a_log_started_mid_motion_fits_as_one_started_at_rest(tmp_path, f_sim):
+    """Each part of a log starts from the logged state; the velocity of the semi-implicit step lives half a step
+    before its time, and a start from q'(a) alone put a log cut 1 s into the motion 1.3 % (100 Hz) and 15 % (20 Hz)
+    off in K_D, the 20 Hz verdict turned to "expand" (a probe of stop 46). The held-out third always starts
+    mid-motion."""
+    from wrenorm.fit import FitSettings, run_fit
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    fits = [run_fit(PDProblem(f_sim, log=load_log(_multisine_log(tmp_path / f"{t0}.csv", t0=t0))),
+                    tmp_path / f"run{t0}", FitSettings(method="least-squares"), record=False, quiet=True)
+            for t0 in (0.0, 1.0)]
+    rest, mid = (f["parameters"]["K_D"]["fitted"] for f in fits)
+    assert mid == pytest.approx(rest, rel=0.005 if f_sim == 100.0 else 0.03)
+    assert [f["validation"]["verdict"] for f in fits] == ["absorbed", "absorbed"]
+
+
+def test_qd_d_in_other_units_than_q_d_per_second_is_refused(tmp_path):
+    """qd_d in rpm beside q_d in rad (9.55x) passed the clock check (10x) and came out as K_FF = -0.9 K_D, silent."""
+    with pytest.raises(InputError) as e:
+        load_log(_multisine_log(tmp_path / "rpm.csv", qd_scale=60 / (2 * np.pi)))
+    assert e.value.field == "qd_d" and "rpm" in e.value.problem
+    load_log(_multisine_log(tmp_path / "rad.csv"))
+
+
+def test_a_noisy_start_velocity_is_said(tmp_path):
+    """2 mrad of noise at 500 Hz leaves the start velocity uncertain by about 0.6 rad/s, whose transient the gains
+    absorbed (K_D 19 % high, "absorbed", nothing said). Said now; the clean log says nothing."""
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    noisy = PDProblem(100.0, log=load_log(_multisine_log(tmp_path / "noisy.csv", rate=500.0, noise=2e-3, seed=202)))
+    assert any("start velocity uncertain" in w and "log_fit" in w for w in noisy.warnings)
+    clean = PDProblem(100.0, log=load_log(_multisine_log(tmp_path / "clean.csv", rate=500.0)))
+    assert not any("start velocity" in w for w in clean.warnings)
