@@ -221,3 +221,20 @@ def test_a_noisy_start_velocity_is_said(tmp_path):
     assert any("start velocity uncertain" in w and "log_fit" in w for w in noisy.warnings)
     clean = PDProblem(100.0, log=load_log(_multisine_log(tmp_path / "clean.csv", rate=500.0)))
     assert not any("start velocity" in w for w in clean.warnings)
+
+
+@pytest.mark.parametrize("how,field,needle", [("negated", "q", "sign"), ("wrapped", "q row", "wrapped")])
+def test_q_with_another_sign_or_wrapped_at_pi_is_refused(tmp_path, how, field, needle):
+    """q logged with the other sign convention, or modulo a turn, ended only in "expand" with gains at their bounds,
+    which sent the user to free parameters (a probe of stop 46)."""
+    path = _multisine_log(tmp_path / "log.csv")
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    if how == "negated":
+        data[:, 1] = -data[:, 1]
+    else:
+        data[:, 1:3] += 2.9  # the joint works near pi, logged wrapped into (-pi, pi]
+        data[:, 1] = (data[:, 1] + np.pi) % (2 * np.pi) - np.pi
+    np.savetxt(path, data, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(path)
+    assert e.value.field.startswith(field) and needle in e.value.problem

@@ -283,6 +283,17 @@ def load_log(path: str | Path) -> MeasuredLog:
                                           "velocity term of the PD law with q_d")
     # q follows q_d: their motions are of one size. Degrees in one column and radians in the other differ 57x (that log
     # fitted every gain to its bound and said only "expand")
+    # an angle logged modulo a turn jumps by 2 pi between two samples, which no joint under a PD law does
+    jumps = np.abs(np.diff(arr[:, 1]))
+    k = int(np.argmax(jumps))
+    if jumps[k] > 0.9 * 2.0 * np.pi and jumps[k] > 20.0 * max(float(np.median(jumps)), 1e-12):
+        raise InputError(src, f"q row {k + 2}", f"jumps {jumps[k]:.3g} rad from one sample to the next: an angle "
+                                                 "wrapped at +-pi? unwrap it (numpy.unwrap)")
+    # q follows q_d: a joint whose q runs against its command has q (or q_d) logged with the other sign convention
+    follow = float(np.corrcoef(arr[:, 1], arr[:, 2])[0, 1])
+    if follow < 0.0:
+        raise InputError(src, "q", f"runs against q_d (correlation {follow:.2f}): the joint follows its command, so q "
+                                   "or q_d with the other sign convention?")
     motion = float(np.std(arr[:, 1])) / max(float(np.std(arr[:, 2])), 1e-300)
     if not 1.0 / MAX_FOLLOW_MISMATCH <= motion <= MAX_FOLLOW_MISMATCH:
         raise InputError(src, "q", f"moves {motion:.3g} x as much as q_d (standard deviations): the joint follows its "
