@@ -16,6 +16,10 @@ import warp as wp
 SEMI_IMPLICIT = 0
 EXPLICIT = 1
 INTEGRATORS = {"semi-implicit": SEMI_IMPLICIT, "explicit": EXPLICIT}
+# Where in its step each integrator's velocity lives, in steps from the step's start (`_step`): the semi-implicit step
+# moves q by dt times the velocity it has just updated, so its v_k is the motion's velocity half a step before t_k;
+# explicit Euler moves q by the old velocity, half a step after. A state taken from a measured motion starts there.
+VELOCITY_AT = {"semi-implicit": -0.5, "explicit": 0.5}
 
 
 @wp.func

@@ -61,3 +61,21 @@ def test_the_fit_reports_validates_and_says_the_adopted_restart(tmp_path, monkey
     assert result["validation"]["conditions"]["held"]["fitted_error"] < 0.01
     stored = json.loads((tmp_path / "result.json").read_text())
     assert stored["parameters"]["x"]["fitted"] == result["parameters"]["x"]["fitted"]
+
+
+def test_a_restart_is_adopted_where_the_main_search_ended_on_a_non_finite_objective():
+    """A main search whose values give no finite objective (review of stop 46: inf - 1 % of inf is NaN, and no
+    restart was ever adopted)."""
+    p = TwoWells()
+    p.errors = lambda values, conditions: np.where(np.asarray(values)[:, :1] < -1.5, np.inf, TwoWells.errors(
+        p, values, conditions))
+    report, adopted = adopt_better_restart(p, np.array([-1.9]), 0, _report(p, [0.999, 1.001]))
+    assert adopted is not None and adopted["values"] == [pytest.approx(0.999)] and report["main_search_included"]
+
+
+def test_a_tolerance_that_is_not_positive_is_refused_before_any_search(tmp_path, monkeypatch):
+    p = TwoWells()
+    p.tolerance_for = lambda condition: 0.0
+    monkeypatch.setattr(fit.searches, "cmaes", lambda *a, **k: pytest.fail("searched"))
+    with pytest.raises(ValueError, match="tolerance_for"):
+        run_fit(p, tmp_path, FitSettings(), record=False, quiet=True)

@@ -192,6 +192,11 @@ def test_a_slow_clip_is_judged_by_its_own_speed_and_clips_the_checks_doubt_do_no
     v = _validation(prob, measured, measured)
     assert v["conditions"]["f0.50"]["tolerance"] == pytest.approx(prob.tolerance_for(slow))
     assert "flagged_conditions" not in v and v["verdict"] in ("absorbed", "expand")
+    # the measured coefficients miss the slow clip by about 0.016 m/s, 73 % of its speed: within the flat 0.02 m/s,
+    # outside its own tolerance
+    slow_error = v["conditions"]["f0.50"]["fitted_error"]
+    assert prob.tolerance_for(slow) < slow_error < swimmer.TOLERANCE
+    assert v["conditions"]["f0.50"]["within_tolerance"] is False
 
     doubled = [sd.analyse(sd.Rate(label=r.label, markers=r.markers, source=r.name, fps=2 * r.fps)) for r in rates]
     wrong = swimmer.SwimmerProblem(doubled, [1.0, 1.75], dt=0.016)

@@ -172,11 +172,12 @@ def _held_out(r: dict) -> str:
         if c.get("data_flags"):
             mark = _Html(mark + " " + flag("data flagged: not deciding", "warn"))
         rows.append([name, num(c.get("measured_error")), num(fe), num(own), mark])
-    own_tols = {c.get("tolerance", tol) for c in cond.values()}
+    own_tols = {c.get("tolerance", tol) for c in cond.values()} - {None}
+    line = max(own_tols) if own_tols else tol
     chart = bar_chart(list(cond), {"measured parameters": [c.get("measured_error") for c in cond.values()],
                                    "fitted parameters": [c.get("fitted_error") for c in cond.values()]},
-                      "held-out error per condition", "error", hline=tol,
-                      hline_label="tolerance" if own_tols <= {tol} else "largest tolerance")
+                      "held-out error per condition", "error", hline=line,
+                      hline_label="tolerance" if len(own_tols) <= 1 else "largest tolerance")
     return table(["condition", "error, measured parameters", "error, fitted parameters", "tolerance", ""],
                  rows) + chart
 

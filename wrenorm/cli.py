@@ -335,6 +335,8 @@ def _print_summary(result: dict, out: Path) -> None:
             if spread.get("optima"):
                 rng = spread.get("held_out_mean_error_range")
                 held = f"held-out mean error {rng[0]:.4g} .. {rng[1]:.4g}; " if rng else ""
+                if spread.get("main_search_included"):  # a restart replaced the main search, which joined them
+                    who = "seeded searches (the main one and its restarts)"
                 print(f"  across {len(spread['optima'])} {who}: {held}"
                       f"not pinned: {', '.join(spread['not_pinned']) or 'none'}")
         if r.get("uncertainty", {}).get("warning"):

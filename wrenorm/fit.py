@@ -42,15 +42,22 @@ class FitSettings:
     method: str = "cmaes"  # "cmaes", "least-squares" or "cmaes+least-squares" (a global search, then polished)
 
 
+def check_tolerances(problem: Problem) -> np.ndarray:
+    """Each held-out condition's tolerance (Problem.tolerance_for), checked before any search: the verdict divides
+    by them."""
+    tolerances = np.array([problem.tolerance_for(c) for c in problem.held_out], dtype=np.float64)
+    if not np.all(tolerances > 0):
+        raise ValueError(f"{problem.task}: tolerance_for gave {tolerances.tolist()}; each must be a number > 0")
+    return tolerances
+
+
 def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> dict:
     if not problem.held_out:
         return {"conditions": {}, "verdict": "unvalidated", "tolerance": problem.tolerance,
                 "note": "no held-out conditions: nothing to validate on"}
     errs, details = problem.validation_errors(np.stack([measured, fitted]), problem.held_out)
     errs = finite_or_inf(errs)
-    tolerances = np.array([problem.tolerance_for(c) for c in problem.held_out], dtype=np.float64)
-    if not np.all(tolerances > 0):  # a system's contract: the verdict divides by them
-        raise ValueError(f"{problem.task}: tolerance_for gave {tolerances.tolist()}; each must be a number > 0")
+    tolerances = check_tolerances(problem)
     flags = [list(problem.data_flags(c)) for c in problem.held_out]
     conditions = {
         c.name: {"measured_error": float(errs[0, j]), "fitted_error": float(errs[1, j]),
@@ -105,13 +112,17 @@ def adopt_better_restart(problem: Problem, fitted: np.ndarray, seed: int, report
     optima = report.get("optima") or []
     main = float(searches.objective(problem, fitted[None])[0])
     losses = np.array([o["train_loss"] for o in optima], dtype=np.float64)
-    if not len(losses) or not np.isfinite(losses).any() or not np.nanmin(losses) < main - ADOPT_BETTER * abs(main):
+    finite = np.where(np.isfinite(losses), losses, np.inf)
+    if not len(losses) or not np.isfinite(finite).any():
         return report, None
-    k = int(np.nanargmin(losses))
+    k = int(np.argmin(finite))
+    if np.isfinite(main) and not finite[k] < main - ADOPT_BETTER * abs(main):
+        return report, None
     values = np.array([optima[k]["values"][p.name] for p in space.parameters], dtype=np.float64)
     seeds = [seed] + [o["seed"] for o in optima]
     vals = np.concatenate([fitted[None], [[o["values"][p.name] for p in space.parameters] for o in optima]])
-    redone = {key: v for key, v in report.items() if key in ("seeds", "popsize", "generations", "search")}
+    redone = {key: v for key, v in report.items() if key in ("popsize", "generations", "search")}
+    redone |= {"seeds": [int(x) for x in seeds], "main_search_included": True}
     redone |= spread_of_optima(problem, values, seeds, vals, np.append(main, losses))
     said = (f"the main search (seed {seed}) ended at objective {main:.4g}, its restart with seed {optima[k]['seed']} "
             f"at {losses[k]:.4g}: the restart's values are reported (the main search stopped in a worse basin)")
@@ -141,6 +152,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
 
     identity: what else a resumed run must share with the interrupted one (inputs' hashes, versions).
     command: the command line that reproduces the fit, for the report."""
+    check_tolerances(problem)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = process_age()
@@ -190,6 +202,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         fitted = measured.copy()
         jac = None  # the least-squares Jacobian was taken at its own optimum, not at the values now reported
     restart_report, adopted = None, None
+    t_restarts = time.perf_counter()
     if settings.restarts >= 2:
         seeds = [settings.seed + 1 + k for k in range(settings.restarts)]
         restart_report = identifiability_restarts(problem, fitted, seeds, popsize=settings.popsize,
@@ -200,6 +213,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             fitted = np.array(adopted["values"])
             jac = None  # the least-squares Jacobian was taken at the main search's optimum
             stalled = stalled_search(problem, measured, fitted)
+    t_restarts = time.perf_counter() - t_restarts
     both = np.stack([measured, fitted])
     # the training error (the observable's units) and, apart, what the search minimised (errors or squared
     # residuals, plus the prior's squared deviations)
@@ -258,7 +272,8 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         "versions": versions(),
     }
     optima = history.get("cmaes", [{}])[-1].get("optima") if history.get("cmaes") else None
-    if settings.searches > 1 and optima and stalled is None:  # a stalled search's optima say nothing of a spread
+    # a stalled search's optima say nothing of a spread, nor do those of a main search a restart replaced
+    if settings.searches > 1 and optima and stalled is None and adopted is None:
         # width-first: the searches run side by side anyway, so their optima give the spread for free
         result["searches_spread"] = spread_of_optima(
             problem, fitted, [o["seed"] for o in optima], np.array([o["values"] for o in optima]),
@@ -278,11 +293,13 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     _plot(out, problem, history, fitted, measured)
     result["wall_seconds"] = time.perf_counter() - t0
     result["timing"] = {"start_up_s": t_start, "search_s": t_search, "search_evaluating_s": t_evaluating,
-                        "validation_s": t_write - t_validate,
-                        "writing_s": time.perf_counter() - t_write, "uncertainty_s": t_validate - t0 - t_search,
+                        "validation_s": t_write - t_validate + t_restarts, "restarts_s": t_restarts,
+                        "writing_s": time.perf_counter() - t_write,
+                        "uncertainty_s": t_validate - t0 - t_search - t_restarts,
                         "first_generation_after_process_start_s": first_generation[0] if first_generation else None,
                         "meaning": "start_up_s: from the process's start to the fit's start (interpreter, imports, "
-                                   "building the problem: references, kernels); the rest in the fit's order; "
+                                   "building the problem: references, kernels); the rest in the fit's order "
+                                   "(validation_s includes restarts_s, the identifiability restarts); "
                                    "search_evaluating_s: of search_s, the CMA-ES's batched evaluations (rollouts "
                                    "and observable, on the device where there is one), the rest being its own host "
                                    "work (pycma, the search log)"}

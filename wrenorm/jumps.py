@@ -23,22 +23,31 @@ def largest_jump_on_both_sides(steps: np.ndarray, window: int = JUMP_WINDOW) -> 
     between two moving stretches stands out against both, while the first step of a motion out of rest stands out
     only against the rest before it (a fish filmed still, then swimming)."""
     steps = np.asarray(steps, dtype=np.float64)
-    best, ratio = -1, 0.0
-    for i in np.argsort(steps)[::-1][:8]:
-        sides = [np.median(side) for side in (steps[max(0, i - window):i], steps[i + 1:i + 1 + window]) if side.size]
-        usual = max(sides) if sides else 0.0
-        if usual > 0 and steps[i] / usual > ratio:
-            best, ratio = int(i), float(steps[i] / usual)
-    return best, ratio
+    if len(steps) < 3:
+        return -1, 0.0
+    return _most_unusual(steps, steps, 1, window, sides_apart=True)
 
 
-def _most_unusual(score: np.ndarray, series: np.ndarray, width: int, window: int) -> tuple[int, float]:
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(first, length) of each run of True in a boolean series."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(int(a), int(b - a)) for a, b in zip(starts, ends)]
+
+
+def _most_unusual(score: np.ndarray, series: np.ndarray, width: int, window: int,
+                  sides_apart: bool = False) -> tuple[int, float]:
     """(i, ratio): among the 8 largest scores, the one that is the largest multiple of the median of `series` within
-    `window` entries either side of entries i .. i + width - 1 (left out), and that multiple; (-1, 0.0) if none."""
+    `window` entries either side of entries i .. i + width - 1 (left out), and that multiple; (-1, 0.0) if none.
+    sides_apart: the larger of the two sides' medians instead of the median of both together."""
     best, ratio = -1, 0.0
     for i in np.argsort(score)[::-1][:8]:  # what stands out is among the largest
-        around = np.concatenate([series[max(0, i - window):i], series[i + width:i + width + window]])
-        usual = float(np.median(around)) if around.size else 0.0
+        before, after = series[max(0, i - window):i], series[i + width:i + width + window]
+        if sides_apart:
+            usual = max((float(np.median(side)) for side in (before, after) if side.size), default=0.0)
+        else:
+            around = np.concatenate([before, after])
+            usual = float(np.median(around)) if around.size else 0.0
         if usual > 0 and score[i] / usual > ratio:
             best, ratio = int(i), float(score[i] / usual)
     return best, ratio

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError
-from wrenorm.jumps import largest_jump, largest_jump_on_both_sides, repeated_runs
+from wrenorm.jumps import largest_jump, largest_jump_on_both_sides, repeated_runs, true_runs
 from wrenorm.tasks.swimmer.options import FPS  # the fishsim format's frame rate, the --fps default
 
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
@@ -60,8 +60,8 @@ MAX_HEAD_SCATTER = 0.028  # std of the second difference of the head markers' di
 # (the five: 0.011-0.014; 2 px of noise 0.050-0.056, slender drag 3x)
 MAX_HEAD_DRIFT = 0.10  # the head markers' pixel distance, last third of the clip against the first: the pixel scale
 # changes along the path, as under a tilted camera (the five: -0.016 to -0.051; tilted 20-30 deg: up to 0.16)
-MAX_TAIL_JUMP = 10.0  # x the larger median step of a tail marker before and after it, in the head frame: two takes
-# joined (the five clips: at most 4.6-6.3; seams whose head track was made continuous: 12-19)
+MAX_TAIL_JUMP = 10.0  # x the larger median step of a tail marker before and after it, in the head frame, for two or
+# more tail markers at one frame: two takes joined (the five clips: at most 4.6-6.3; seams: 10-24 on 2-3 markers)
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
 # off by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by)
@@ -376,24 +376,21 @@ def tail_markers(local: np.ndarray, min_gap: float = TAIL_MARKER_MIN_GAP) -> lis
     return keep
 
 
-def _check_swaps(source: str, local: np.ndarray, keep: list[int]) -> None:
-    """Tail markers keep their order along the body in every frame (the five clips: each next marker at least 1.5 mm
-    further back along the head's axis in every frame). A tracker that swaps two markers' identities mid-clip puts
-    one ahead of the other for the rest of the clip, and the order check on the clip's mean can merge the two as one
-    point instead: the tail wave is then fitted to a tail that folds on itself."""
-    dx = np.diff(local[:, keep, 0], axis=1)
-    behind = dx < -TAIL_MARKER_MIN_GAP
-    # a swap lasts (for the rest of the clip, or until swapped back); tracking noise puts a marker ahead in lone frames
-    runs = [max((n for _, n in true_runs(behind[:, j])), default=0) for j in range(behind.shape[1])]
-    if max(runs, default=0) >= MAX_SWAPPED_FRAMES:
-        pair = int(np.argmax(runs))
-        _swap_error(source, keep[pair], keep[pair + 1], behind[:, pair])
-
-
-def true_runs(mask: np.ndarray):
-    """(first, length) of each run of True in a boolean series."""
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)))
+def _check_swaps(source: str, local: np.ndarray) -> None:
+    """Tail markers keep their order along the body (the five clips: each next marker at least 1.5 mm further back
+    along the head's axis in every frame, or, where two were lost onto one point, within 5 mm of it in median). A
+    tracker that swaps two markers' identities mid-clip puts them in order for a stretch and reversed for another; the
+    clip-mean order check cannot see a swap near the middle (the two means coincide, and the pair was merged as one
+    point: the tail wave was fitted to a tail folding on itself)."""
+    for i in range(2, N_MARKERS - 1):
+        dx = local[:, i + 1, 0] - local[:, i, 0]
+        if np.median(np.abs(dx)) < TAIL_MARKER_MIN_GAP:  # lost onto one point together (the 2.25 Hz clip's 4-7)
+            continue
+        behind = dx < -TAIL_MARKER_MIN_GAP
+        runs = {side: max((n for _, n in true_runs(mask)), default=0) for side, mask in
+                (("reversed", behind), ("in order", dx > TAIL_MARKER_MIN_GAP))}
+        if min(runs.values()) >= MAX_SWAPPED_FRAMES:
+            _swap_error(source, i, i + 1, behind)
 
 
 def _swap_error(source: str, a: int, b: int, ahead: np.ndarray):
@@ -414,20 +411,16 @@ def analyse(rate: Rate) -> Rate:
                          f"only {len(keep)} of the tail markers 2-8 lie one behind another along the body (3 needed): "
                          "markers lost onto one point, or columns not written x0, y0, x1, y1, ..., x8, y8 (head "
                          "markers 0 and 1 first, tail last)")
+    _check_swaps(rate.source or rate.name, local)
     mean_x = local[:, :, 0].mean(axis=0)
     ahead = [i for i in range(3, N_MARKERS) if mean_x[i] < mean_x[2:i].max() - TAIL_MARKER_MIN_GAP]
     if ahead:
         # markers lost onto one point lie together (label 2.25's 4-7), but one that lies clearly ahead of a marker
         # written before it is a column order error, and tail_markers would drop it in silence
         i = ahead[0]
-        j = 2 + int(np.argmax(mean_x[2:i]))
-        behind = local[:, i, 0] > local[:, j, 0] + TAIL_MARKER_MIN_GAP
-        if behind.sum() >= MAX_SWAPPED_FRAMES:  # in order in some frames, reversed in others: identities swapped
-            _swap_error(rate.source or rate.name, j, i, ~behind & (local[:, i, 0] < local[:, j, 0]))
         raise InputError(rate.source or rate.name, f"tail marker {i}",
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
-    _check_swaps(rate.source or rate.name, local, keep)
     _check_body(rate.source or rate.name, rate.markers)
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)
@@ -461,19 +454,25 @@ def analyse(rate: Rate) -> Rate:
 
 def _check_tail_jumps(source: str, local: np.ndarray) -> None:
     """Two takes joined with the head's track made continuous leave no jump of the head, but the tail's phase jumps
-    at the seam (the tail-beat frequency moved 9 %, Magnus lift 40x, in silence)."""
+    at the seam, for every tail marker at once (the tail-beat frequency moved 9 %, Magnus lift 40x, in silence). A
+    tracking glitch moves one marker, for a frame or a few, and is no seam."""
+    big = []
     for i in range(2, N_MARKERS):
         p = local[:, i]
-        steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
-        frame, ratio = largest_jump_on_both_sides(steps)
-        step = steps[frame] if frame >= 0 else 0.0
-        # one sample off and back (a tracking glitch of one frame) is no seam: the fishsim features do not see it
-        back = [np.linalg.norm(p[a] - p[b]) for a, b in ((frame + 2, frame), (frame + 1, frame - 1))
-                if 0 <= b and a < len(p)]
-        if ratio > MAX_TAIL_JUMP and not (back and min(back) < 0.5 * step):
-            raise InputError(source, f"marker {i}", f"the tail marker jumps {ratio:.0f} x its frame-to-frame step "
-                             f"around there, in the head's frame, between frames {frame + 1} and {frame + 2}: two "
-                             "takes joined, or frames missing? give one continuous take")
+        frame, ratio = largest_jump_on_both_sides(np.linalg.norm(np.diff(p, axis=0), axis=1))
+        if ratio <= MAX_TAIL_JUMP:
+            continue
+        step = np.linalg.norm(p[frame + 1] - p[frame])
+        returns = [np.linalg.norm(p[k] - p[frame]) < 0.5 * step for k in range(frame + 2, min(frame + 5, len(p)))]
+        if not any(returns):  # a marker that jumps and comes back within 3 frames is a glitch (or two swapped briefly)
+            big.append((i, frame, ratio))
+    for _, frame, _ in big:
+        group = [(j, r) for j, f, r in big if abs(f - frame) <= 1]
+        if len(group) >= 2:
+            raise InputError(source, f"tail markers {', '.join(str(j) for j, _ in group)}",
+                             f"jump together, up to {max(r for _, r in group):.0f} x their frame-to-frame steps on "
+                             f"either side, in the head's frame, between frames {frame + 1} and {frame + 2}: two takes "
+                             "joined, or frames missing? give one continuous take")
 
 
 def beat_speeds(rate: Rate) -> np.ndarray:

@@ -538,12 +538,12 @@ def _crossing(gap: np.ndarray, start: int = 0):
     return k, float(np.clip(frac, 0.0, 1.0))
 
 
-def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int) -> float | None:
-    """The speed (m/s) at which the rope's gap closes over its last `frames` frames, when at that speed it would touch
-    within END_HORIZON after the recording's end; else None. Only a reconstructed gap (below NEAR_GAP) counts: above
-    it the series is a lower bound."""
+def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int, level: float) -> float | None:
+    """The speed (m/s) at which the rope's gap (measured from the contact level) closes over its last `frames` frames,
+    when at that speed it would touch within END_HORIZON after the recording's end; else None. Only a reconstructed
+    gap (below NEAR_GAP) counts: above it the series is a lower bound."""
     n = min(int(frames), len(gap) - 1)
-    if n < 1 or not gap[-1] < NEAR_GAP:
+    if n < 1 or not gap[-1] + level < NEAR_GAP:
         return None
     speed = float(gap[-1 - n] - gap[-1]) / (n * dt)
     return speed if speed > 0.0 and gap[-1] <= speed * END_HORIZON else None
@@ -766,7 +766,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         if kq is None and hidden:
             reasons.append(f"no contact on the reconstructed rope, but {hidden}: a contact may lie in the gap")
             return result("unusable", "none")
-        closing = _closing_at_the_end(gap_series, dt, tol_frames)
+        closing = _closing_at_the_end(gap_series, dt, tol_frames, level)
         if kq is None and closing is not None:
             reasons.append(f"no contact before the recording ends, but it ends while the rope closes in (gap "
                            f"{1000 * (gap_series[-1] + level):.1f} mm at its last frame, t={time[-1]:.3f} s, closing "
