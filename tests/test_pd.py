@@ -182,7 +182,7 @@ def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):
         assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--reference", str(f)]) == 0
         fits[name] = json.loads((out / "result.json").read_text())["parameters"]
         if noise:
-            q0, v0, _, _ = start_state(t, q, 0.0)  # the joint starts at rest
+            q0, v0, _ = start_state(t, q, 0.0)  # the joint starts at rest
             assert abs(v0) < 0.5 and abs(q0 - clean[0]) < 1e-3
     for p in ("J", "K_D"):
         assert fits["noisy"][p]["fitted"] == pytest.approx(fits["clean"][p]["fitted"], rel=0.02), p
@@ -196,7 +196,7 @@ def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):
         q = continuous_reference(chirp, 0.05, 20.0, 0.5, t)
         m = t >= 1.23
         spline = CubicSpline(t[m], q[m])
-        q0, v0, _, _ = start_state(t[m], q[m], 4.0)
+        q0, v0, _ = start_state(t[m], q[m], 4.0)
         assert abs(v0 - spline(4.0, 1)) < 1e-3 * abs(spline(4.0, 1)) and abs(q0 - spline(4.0)) < 1e-5, hz
 
 

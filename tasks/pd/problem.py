@@ -11,6 +11,7 @@ measured log (CSV with columns time, q, q_d, qd_d).
 """
 from __future__ import annotations
 
+import copy
 import csv
 from dataclasses import dataclass
 from pathlib import Path
@@ -323,15 +324,14 @@ def parameter_space(J: float, KP: float, KD: float) -> ParameterSpace:
 START_WINDOW = 0.01  # s either side of a segment's start whose samples the start state is fitted to
 
 
-def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple[float, float, float, float]:
-    """(q, dq/dt, d2q/dt2, the standard error of dq/dt from the samples' scatter about the cubic; NaN from the spline)
-    at time a. A spline through every sample passes through each one's noise, and its slope multiplies
-    the noise by the sample rate: 1 mrad of encoder noise at 1 kHz gave start velocities of -14 rad/s where the joint
-    rested, and a K_D 15 % high with the verdict "absorbed". So where START_WINDOW holds at least two samples either
-    side (logs at 200 Hz and faster) the state comes from a least-squares cubic through the samples within it
-    (one-sided at the log's ends; a cubic, so that the slope carries no error from the third derivative); a coarser
-    log, whose slope the noise moves little and whose window would span its motion, keeps the spline's (`spline`:
-    scipy's CubicSpline through the samples)."""
+def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple[float, float, float]:
+    """(q, dq/dt, d2q/dt2) at time a. A spline through every sample passes through each one's noise, and its slope
+    multiplies the noise by the sample rate: 1 mrad of encoder noise at 1 kHz gave start velocities of -14 rad/s
+    where the joint rested, and a K_D 15 % high with the verdict "absorbed". So where START_WINDOW holds at least
+    two samples either side (logs at 200 Hz and faster) the state comes from a least-squares cubic through the
+    samples within it (one-sided at the log's ends; a cubic, so that the slope carries no error from the third
+    derivative); a coarser log, whose slope the noise moves little and whose window would span its motion, keeps the
+    spline's (`spline`: scipy's CubicSpline through the samples)."""
     dt = float(np.median(np.diff(time)))
     half = int(np.floor(START_WINDOW / dt + 1e-9))
     if half < 2:
@@ -339,15 +339,12 @@ def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple
             from scipy.interpolate import CubicSpline
 
             spline = CubicSpline(time, q)
-        return float(spline(a)), float(spline(a, 1)), float(spline(a, 2)), float("nan")
+        return float(spline(a)), float(spline(a, 1)), float(spline(a, 2))
     k = int(np.clip(np.searchsorted(time, a), 0, len(time) - 1))
     lo = max(0, min(k - half, len(time) - 2 * half - 1))
     sel = slice(lo, min(len(time), lo + 2 * half + 1))
-    A = np.vander((time[sel] - a) / START_WINDOW, 4, increasing=True)  # scaled: A^T A stays well conditioned
-    c = np.linalg.lstsq(A, q[sel], rcond=None)[0]
-    scatter = float(np.sum((q[sel] - A @ c) ** 2)) / max(len(A) - 4, 1)
-    v_std = float(np.sqrt(scatter * np.linalg.inv(A.T @ A)[1, 1])) / START_WINDOW
-    return float(c[0]), float(c[1]) / START_WINDOW, 2.0 * float(c[2]) / START_WINDOW ** 2, v_std
+    c = np.polynomial.polynomial.polyfit((time[sel] - a) / START_WINDOW, q[sel], 3)  # scaled: well conditioned
+    return float(c[0]), float(c[1]) / START_WINDOW, 2.0 * float(c[2]) / START_WINDOW ** 2
 
 
 # A log started mid-motion from q'(a) alone began every rollout off by dt/2 q''(a), where the integrator's velocity
@@ -407,7 +404,6 @@ class PDProblem(Problem):
         if T * self.f_sim < 30:
             raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
         q_spline = CubicSpline(log.time, log.q)
-        self._start_velocity_std: dict = {}
         conds = []
         for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items():
             n = int(np.floor((b - a) * self.f_sim))
@@ -418,7 +414,8 @@ class PDProblem(Problem):
                 # each part's errors measured against its own motion about its own mean: a held-out third at
                 # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
                 # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
-                "q_ref": q_spline(t), "init": self._start(log, a, q_spline), "origin": float(np.mean(q_spline(t)))},
+                "q_ref": q_spline(t), "init": self._start(log, a, q_spline), "origin": float(np.mean(q_spline(t))),
+                "start_velocity_fitted": True},
                 {"source": log.path}))
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
@@ -431,25 +428,14 @@ class PDProblem(Problem):
                                  f"varies {moves[1]:.3g} rad against {moves[0]:.3g} rad in the first two thirds): it "
                                  "tests nothing, so there is no verdict; log motion throughout")
             conds = conds[:1]
-        # a start velocity the noise leaves uncertain starts a transient the gains then absorb (2 mrad of noise at
-        # 500 Hz: +-0.6 rad/s, K_D 19 % high, "absorbed"); its size is that velocity over the joint's natural frequency
-        omega = np.sqrt(self.true["K_P"] / self.true["J"])
-        for c, (a, v_std) in zip(conds, self._start_velocity_std.items()):
-            scale = float(np.std(c.data["q_ref"]))
-            if np.isfinite(v_std) and scale > 0 and v_std / omega > self.tolerance * scale:
-                self.warnings.append(
-                    f"{log.path}: at t={a:.3g} s, where {c.name} starts, the samples' scatter leaves the start "
-                    f"velocity uncertain by {v_std:.2g} rad/s, a start transient of "
-                    f"{100 * v_std / omega / scale:.0f} % of the motion, above the verdict's tolerance: the fitted "
-                    "gains may absorb it (log less noisy, or faster)")
         return conds[:1], conds[1:]
 
     def _start(self, log: MeasuredLog, a: float, spline) -> tuple[float, float]:
-        """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives. The
-        acceleration for that half step is the PD law's at the measured gains, not the samples' second derivative,
-        which multiplies encoder noise by the sample rate squared (2 mrad at 500 Hz: K_D 66 % off)."""
-        q, v, _, v_std = start_state(log.time, log.q, a, spline)
-        self._start_velocity_std[a] = v_std
+        """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives (the
+        fit then corrects that velocity, `_profiled`). The acceleration for that half step is the PD law's at the
+        measured gains, not the samples' second derivative, which multiplies encoder noise by the sample rate
+        squared (2 mrad at 500 Hz: K_D 66 % off)."""
+        q, v, _ = start_state(log.time, log.q, a, spline)
         q_d, qd_d = float(np.interp(a, log.time, log.q_d)), float(np.interp(a, log.time, log.qd_d))
         acc = (self.true["K_P"] * (q_d - q) + self.true["K_D"] * (qd_d - v)) / self.true["J"]
         return q, v + self.kpd.VELOCITY_AT[self.integrator_name] * self.dt * acc
@@ -467,22 +453,68 @@ class PDProblem(Problem):
         return self._cache[key]
 
     def errors(self, values, conditions):
+        if self._fits_start(conditions):
+            r = self._scaled_misfit(values, conditions)
+            return np.sqrt(np.mean(r * r, axis=2))
         errs, _ = self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt)
         return errs
+
+    @property
+    def differentiable(self) -> bool:  # the tape has no start-velocity fit: a log's problem is searched without it
+        return not self._fits_start(self.train + self.held_out)
 
     def errors_and_grad(self, values, conditions):
         return self.kpd.simulate_with_grad(values, self._commands(conditions), self.integrator, self.dt)
 
+    @staticmethod
+    def _fits_start(conditions) -> bool:
+        return any(c.data.get("start_velocity_fitted") for c in conditions)
+
+    def _shifted_start(self, conditions):
+        """The commands of `conditions` with every start velocity 1 rad/s higher."""
+        key = ("start + 1",) + tuple(id(c) for c in conditions)
+        if key not in self._cache:
+            shifted = copy.copy(self._commands(conditions))
+            init = shifted.init.numpy().copy()
+            init[:, 1] += 1.0
+            shifted.init = self.kpd.wp.array(init, dtype=self.kpd.wp.float64, device=self.device)
+            self._cache[key] = shifted
+        return self._cache[key]
+
+    def _start_corrected(self, values, conditions):
+        """Trajectories (B, C, T+1) of a log's parts with each part's start velocity corrected for each candidate:
+        the joint is linear in its state, so the trajectory is linear in the start velocity, and the correction that
+        minimises the part's misfit is one projection. The start velocity from the samples carries their noise
+        multiplied by the sample rate (2 mrad at 500 Hz: +-0.6 rad/s), whose start transient the gains absorbed: K_D
+        19 % high, "absorbed" (a probe of stop 46); fitted per part it is 0.6 % off on that log. Also the start
+        corrections (B, C), rad/s."""
+        cmds = self._commands(conditions)
+        base = self.kpd.simulate(values, cmds, self.integrator, self.dt, record=True)[1]
+        unit = self.kpd.simulate(values, self._shifted_start(conditions), self.integrator, self.dt, record=True)[1]
+        ref = np.stack([c.data["q_ref"][:cmds.n_steps + 1] for c in conditions])[None]
+        fitted = np.array([bool(c.data.get("start_velocity_fitted")) for c in conditions])
+        h = unit - base
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dv = -np.sum(((base - ref) * h)[..., 1:], axis=2) / np.sum((h * h)[..., 1:], axis=2)
+        dv = np.where(fitted[None] & np.isfinite(dv), dv, 0.0)
+        return base + dv[..., None] * h, dv
+
+    def _scaled_misfit(self, values, conditions):
+        cmds = self._commands(conditions)
+        traj = self._start_corrected(values, conditions)[0][:, :, 1:] if self._fits_start(conditions) else \
+            self.kpd.simulate(values, cmds, self.integrator, self.dt, record=True)[1][:, :, 1:]
+        ref = np.stack([c.data["q_ref"][1:cmds.n_steps + 1] for c in conditions])
+        return (traj - ref[None]) / cmds.ref_scale.numpy()[None, :, None]
+
     def trajectories(self, values, conditions):
+        if self._fits_start(conditions):
+            return self._start_corrected(values, conditions)[0]
         return self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt, record=True)[1]
 
     def residuals(self, values, conditions):
         """Signed residuals (B, R): q_sim - q_ref over all conditions, each scaled as in `errors`."""
-        cmds = self._commands(conditions)
-        traj = self.trajectories(values, conditions)[:, :, 1:]
-        ref = np.stack([c.data["q_ref"][1:cmds.n_steps + 1] for c in conditions])
-        scale = cmds.ref_scale.numpy()[None, :, None] * np.sqrt(cmds.n_steps)
-        return ((traj - ref[None]) / scale).reshape(len(values), -1)
+        r = self._scaled_misfit(values, conditions)
+        return (r / np.sqrt(r.shape[2])).reshape(len(values), -1)
 
     # --- the paper's predictions ----------------------------------------------------
     def analytic(self, fitted: dict) -> dict:
@@ -531,8 +563,17 @@ class PDProblem(Problem):
 
     def report(self, fitted, measured):
         f = self.space.as_dict(fitted)
-        return {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name,
-                "warnings": list(self.warnings)}
+        out = {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name,
+               "warnings": list(self.warnings)}
+        parts = self.train + self.held_out
+        if self._fits_start(parts):
+            dv = self._start_corrected(np.asarray(fitted)[None], parts)[1][0]
+            out["start_velocity_correction"] = {
+                "per_part": {c.name: float(d) for c, d in zip(parts, dv)},
+                "meaning": "rad/s added to each log part's start velocity (estimated from the samples near its "
+                           "start) by the fit at the fitted values; large against the motion's velocities: a noisy "
+                           "or coarse log start"}
+        return out
 
     def charts(self, fitted, measured):
         from wrenorm.tasks.pd.report import condition_charts
