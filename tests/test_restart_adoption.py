@@ -79,3 +79,9 @@ def test_a_tolerance_that_is_not_positive_is_refused_before_any_search(tmp_path,
     monkeypatch.setattr(fit.searches, "cmaes", lambda *a, **k: pytest.fail("searched"))
     with pytest.raises(ValueError, match="tolerance_for"):
         run_fit(p, tmp_path, FitSettings(), record=False, quiet=True)
+
+
+def test_polish_asked_of_a_problem_without_a_tape_is_said(tmp_path):
+    result = run_fit(TwoWells(), tmp_path, FitSettings(polish=5, generations=5), record=False, quiet=True)
+    assert result["search"]["gradient_polish"] is None
+    assert any("--polish 5" in w and "not polished" in w for w in result["warnings"])

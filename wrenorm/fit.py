@@ -197,6 +197,9 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             fitted = g.best_values
         polish_report = {"iterations": settings.polish, "loss_before": res.best_loss, "loss_after": g.best_loss,
                          "kept": improved}
+    unpolished = (f"--polish {settings.polish}: this {problem.task} problem has no tape gradient of its objective "
+                  "(no errors_and_grad, or, for a PD log, its fitted start velocities), so the search's values are not "
+                  "polished") if settings.polish and not problem.differentiable else None
     stalled = stalled_search(problem, measured, fitted)
     if stalled is not None:
         fitted = measured.copy()
@@ -286,6 +289,7 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
     if adopted is not None:
         result["search"]["adopted_restart"] = {k: adopted[k] for k in ("seed", "objective", "main_objective")}
     result["warnings"] = [*([stalled] if stalled else []), *([adopted["said"]] if adopted else []),
+                          *([unpolished] if unpolished else []),
                           *problem.fit_warnings(fitted), *result.get("warnings", [])]
     t_write = time.perf_counter()
     if record:
