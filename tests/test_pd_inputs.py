@@ -247,3 +247,20 @@ def test_a_logs_residuals_agree_with_its_errors_and_its_trajectories(tmp_path):
         misfit = (traj[j, 1:] - c.data["q_ref"][1:n + 1]) / np.sqrt(np.mean((c.data["q_ref"][1:n + 1] -
                                                                                 c.data["origin"]) ** 2))
         assert np.sqrt(np.mean(misfit ** 2)) == pytest.approx(errors[j], rel=1e-9)
+
+
+@pytest.mark.parametrize("how,field,needle", [("negated", "q", "sign"), ("wrapped", "q row", "wrapped")])
+def test_q_with_another_sign_or_wrapped_at_pi_is_refused(tmp_path, how, field, needle):
+    """q logged with the other sign convention, or modulo a turn, ended only in "expand" with gains at their bounds,
+    which sent the user to free parameters (a probe of stop 46)."""
+    path = _multisine_log(tmp_path / "log.csv")
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    if how == "negated":
+        data[:, 1] = -data[:, 1]
+    else:
+        data[:, 1:3] += 2.9  # the joint works near pi, logged wrapped into (-pi, pi]
+        data[:, 1] = (data[:, 1] + np.pi) % (2 * np.pi) - np.pi
+    np.savetxt(path, data, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(path)
+    assert e.value.field.startswith(field) and needle in e.value.problem
