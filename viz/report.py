@@ -93,8 +93,8 @@ def _verdict_block(v: dict) -> str:
                    f"fitted ones {num(v['mean_fitted_error'])}")
         numbers += (f" (worst {num(v.get('worst_fitted_error'))}, {v.get('worst_condition', '')}; its tolerance "
                     f"{num(v.get('worst_tolerance', v.get('tolerance')))})." if "worst_fitted_error" in v else ".")
-    if v.get("flagged_conditions"):
-        numbers += f" Note: {v.get('note', '')}."
+    if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")):
+        numbers += f" Note: {v['note']}."
     return (f'<div class="verdict" style="color:{fg};background:{bg}"><b>{esc(verdict)}</b> &nbsp; '
             f"{esc(meaning)}{esc(numbers)}</div>")
 

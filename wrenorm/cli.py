@@ -328,7 +328,7 @@ def _print_summary(result: dict, out: Path) -> None:
             f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g}; the "
             f"verdict's worst fitted {v['worst_fitted_error']:.4g} ({v.get('worst_condition', '?')}) against its "
             f"tolerance {v.get('worst_tolerance', v['tolerance']):.4g})" if "worst_fitted_error" in v else ""))
-        if v.get("flagged_conditions"):
+        if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")):
             print(f"  {v['note']}")
         for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
             spread = r.get(key) or {}

@@ -76,7 +76,8 @@ class Problem(ABC):
         """(B, C) held-out errors for the verdict, and per condition a dict of what else the validation should
         report (e.g. whether an event happened). Default: `errors`, nothing else. A system whose training
         error carries a penalty (a missing event) overrides this to score states, so that fitted and measured
-        errors compare like with like."""
+        errors compare like with like; where the fitted values (the second of two candidates) show no event at all,
+        its dict says `fitted_misses: True`, and the verdict counts that condition outside tolerance."""
         return self.errors(values, conditions), [{} for _ in conditions]
 
     def errors_and_grad(self, values: np.ndarray, conditions: Sequence[Condition]):

@@ -98,9 +98,15 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     pos0 = resample(ref.markers[0], ref.marker_arclength, s_nodes)
     pos0[0] = hand[0]
     vel0 = resample((ref.markers[1] - ref.markers[0]) / ref.dt, ref.marker_arclength, s_nodes)
-    # A forward difference of a rope released at rest reads g dt, not 0; references that start
-    # at rest (all built-in paths do) start the chain at rest.
-    if np.abs(vel0).max() < START_AT_REST_BELOW:
+    # A forward difference of a rope released at rest reads g dt, not 0; references that start at rest (all built-in
+    # paths do) start the chain at rest. So does one whose start velocity is within its markers' noise: 0.5 mm of it
+    # read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05 over noise draws
+    # against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
+    from wrenorm.tasks.rope.reference.events import estimate_noise
+
+    step = (ref.markers[1] - ref.markers[0]) / ref.dt
+    noise_speed = np.sqrt(2.0) * estimate_noise(ref.markers[:20], None) / ref.dt  # of one coordinate's difference
+    if np.abs(vel0).max() < START_AT_REST_BELOW or np.sqrt(np.mean(step ** 2)) < 2.0 * noise_speed:
         vel0[:] = 0.0
     return RopeCase(name, ref, ev, hand, pos0.astype(np.float32), vel0.astype(np.float32), steps,
                     Target.from_reference(ref, ev, weights, source=name), crit)
@@ -132,9 +138,19 @@ class RopeProblem(Problem):
         self.held_out = [Condition(nm, prepare_case(nm, r, self.n, self.dt, self.weights))
                          for nm, r in zip(held_names, held_refs)]
         ref = train_refs[0]
-        for other in list(train_refs[1:]) + list(held_refs):
-            if abs(other.length - ref.length) > 1e-6 * ref.length or abs(other.mass - ref.mass) > 1e-6 * ref.mass:
-                raise InputError("--reference", "length/mass", "all references must be of the same rope")
+        # the measured values come from the first reference: every other must be of the same rope, or the fit would
+        # change with the order of the files (a stiffer rope's file first: measured EI 0.09 instead of 0.027, the
+        # fitted radius 5.6x)
+        first = getattr(ref, "file", "") or names[0]
+        roles = [("--reference", nm, r) for nm, r in zip(names[1:], train_refs[1:])]
+        roles += [("--validate", nm, r) for nm, r in zip(held_names, held_refs)]
+        for role, nm, other in roles:
+            for field in ("length", "mass", "radius", "bend_stiffness"):
+                a, b = getattr(ref, field), getattr(other, field)
+                if a is not None and b is not None and abs(b - a) > 1e-6 * abs(a):  # a file may leave EI out
+                    raise InputError(getattr(other, "file", "") or nm, field,
+                                     f"{b} here, {a} in {first} (the first --reference): all references ({role} "
+                                     "among them) must be of the same rope")
         self.length, self.mass, self.radius = float(ref.length), float(ref.mass), float(ref.radius)
         self.link = self.length / self.segments
         # Folds shorter than a loop around the rope's own thickness (or one link) are bending,
@@ -382,7 +398,10 @@ class RopeProblem(Problem):
                 row[f"{who}_hit_time"] = float(terms["hit_time"][i, j]) if hit else None
             row["scored"] = ("critical-state error of a chain that hits; a chain that never hits: its shape and "
                              "velocity error at the reference's critical time plus the time error of a hit at the end "
-                             "of the horizon")
+                             "of the horizon, a lower bound that shrinks with the recording's length after the "
+                             "contact, so such a condition is never within tolerance")
+            if len(values) == 2:  # the engine's measured / fitted pair: a chain that misses shows no event
+                row["measured_misses"], row["fitted_misses"] = not row["measured_hit"], not row["fitted_hit"]
             details.append(row)
         return errs, details
 
