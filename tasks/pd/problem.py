@@ -432,7 +432,7 @@ class PDProblem(Problem):
 
     def _start(self, log: MeasuredLog, a: float, spline) -> tuple[float, float]:
         """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives (the
-        fit then corrects that velocity, `_profiled`). The acceleration for that half step is the PD law's at the
+        fit then corrects that velocity, `_start_corrected`). The acceleration for that half step is the PD law's at the
         measured gains, not the samples' second derivative, which multiplies encoder noise by the sample rate
         squared (2 mrad at 500 Hz: K_D 66 % off)."""
         q, v, _ = start_state(log.time, log.q, a, spline)
