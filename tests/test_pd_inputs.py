@@ -264,3 +264,17 @@ def test_q_with_another_sign_or_wrapped_at_pi_is_refused(tmp_path, how, field, n
     with pytest.raises(InputError) as e:
         load_log(path)
     assert e.value.field.startswith(field) and needle in e.value.problem
+
+
+def test_the_reported_start_corrections_are_each_parts_own(tmp_path):
+    """Evaluated together the parts are cut to the shortest, so the log_fit part's correction came from its first
+    third (review of stop 46): each part's correction is its own rollout's."""
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    p = PDProblem(50.0, log=load_log(_multisine_log(tmp_path / "log.csv", rate=500.0, noise=2e-3, seed=5)))
+    values = p.space.measured * np.array([1.2, 1.0, 0.7, 1.0, 1.0])
+    reported = p.report(values, p.space.measured)["start_velocity_correction"]["per_part"]
+    for c in p.train + p.held_out:
+        assert reported[c.name] == pytest.approx(p._start_corrected(values[None], [c])[1][0, 0], rel=1e-12)
+    together = p._start_corrected(values[None], p.train + p.held_out)[1][0, 0]
+    assert abs(together - reported["log_fit"]) > 1e-6  # the shortened window gives another value

@@ -393,7 +393,11 @@ def test_a_held_out_throw_the_fitted_chain_misses_is_never_within_tolerance():
     c = v["conditions"]["cut_high"]
     assert c["fitted_misses"] and c["fitted_error"] < p.tolerance  # the bound alone would have passed
     assert c["within_tolerance"] is False and v["verdict"] == "expand" and v["fitted_misses"] == ["cut_high"]
-    assert "lower bound" in v["note"]
+    assert "lower bound" in v["note"] and v["worst_is_miss"]
+    from wrenorm.viz.report import _held_out
+
+    assert "outside tolerance" in _held_out({"validation": v}) and "within tolerance" not in _held_out(
+        {"validation": v})
 
 
 def test_references_of_another_rope_are_refused_naming_the_file_and_the_field(tmp_path):

@@ -91,7 +91,8 @@ def _verdict_block(v: dict) -> str:
     if "mean_measured_error" in v:
         numbers = (f" Mean held-out error with the measured parameters {num(v['mean_measured_error'])}, with the "
                    f"fitted ones {num(v['mean_fitted_error'])}")
-        numbers += (f" (worst {num(v.get('worst_fitted_error'))}, {v.get('worst_condition', '')}; its tolerance "
+        worst = ("no event, error at least " if v.get("worst_is_miss") else "") + num(v.get("worst_fitted_error"))
+        numbers += (f" (worst {worst}, {v.get('worst_condition', '')}; its tolerance "
                     f"{num(v.get('worst_tolerance', v.get('tolerance')))})." if "worst_fitted_error" in v else ".")
     if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")):
         numbers += f" Note: {v['note']}."
@@ -167,7 +168,7 @@ def _held_out(r: dict) -> str:
     rows = []
     for name, c in cond.items():
         fe, own = c.get("fitted_error"), c.get("tolerance", tol)
-        ok = fe is not None and own is not None and fe <= own
+        ok = c.get("within_tolerance", fe is not None and own is not None and fe <= own)
         mark = flag("within tolerance", "ok") if ok else flag("outside tolerance", "bad")
         if c.get("data_flags"):
             mark = _Html(mark + " " + flag("data flagged: not deciding", "warn"))

@@ -326,7 +326,8 @@ def _print_summary(result: dict, out: Path) -> None:
         v = r["validation"]
         print(f"  held-out verdict: {v['verdict']}" + (
             f" (mean error measured {v['mean_measured_error']:.4g} -> fitted {v['mean_fitted_error']:.4g}; the "
-            f"verdict's worst fitted {v['worst_fitted_error']:.4g} ({v.get('worst_condition', '?')}) against its "
+            f"verdict's worst fitted {'no event, at least ' if v.get('worst_is_miss') else ''}"
+            f"{v['worst_fitted_error']:.4g} ({v.get('worst_condition', '?')}) against its "
             f"tolerance {v.get('worst_tolerance', v['tolerance']):.4g})" if "worst_fitted_error" in v else ""))
         if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")):
             print(f"  {v['note']}")

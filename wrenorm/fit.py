@@ -79,32 +79,13 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
     }
     deciding = np.array([not f for f in flags])
     flagged = [c.name for c, f in zip(problem.held_out, flags) if f]
-    if flagged:
-        out["flagged_conditions"] = flagged
-    if not deciding.any():
-        return out | {"verdict": "unvalidated",
-                      "note": f"the data checks flag every held-out condition ({', '.join(flagged)}): a verdict on "
-                              "them would rest on data the checks doubt; see each condition's data_flags"}
-    # the condition furthest outside (or least inside) its own tolerance decides; a miss is outside it
-    over = np.where(deciding, np.where(misses, np.inf, errs[1] / tolerances), -np.inf)
-    j = int(np.argmax(over))
-    verdict = "absorbed" if over[j] <= 1.0 else "expand"
-    out |= {
-        "worst_fitted_error": float(errs[1, j]),
-        "worst_condition": problem.held_out[j].name,
-        "worst_tolerance": float(tolerances[j]),
-        "verdict": verdict,
-        "meaning": (
-            "absorbed: the fitted parameters reproduce conditions the search never saw within tolerance, so the "
-            "omitted physics is absorbed into them" if verdict == "absorbed" else
-            "expand: fitted parameters do not keep held-out conditions within tolerance; the parameter set or the "
-            "simulator must grow"
-        ),
-    }
     notes = []
     if flagged:
+        out["flagged_conditions"] = flagged
         notes.append(f"decided by {int(deciding.sum())} of {len(deciding)} held-out conditions: the data checks "
-                     f"flag {', '.join(flagged)}, shown but not deciding")
+                     f"flag {', '.join(flagged)}, shown but not deciding" if deciding.any() else
+                     f"the data checks flag every held-out condition ({', '.join(flagged)}): a verdict on them would "
+                     "rest on data the checks doubt; see each condition's data_flags")
     missed = [c.name for c, m in zip(problem.held_out, misses) if m]
     if missed:
         out["fitted_misses"] = missed
@@ -118,6 +99,25 @@ def _validation(problem: Problem, measured: np.ndarray, fitted: np.ndarray) -> d
                      "measured error (ratio_of_means compares against it)")
     if notes:
         out["note"] = "; ".join(notes)
+    if not deciding.any():
+        return out | {"verdict": "unvalidated"}
+    # the condition furthest outside (or least inside) its own tolerance decides; a miss is outside it
+    over = np.where(deciding, np.where(misses, np.inf, errs[1] / tolerances), -np.inf)
+    j = int(np.argmax(over))
+    verdict = "absorbed" if over[j] <= 1.0 else "expand"
+    out |= {
+        "worst_fitted_error": float(errs[1, j]),
+        "worst_condition": problem.held_out[j].name,
+        "worst_tolerance": float(tolerances[j]),
+        "worst_is_miss": bool(misses[j]),
+        "verdict": verdict,
+        "meaning": (
+            "absorbed: the fitted parameters reproduce conditions the search never saw within tolerance, so the "
+            "omitted physics is absorbed into them" if verdict == "absorbed" else
+            "expand: fitted parameters do not keep held-out conditions within tolerance; the parameter set or the "
+            "simulator must grow"
+        ),
+    }
     return out
 
 

@@ -494,17 +494,18 @@ class PDProblem(Problem):
         ref = np.stack([c.data["q_ref"][:cmds.n_steps + 1] for c in conditions])[None]
         fitted = np.array([bool(c.data.get("start_velocity_fitted")) for c in conditions])
         h = unit - base
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(all="ignore"):  # a blown-up candidate: inf and NaN, made inf by the caller's finite_or_inf
             dv = -np.sum(((base - ref) * h)[..., 1:], axis=2) / np.sum((h * h)[..., 1:], axis=2)
-        dv = np.where(fitted[None] & np.isfinite(dv), dv, 0.0)
-        return base + dv[..., None] * h, dv
+            dv = np.where(fitted[None] & np.isfinite(dv), dv, 0.0)
+            return base + dv[..., None] * h, dv
 
     def _scaled_misfit(self, values, conditions):
         cmds = self._commands(conditions)
         traj = self._start_corrected(values, conditions)[0][:, :, 1:] if self._fits_start(conditions) else \
             self.kpd.simulate(values, cmds, self.integrator, self.dt, record=True)[1][:, :, 1:]
         ref = np.stack([c.data["q_ref"][1:cmds.n_steps + 1] for c in conditions])
-        return (traj - ref[None]) / cmds.ref_scale.numpy()[None, :, None]
+        with np.errstate(all="ignore"):
+            return (traj - ref[None]) / cmds.ref_scale.numpy()[None, :, None]
 
     def trajectories(self, values, conditions):
         if self._fits_start(conditions):
@@ -566,10 +567,10 @@ class PDProblem(Problem):
         out = {"analytic": self.analytic(f), "f_sim": self.f_sim, "integrator": self.integrator_name,
                "warnings": list(self.warnings)}
         parts = self.train + self.held_out
-        if self._fits_start(parts):
-            dv = self._start_corrected(np.asarray(fitted)[None], parts)[1][0]
+        if self._fits_start(parts):  # each part alone: together they are cut to the shortest
+            dv = {c.name: float(self._start_corrected(np.asarray(fitted)[None], [c])[1][0, 0]) for c in parts}
             out["start_velocity_correction"] = {
-                "per_part": {c.name: float(d) for c, d in zip(parts, dv)},
+                "per_part": dv,
                 "meaning": "rad/s added to each log part's start velocity (estimated from the samples near its "
                            "start) by the fit at the fitted values; large against the motion's velocities: a noisy "
                            "or coarse log start"}
