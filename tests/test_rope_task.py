@@ -262,6 +262,15 @@ def test_same_recording_as_fit_and_validation_reference_is_refused(tmp_path, cap
     np.savez(tmp_path / "moved_fast.npz", **moved)
     assert same_recording(load_reference(fast), load_reference(tmp_path / "moved_fast.npz"))
     assert not same_recording(load_reference(fast), load_reference(wide))
+    # turned 0.7 rad about the vertical through the hand (other room axes): validated on, it scored the training error
+    # as the held-out one, "absorbed" (a probe of stop 46)
+    turned = reference_arrays(load_reference(fast))
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    turned.update(markers=turned["markers"] @ R.T, hand=turned["hand"] @ R.T)
+    np.savez(tmp_path / "turned_fast.npz", **turned)
+    assert same_recording(load_reference(fast), load_reference(tmp_path / "turned_fast.npz"))
+    assert not same_recording(load_reference(wide), load_reference(tmp_path / "turned_fast.npz"))
     # the same throw cut to every third marker is still that recording; the same hand path on another simulator's
     # rope is not (the hand agrees, the rope's markers at the common arc lengths do not)
     cut = reference_arrays(load_reference(fast))
