@@ -81,9 +81,8 @@ def repeated_runs(frames: np.ndarray, mover: np.ndarray) -> list[tuple[int, int,
     repeats a moving body exactly; a body at rest may repeat too, which the distance the mover covers tells apart."""
     frames = np.asarray(frames)
     same = np.all((frames[1:] == frames[:-1]).reshape(len(frames) - 1, -1), axis=1)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(int), [0]])))
     out = []
-    for a, b in zip(edges[::2], edges[1::2]):  # same[a:b]: frames a+1 .. b equal frame a
-        before, after = max(a - 1, 0), min(b + 1, len(mover) - 1)
-        out.append((int(a) + 1, int(b - a), float(np.linalg.norm(mover[after] - mover[before])), int(after - before)))
+    for a, n in true_runs(same):  # same[a:a + n]: frames a+1 .. a + n equal frame a
+        before, after = max(a - 1, 0), min(a + n + 1, len(mover) - 1)
+        out.append((a + 1, n, float(np.linalg.norm(mover[after] - mover[before])), after - before))
     return out

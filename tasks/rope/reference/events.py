@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wrenorm.jumps import largest_doublet, largest_jump, repeated_runs
+from wrenorm.jumps import largest_doublet, largest_jump, repeated_runs, true_runs
 
 VERSION = 16  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
@@ -411,9 +411,8 @@ def missing_runs(missing: np.ndarray) -> np.ndarray:
     T, M = missing.shape
     out = np.zeros((T, M), dtype=np.int64)
     for m in np.flatnonzero(missing.any(axis=0)):
-        edges = np.diff(np.concatenate([[0], missing[:, m].astype(np.int8), [0]]))
-        for s0, s1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-            out[s0:s1, m] = s1 - s0
+        for s0, n in true_runs(missing[:, m]):
+            out[s0:s0 + n, m] = n
     return out
 
 
@@ -433,9 +432,7 @@ def estimate_noise(X: np.ndarray, missing: np.ndarray | None = None) -> float:
 
 def _missing_spans(column: np.ndarray, w0: int, w1: int) -> list:
     """(first, last) frames of each run of missing samples in `column` (T,) that overlaps frames [w0, w1)."""
-    edges = np.diff(np.concatenate([[0], column.astype(np.int8), [0]]))
-    return [(int(a), int(b) - 1) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))
-            if a < w1 and b > w0]
+    return [(a, a + n - 1) for a, n in true_runs(column) if a < w1 and a + n > w0]
 
 
 def _bridged_gap_reasons(time, X, S, missing, ratio, arc, radius, margin, k, s_contact, ends, w0, w1) -> list:
