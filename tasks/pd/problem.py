@@ -347,11 +347,6 @@ def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple
     return float(c[0]), float(c[1]) / START_WINDOW, 2.0 * float(c[2]) / START_WINDOW ** 2
 
 
-# A log started mid-motion from q'(a) alone began every rollout off by dt/2 q''(a), where the integrator's velocity
-# lives (kernels/pd.VELOCITY_AT): a probe put K_D 1.3-15 % off at 100-20 Hz and the verdict to "expand"; the log's
-# held-out third always starts mid-motion.
-
-
 UNSTABLE_GROWTH = 10.0  # growth of a free oscillation over the longest command that the unstable-step line names
 
 
@@ -431,8 +426,10 @@ class PDProblem(Problem):
         return conds[:1], conds[1:]
 
     def _start(self, log: MeasuredLog, a: float, spline) -> tuple[float, float]:
-        """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives (the
-        fit then corrects that velocity, `_start_corrected`). The acceleration for that half step is the PD law's at the
+        """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives
+        (kernels/pd.VELOCITY_AT; from q'(a) alone a log started mid-motion began every rollout off by dt/2 q''(a): K_D
+        1.3-15 % off at 100-20 Hz, the verdict "expand"; the held-out third always starts mid-motion). The fit then
+        corrects that velocity (`_start_corrected`). The acceleration for the half step is the PD law's at the
         measured gains, not the samples' second derivative, which multiplies encoder noise by the sample rate
         squared (2 mrad at 500 Hz: K_D 66 % off)."""
         q, v, _ = start_state(log.time, log.q, a, spline)

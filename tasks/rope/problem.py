@@ -45,6 +45,7 @@ from wrenorm.tasks.rope.observable import (
     stack_targets,
 )
 from wrenorm.tasks.rope.options import DT_DEFAULT, FLOW_DT, FLOW_SEGMENTS, ITERATIONS, SEGMENTS_DEFAULT
+from wrenorm.tasks.rope.reference.events import estimate_noise
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
@@ -97,14 +98,12 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     s_nodes = np.linspace(0.0, 1.0, n_nodes)
     pos0 = resample(ref.markers[0], ref.marker_arclength, s_nodes)
     pos0[0] = hand[0]
-    vel0 = resample((ref.markers[1] - ref.markers[0]) / ref.dt, ref.marker_arclength, s_nodes)
+    step = (ref.markers[1] - ref.markers[0]) / ref.dt
+    vel0 = resample(step, ref.marker_arclength, s_nodes)
     # A forward difference of a rope released at rest reads g dt, not 0; references that start at rest (all built-in
     # paths do) start the chain at rest. So does one whose start velocity is within its markers' noise: 0.5 mm of it
     # read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05 over noise draws
     # against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
-    from wrenorm.tasks.rope.reference.events import estimate_noise
-
-    step = (ref.markers[1] - ref.markers[0]) / ref.dt
     missing = None if getattr(ref, "missing", None) is None else ref.missing[:20]
     noise_speed = np.sqrt(2.0) * estimate_noise(ref.markers[:20], missing) / ref.dt  # of one coordinate's difference
     # pure noise gives an RMS of noise_speed (over 3 M samples its spread is about a tenth of it): 1.5x is rest, and a

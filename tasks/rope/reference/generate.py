@@ -302,7 +302,8 @@ def same_recording(a: RopeReference, b: RopeReference) -> bool:
     # training error as the held-out one, "absorbed"; a probe of stop 46)
     cross = float(np.sum(xb[:, 0] * xa[:, 1] - xb[:, 1] * xa[:, 0]))
     dot = float(np.sum(xb[:, 0] * xa[:, 0] + xb[:, 1] * xa[:, 1]))
-    c, s = (np.cos(np.arctan2(cross, dot)), np.sin(np.arctan2(cross, dot))) if cross or dot else (1.0, 0.0)
+    angle = np.arctan2(cross, dot)  # 0 where both vanish
+    c, s = np.cos(angle), np.sin(angle)
     turned = np.stack([c * xb[:, 0] - s * xb[:, 1], s * xb[:, 0] + c * xb[:, 1], xb[:, 2]], axis=1)
     return bool(np.all(np.abs(xa - turned) <= SAME_RECORDING_TOLERANCE))
 
