@@ -71,6 +71,70 @@ def rollout(
     err[s] = wp.sqrt(acc / wp.float64(n_steps)) / ref_scale[c]
 
 
+@wp.kernel
+def rollout_start_fitted(
+    params: wp.array2d(dtype=wp.float64),
+    cond: wp.array(dtype=int),
+    q_des: wp.array2d(dtype=wp.float64),
+    qd_des: wp.array2d(dtype=wp.float64),
+    qdd_des: wp.array2d(dtype=wp.float64),
+    q_ref: wp.array2d(dtype=wp.float64),
+    ref_scale: wp.array(dtype=wp.float64),
+    init: wp.array2d(dtype=wp.float64),
+    fit_start: wp.array(dtype=int),
+    integrator: int,
+    dt: wp.float64,
+    n_steps: int,
+    record: int,
+    offset: int,
+    err: wp.array(dtype=wp.float64),
+    start_shift: wp.array(dtype=wp.float64),
+    traj: wp.array2d(dtype=wp.float64),
+    traj_unit: wp.array2d(dtype=wp.float64),
+):
+    """`rollout` with the start velocity corrected by the shift that minimises the misfit (where fit_start[cond]).
+    The joint is linear in its state, so the rollout from a shifted start is the one from the logged start plus the
+    shift times the unforced response to a unit start velocity (hq, hv): both run in this one loop, and the misfit of
+    every shift is a quadratic in it from three sums. record: traj holds the rollout from the logged start, traj_unit
+    the unit response; the corrected trajectory is traj + start_shift traj_unit."""
+    s = wp.tid() + offset
+    c = cond[s]
+    J = params[s, 0]
+    KP = params[s, 1]
+    KD = params[s, 2]
+    KFF = params[s, 3]
+    KAFF = params[s, 4]
+    q = init[c, 0]
+    v = init[c, 1]
+    hq = wp.float64(0.0)
+    hv = wp.float64(1.0)
+    dd = wp.float64(0.0)
+    dh = wp.float64(0.0)
+    hh = wp.float64(0.0)
+    if record != 0:
+        traj[s, 0] = q
+        traj_unit[s, 0] = hq
+    for k in range(n_steps):
+        tau = KP * (q_des[c, k] - q) + KD * (qd_des[c, k] - v) + KFF * qd_des[c, k] + KAFF * qdd_des[c, k]
+        q, v = _step(integrator, dt, J, tau, q, v)
+        hq, hv = _step(integrator, dt, J, -KP * hq - KD * hv, hq, hv)
+        d = q - q_ref[c, k + 1]
+        dd += d * d
+        dh += d * hq
+        hh += hq * hq
+        if record != 0:
+            traj[s, k + 1] = q
+            traj_unit[s, k + 1] = hq
+    shift = wp.float64(0.0)
+    if fit_start[c] != 0:
+        shift = -dh / hh
+        if not wp.isfinite(shift):
+            shift = wp.float64(0.0)
+    start_shift[s] = shift
+    sq = wp.max(dd + shift * (wp.float64(2.0) * dh + shift * hh), wp.float64(0.0))
+    err[s] = wp.sqrt(sq / wp.float64(n_steps)) / ref_scale[c]
+
+
 # --- tape-safe variant: every step writes its own row, so wp.Tape can replay it backwards ---
 
 
@@ -180,6 +244,37 @@ def simulate(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, r
     launch_sliced(launch, S, dev)
     errors = err.numpy().reshape(B, C)
     return errors, (traj.numpy().reshape(B, C, T + 1) if record else None)
+
+
+def simulate_start_fitted(values: np.ndarray, cmds: PDCommands, fit_start, integrator: int, dt: float,
+                          record: bool = False):
+    """`simulate` with each condition's start velocity shifted to fit (where fit_start (C,) is true): errors (B, C)
+    of the corrected rollouts, the shifts (B, C) in rad/s, and the corrected trajectories (B, C, T+1) if record. One
+    rollout: the shifted start's response runs beside the logged one."""
+    from wrenorm.kernels.launch import launch_sliced
+
+    B, C, T = values.shape[0], cmds.n_cond, cmds.n_steps
+    slot_params, cond = _slots(np.asarray(values, np.float64), C)
+    S = B * C
+    dev = cmds.device
+    params = wp.array(slot_params, dtype=wp.float64, device=dev)
+    cond_w = wp.array(cond, dtype=int, device=dev)
+    fit_w = wp.array(np.asarray(fit_start, bool).astype(np.int32), dtype=int, device=dev)
+    err = wp.zeros(S, dtype=wp.float64, device=dev)
+    shift = wp.zeros(S, dtype=wp.float64, device=dev)
+    traj, unit = (wp.zeros((S, T + 1) if record else (1, 1), dtype=wp.float64, device=dev) for _ in range(2))
+
+    def launch(offset, count):
+        wp.launch(rollout_start_fitted, dim=count, device=dev, inputs=[
+            params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, cmds.q_ref, cmds.ref_scale, cmds.init, fit_w,
+            int(integrator), wp.float64(dt), T, int(record), offset, err, shift, traj, unit])
+
+    launch_sliced(launch, S, dev)
+    shifts = shift.numpy().reshape(B, C)
+    if not record:
+        return err.numpy().reshape(B, C), shifts, None
+    corrected = traj.numpy().reshape(B, C, T + 1) + shifts[..., None] * unit.numpy().reshape(B, C, T + 1)
+    return err.numpy().reshape(B, C), shifts, corrected
 
 
 def simulate_with_grad(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, per_step: bool = False):

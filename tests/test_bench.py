@@ -18,7 +18,8 @@ def test_bench_writes_results_and_table(tmp_path):
     assert {"culled", "allpairs", "scalar", "numpy", "torch"} <= variants
     for r in res["rope"]:
         assert r["chain_steps_per_s"] > 0 and r["kernel_chain_steps_per_s"] >= r["chain_steps_per_s"] * 0.99
-    assert res["pd"][0]["joint_steps_per_s"] > 0
+    assert res["pd"][0]["joint_steps_per_s"] > 0 and res["pd"][1]["series"] == "joint, start fitted"
+    assert res["pd"][1]["joint_steps_per_s"] > 0
     table = (out / "results.md").read_text()
     assert "x numpy" in table and "PD joint" in table and "Rope task-level" in table
     assert (out / "results.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -249,6 +249,37 @@ def test_a_logs_residuals_agree_with_its_errors_and_its_trajectories(tmp_path):
         assert np.sqrt(np.mean(misfit ** 2)) == pytest.approx(errors[j], rel=1e-9)
 
 
+@pytest.mark.parametrize("integrator", ["semi-implicit", "explicit"])
+def test_the_fitted_start_is_the_best_shift_of_plain_rollouts(tmp_path, integrator):
+    """The one-loop start fit (the unit response run beside the rollout, the misfit a quadratic in the shift) against
+    plain rollouts from shifted starts: the same error at its shift, and no error lower a little either side of it."""
+    from wrenorm.kernels import pd as kpd
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    p = PDProblem(100.0, integrator=integrator,
+                  log=load_log(_multisine_log(tmp_path / "log.csv", rate=500.0, noise=2e-3, seed=11)))
+    conds = p.train + p.held_out
+    values = p.space.measured[None] * np.array([[1.0, 1.0, 1.0, 1.0, 1.0], [1.15, 1.0, 0.8, 1.0, 1.0]])
+    values[:, 3] += np.array([0.0, 0.02])
+    errors, shifts, traj = kpd.simulate_start_fitted(values, p._commands(conds), [True, False, True][:len(conds)],
+                                                     kpd.INTEGRATORS[integrator], p.dt, record=True)
+    assert np.all(shifts[:, 1] == 0.0) and np.all(np.abs(shifts[:, 0]) > 1e-3)
+    cmds = p._commands(conds)
+    init = cmds.init.numpy().copy()
+    for b in range(len(values)):
+        for j in range(len(conds)):
+            plain = []
+            for dv in (shifts[b, j] - 0.01, shifts[b, j], shifts[b, j] + 0.01):
+                cmds.init = kpd.wp.array(init + np.eye(len(conds))[j][:, None] * [0.0, dv], dtype=kpd.wp.float64)
+                e, tr = kpd.simulate(values[b:b + 1], cmds, kpd.INTEGRATORS[integrator], p.dt, record=True)
+                plain.append((e[0, j], tr[0, j]))
+            assert errors[b, j] == pytest.approx(plain[1][0], rel=1e-9)
+            np.testing.assert_allclose(traj[b, j], plain[1][1], rtol=0, atol=1e-12)
+            if shifts[b, j] != 0.0:
+                assert plain[0][0] > errors[b, j] and plain[2][0] > errors[b, j]
+    cmds.init = kpd.wp.array(init, dtype=kpd.wp.float64)
+
+
 @pytest.mark.parametrize("how,field,needle", [("negated", "q", "sign"), ("wrapped", "q row", "wrapped")])
 def test_q_with_another_sign_or_wrapped_at_pi_is_refused(tmp_path, how, field, needle):
     """q logged with the other sign convention, or modulo a turn, ended only in "expand" with gains at their bounds,

@@ -6,38 +6,50 @@ import time
 import numpy as np
 import warp as wp
 
-from wrenorm.kernels.pd import SEMI_IMPLICIT, PDCommands, simulate
+from wrenorm.kernels.pd import SEMI_IMPLICIT, PDCommands, simulate, simulate_start_fitted
 
 
-def benchmark(batch: int, steps: int = 1000, device: str = "cpu", repeats: int = 3) -> dict:
-    """Joint-steps per second of the rollout kernel (batch slots x steps)."""
+def benchmark(batch: int, steps: int = 1000, device: str = "cpu", repeats: int = 3, start_fitted: bool = False) -> dict:
+    """Joint-steps per second of the rollout kernel (batch slots x steps); start_fitted: of the rollout that fits a
+    log's start velocity as it goes (a log's `errors`), beside it in one run."""
     rng = np.random.default_rng(0)
     C = 1
     cmds = PDCommands(rng.normal(size=(C, steps)) * 0.1, np.zeros((C, steps)), np.zeros((C, steps)),
                       np.zeros((C, steps + 1)) + 0.1, np.zeros((C, 2)), device)
     values = np.tile([0.05, 20.0, 0.5, 0.0, 0.0], (batch, 1))
-    simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
+
+    def run():
+        if start_fitted:
+            simulate_start_fitted(values, cmds, [True], SEMI_IMPLICIT, 1e-3)
+        else:
+            simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
+
+    run()
     wp.synchronize_device(device)
     best = np.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
-        simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
+        run()
         wp.synchronize_device(device)
         best = min(best, time.perf_counter() - t0)
     return {"batch": batch, "steps": steps, "seconds": best, "joint_steps_per_s": batch * steps / best}
 
 
 def bench(device: str, batches: list[int], quick: bool) -> tuple[list[dict], str]:
-    """Rows for results.json and the PD section of results.md."""
+    """Rows for results.json and the PD section of results.md: the plain rollout and, measured right after it on the
+    same batch, the rollout of a log's fitted start."""
     rows = []
     for b in batches:
-        r = benchmark(b, 200 if quick else 1000, device)
-        r.update(device=device, panel="PD joint", series="joint", value=r["joint_steps_per_s"] / 1e6,
-                 unit="M joint-steps/s")
-        rows.append(r)
-        print(f"pd batch {b:6d}: {r['joint_steps_per_s'] / 1e6:8.2f} M joint-steps/s", flush=True)
-    table = ["PD joint:", "", "| batch | M joint-steps/s |", "|---|---|"]
-    table += [f"| {r['batch']} | {r['joint_steps_per_s'] / 1e6:.2f} |" for r in rows]
+        for series in ("joint", "joint, start fitted"):
+            r = benchmark(b, 200 if quick else 1000, device, start_fitted=series != "joint")
+            r.update(device=device, panel="PD joint", series=series, value=r["joint_steps_per_s"] / 1e6,
+                     unit="M joint-steps/s")
+            rows.append(r)
+            print(f"pd batch {b:6d} ({series}): {r['joint_steps_per_s'] / 1e6:8.2f} M joint-steps/s", flush=True)
+    table = ["PD joint (a log's rollout also fits its start velocity: the unit response runs beside it):", "",
+             "| batch | M joint-steps/s | start fitted |", "|---|---|---|"]
+    table += [f"| {p['batch']} | {p['joint_steps_per_s'] / 1e6:.2f} | {f['joint_steps_per_s'] / 1e6:.2f} |"
+              for p, f in zip(rows[::2], rows[1::2])]
     return rows, "\n".join(table)
 
 

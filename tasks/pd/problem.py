@@ -11,7 +11,6 @@ measured log (CSV with columns time, q, q_d, qd_d).
 """
 from __future__ import annotations
 
-import copy
 import csv
 from dataclasses import dataclass
 from pathlib import Path
@@ -451,8 +450,8 @@ class PDProblem(Problem):
 
     def errors(self, values, conditions):
         if self._fits_start(conditions):
-            r = self._scaled_misfit(values, conditions)
-            return np.sqrt(np.mean(r * r, axis=2))
+            return self.kpd.simulate_start_fitted(values, self._commands(conditions), self._start_fitted(conditions),
+                                                  self.integrator, self.dt)[0]
         errs, _ = self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt)
         return errs
 
@@ -467,16 +466,9 @@ class PDProblem(Problem):
     def _fits_start(conditions) -> bool:
         return any(c.data.get("start_velocity_fitted") for c in conditions)
 
-    def _shifted_start(self, conditions):
-        """The commands of `conditions` with every start velocity 1 rad/s higher."""
-        key = ("start + 1",) + tuple(id(c) for c in conditions)
-        if key not in self._cache:
-            shifted = copy.copy(self._commands(conditions))
-            init = shifted.init.numpy().copy()
-            init[:, 1] += 1.0
-            shifted.init = self.kpd.wp.array(init, dtype=self.kpd.wp.float64, device=self.device)
-            self._cache[key] = shifted
-        return self._cache[key]
+    @staticmethod
+    def _start_fitted(conditions) -> np.ndarray:
+        return np.array([bool(c.data.get("start_velocity_fitted")) for c in conditions])
 
     def _start_corrected(self, values, conditions):
         """Trajectories (B, C, T+1) of a log's parts with each part's start velocity corrected for each candidate:
@@ -485,16 +477,10 @@ class PDProblem(Problem):
         multiplied by the sample rate (2 mrad at 500 Hz: +-0.6 rad/s), whose start transient the gains absorbed: K_D
         19 % high, "absorbed" (a probe of stop 46); fitted per part it is 0.6 % off on that log. Also the start
         corrections (B, C), rad/s."""
-        cmds = self._commands(conditions)
-        base = self.kpd.simulate(values, cmds, self.integrator, self.dt, record=True)[1]
-        unit = self.kpd.simulate(values, self._shifted_start(conditions), self.integrator, self.dt, record=True)[1]
-        ref = np.stack([c.data["q_ref"][:cmds.n_steps + 1] for c in conditions])[None]
-        fitted = np.array([bool(c.data.get("start_velocity_fitted")) for c in conditions])
-        h = unit - base
-        with np.errstate(all="ignore"):  # a blown-up candidate: inf and NaN, made inf by the caller's finite_or_inf
-            dv = -np.sum(((base - ref) * h)[..., 1:], axis=2) / np.sum((h * h)[..., 1:], axis=2)
-            dv = np.where(fitted[None] & np.isfinite(dv), dv, 0.0)
-            return base + dv[..., None] * h, dv
+        _, shift, traj = self.kpd.simulate_start_fitted(values, self._commands(conditions),
+                                                        self._start_fitted(conditions), self.integrator, self.dt,
+                                                        record=True)
+        return traj, shift
 
     def _scaled_misfit(self, values, conditions):
         cmds = self._commands(conditions)
