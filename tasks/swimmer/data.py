@@ -475,12 +475,21 @@ def _check_tail_jumps(source: str, local: np.ndarray) -> None:
                              "joined, or frames missing? give one continuous take")
 
 
+def beat_windows(t: np.ndarray, freq: float) -> list[np.ndarray]:
+    """Index arrays of the complete beats of the clock (beat b: t in [b/f, (b+1)/f)), t from 0."""
+    period = 1.0 / freq
+    dt = float(np.median(np.diff(t)))
+    n = int(np.floor((t[-1] + dt) / period + 1e-6))
+    eps = 1e-6 * dt
+    return [np.nonzero((t >= b * period - eps) & (t < (b + 1) * period - eps))[0] for b in range(n)]
+
+
 def beat_speeds(rate: Rate) -> np.ndarray:
-    """The forward speed over each complete tail beat of a clip (the straight-line rule of measured_speed)."""
-    per = rate.fps / rate.tail_freq
-    n = int(np.floor(len(rate.markers) / per + 1e-9))
-    edges = np.round(np.arange(n + 1) * per).astype(int)
-    return np.array([measured_speed(rate.markers[a:b], rate.fps) for a, b in zip(edges[:-1], edges[1:]) if b - a > 2])
+    """The forward speed over each complete tail beat of a clip (the straight-line rule of measured_speed), on the
+    beats the features are cut into."""
+    t = np.arange(len(rate.markers)) / rate.fps
+    return np.array([measured_speed(rate.markers[idx], rate.fps) for idx in beat_windows(t, rate.tail_freq)
+                     if len(idx) > 2])
 
 
 def clip_flags(rate: Rate) -> list[str]:

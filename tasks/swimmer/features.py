@@ -112,15 +112,6 @@ def detrend(t: np.ndarray, y: np.ndarray, freq: float, degree: int = TREND_DEGRE
     return y - (y @ pinv) @ trend
 
 
-def beat_windows(t: np.ndarray, freq: float) -> list[np.ndarray]:
-    """Index arrays of the complete beats of the clock (beat b: t in [b/f, (b+1)/f)), t from 0."""
-    period = 1.0 / freq
-    dt = float(np.median(np.diff(t)))
-    n = int(np.floor((t[-1] + dt) / period + 1e-6))
-    eps = 1e-6 * dt
-    return [np.nonzero((t >= b * period - eps) & (t < (b + 1) * period - eps))[0] for b in range(n)]
-
-
 def _beat_harmonics(t: np.ndarray, y: np.ndarray, freq: float, with_slope: bool = False):
     """Complex amplitudes c_k (..., K) of y = Re(c_k exp(i k w t)) + const (+ slope t) over one beat."""
     def build():
@@ -145,7 +136,7 @@ def beat_features(t: np.ndarray, m0: np.ndarray, m1: np.ndarray, tip_y: np.ndarr
     s_d, l_d, y_d = (detrend(t, q, freq) for q in (s, l, yaw))
     out = {k: [] for k in ("speed", "yaw", "sway", "surge1", "surge2", "yaw_h", "sway_h", "surge_h")}
     k_pow = np.arange(1, HARMONICS + 1)
-    for idx in beat_windows(t, freq):
+    for idx in data.beat_windows(t, freq):
         tt = t[idx]
         tip, _ = _beat_harmonics(tt, tip_y[idx], freq)
         rot = tip[0] / abs(tip[0])                              # the tail's phase this beat
