@@ -616,6 +616,27 @@ def test_parameters_file_errors(problem, tmp_path):
                       1.1 * problem.space["bend_stiffness"].measured)
 
 
+def test_a_fit_of_another_rope_is_refused(problem, tmp_path):
+    """A fit rope result of the default rope steered the heavy rope with the default's effective values and no word (a
+    probe of stop 47): the file's measured values (the rope's mass, thickness, stiffness) must be this rope's."""
+    f = tmp_path / "result.json"
+    same = {p.name: {"measured": p.measured, "fitted": p.measured * 1.1 if p.measured else 0.0}
+            for p in problem.space.parameters}
+    f.write_text(json.dumps({"task": "rope", "resolution": dict(problem.resolution), "parameters": same}))
+    assert np.isclose(parameters_from_file(f, problem)[problem.space.index("radius")],
+                      1.1 * problem.space["radius"].measured)
+    stiffer = same | {"bend_stiffness": {"measured": 3.3 * problem.space["bend_stiffness"].measured,
+                                         "fitted": problem.space["bend_stiffness"].measured}}
+    f.write_text(json.dumps({"task": "rope", "resolution": dict(problem.resolution), "parameters": stiffer}))
+    with pytest.raises(InputError) as e:
+        parameters_from_file(f, problem)
+    assert e.value.field == "parameters.bend_stiffness.measured" and "another rope" in e.value.problem
+    heavier = same | {"mass": {"measured": 2.0 * problem.space["mass"].measured, "frozen": True}}
+    f.write_text(json.dumps({"task": "rope", "resolution": dict(problem.resolution), "parameters": heavier}))
+    with pytest.raises(InputError, match=r"parameters\.mass\.measured"):
+        parameters_from_file(f, problem)
+
+
 def test_cli_bad_input_exits_2(tmp_path, capsys):
     from wrenorm.cli import main
 

@@ -1007,6 +1007,14 @@ def parameters_from_file(path, problem) -> np.ndarray:
     values = problem.space.measured.copy()
     for i, prm in enumerate(problem.space.parameters):
         entry = params.get(prm.name)
+        # the measured values are the rope's mass, thickness and stiffness: a fit of another rope steers this one with
+        # that rope's effective values (a fit of the default rope ran the heavy rope's trials without a word)
+        theirs = entry.get("measured") if isinstance(entry, dict) else None
+        ours = problem.space.measured[i]
+        if isinstance(theirs, (int, float)) and not np.isclose(theirs, ours, rtol=1e-6, atol=1e-12):
+            raise InputError(src, f"{w}parameters.{prm.name}.measured",
+                             f"{theirs:g} there and {ours:g} on the rope this correction steers: a fit of another "
+                             "rope; fit this one (fit rope --reference its throws) or use --params fitted")
         if prm.frozen:
             if isinstance(entry, dict) and entry.get("frozen") is False:
                 raise InputError(src, f"{w}parameters.{prm.name}", "was fitted there, and the correction's chain holds "
