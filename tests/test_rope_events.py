@@ -671,3 +671,75 @@ def test_a_recording_that_ends_as_the_rope_closes_in_is_no_silent_no_contact(tmp
         assert c.event is None
         assert ("ends while the rope closes in" in c.problem) == closing, c.problem
         assert c.detection.status == ("unusable" if closing else "no_contact")
+
+
+def _twelve_markers(z, s):
+    nodes, s_nodes = z["dense_nodes"].astype(np.float64), z["dense_arclength"]
+    markers = np.stack([np.interp(s, s_nodes, nodes[:, :, k][t]) for t in range(len(nodes)) for k in range(3)])
+    return markers.reshape(len(nodes), 3, len(s)).transpose(0, 2, 1)
+
+
+@pytest.mark.parametrize("kind", ["linear", "cubic"])
+def test_gaps_the_tracker_filled_read_as_the_gaps_they_were(tmp_path, kind):
+    """A tracker fills an occlusion with a line or a cubic in time, written as if observed: beside the contact that put
+    it 45 ms late with high confidence (a probe of stop 47). Those samples now load as missing, so the event reads as
+    the same gap left as NaN does (bridged, and said); the untouched recording marks nothing."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    s = np.linspace(0.0, 1.0, 12)
+    markers = _twelve_markers(z, s)
+    t = z["time"] - z["time"][0]
+    t_c = float(z["sim_contact_time"]) - z["time"][0]
+    a, b = int(np.searchsorted(t, t_c - 0.03)), int(np.searchsorted(t, t_c + 0.01))  # 40 ms around the contact
+    base = {k: z[k] for k in ("time", "hand", "length", "mass", "radius")} | {"marker_arclength": s}
+    refs = {}
+    for name in ("clean", "filled", "nan"):
+        m = markers.copy()
+        for j in (4, 5, 9, 10):
+            if name == "nan":
+                m[a + 1:b, j] = np.nan
+            elif name == "filled":
+                if kind == "linear":
+                    m[a + 1:b, j] = m[a, j] + (t[a + 1:b, None] - t[a]) / (t[b] - t[a]) * (m[b, j] - m[a, j])
+                else:
+                    from scipy.interpolate import CubicSpline
+
+                    keep = np.r_[0:a + 1, b:len(t)]
+                    m[a + 1:b, j] = CubicSpline(t[keep], m[keep, j], axis=0)(t[a + 1:b])
+        np.savez(tmp_path / f"{name}.npz", **base, markers=m)
+        refs[name] = load_reference(tmp_path / f"{name}.npz")
+    assert refs["clean"].missing is None
+    assert refs["filled"].missing is not None and np.array_equal(refs["filled"].missing, refs["nan"].missing)
+    found = {n: critical(r).detection for n, r in refs.items()}
+    assert found["clean"].status == "contact" and found["clean"].confidence == "high"
+    assert found["filled"].status == found["nan"].status != "contact"  # 40 ms bounding the contact: unusable
+    assert found["filled"].reasons == found["nan"].reasons
+
+
+def test_a_hand_recorded_off_the_held_end_is_refused_even_with_arc_lengths(tmp_path):
+    """marker_arclength[0] = 0 says marker 0 is the held end; a hand recorded as a wrist body 36 mm from it drove the
+    chain from there (a bend stiffness 100x off with a tight std, a probe of stop 47): refused on `hand`."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    s = np.linspace(0.0, 1.0, 12)
+    data = {k: z[k] for k in ("time", "length", "mass", "radius")} | {"markers": _twelve_markers(z, s),
+                                                                       "marker_arclength": s}
+    np.savez(tmp_path / "held.npz", **data, hand=z["hand"])
+    assert load_reference(tmp_path / "held.npz").missing is None
+    np.savez(tmp_path / "wrist.npz", **data, hand=z["hand"] + np.array([0.0, 0.02, 0.03]))
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "wrist.npz")
+    assert e.value.field == "hand" and "36 mm" in e.value.problem
+
+
+def test_a_frame_tilted_from_gravity_is_said(tmp_path):
+    """A frame tilted 3 deg kept the measured chain, which falls along -z, from ever hitting itself, and nothing said
+    so (a probe of stop 47). A rope that starts at rest hangs along gravity (the references: 0.00 deg): a tilt over 2
+    deg is said; the level recording says nothing of it."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    angle = np.radians(3.0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(angle), -np.sin(angle)], [0.0, np.sin(angle), np.cos(angle)]])
+    base = {k: z[k] for k in ("time", "length", "mass", "radius")}
+    np.savez(tmp_path / "level.npz", **base, markers=z["markers"], hand=z["hand"])
+    np.savez(tmp_path / "tilted.npz", **base, markers=z["markers"] @ turn.T, hand=z["hand"] @ turn.T)
+    said = {n: [w for w in critical(load_reference(tmp_path / f"{n}.npz")).warnings if "off -z" in w]
+            for n in ("level", "tilted")}
+    assert said["level"] == [] and len(said["tilted"]) == 1 and "3.0 deg" in said["tilted"][0]

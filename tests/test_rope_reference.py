@@ -105,7 +105,7 @@ def test_save_refuses_bad_reference_and_keeps_old_file(tmp_path):
     (lambda d: d.update(radius=1e-226), "radius"),  # its square underflows: found by test_fuzz_one_field
     (lambda d: d.update(mass=-1.0), "mass"),
     (lambda d: d.update(marker_arclength=d["marker_arclength"][::-1].copy()), "marker_arclength"),
-    (lambda d: d.update(hand=d["hand"] + 0.5), "markers"),  # marker 0 is not at the hand
+    (lambda d: d.update(hand=d["hand"] + 0.5), "hand"),  # marker 0 (arc length 0) is not at the hand
     (lambda d: d.update(length=0.3), "markers"),  # markers spread over more than the rope length
     (lambda d: d.update(length=2 * L), "length"),  # ... over half of it, marker_arclength given (was "in contact")
     (lambda d: d.update(length=1.1 * L), "length"),  # 10 % long: a confident contact 23 ms early

@@ -33,6 +33,7 @@ Method (README, "Events in motion capture", has the measurements behind every th
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -368,6 +369,45 @@ def interval_bounds(X: np.ndarray, S: np.ndarray, radius: float, excl: float, iv
 
 
 # ---------------------------------------------------------------------------------------- missing markers
+
+FILL_RATIO = 1e-3  # a sample window this much smoother (4th difference) than the marker's motion around it ..
+FILL_WINDOW = 30  # .. within this many frames either side, over 2 or more windows in a row ..
+FILL_MOVE = 1e-3  # m .. while the marker moves at least this far: a gap the recording software filled
+
+
+def software_filled(markers: np.ndarray, skip: tuple[int, ...] = (), resolution: float = 0.0) -> np.ndarray:
+    """(T, M) bool: samples a tracker's gap filling wrote, which look observed. Filled samples beside the contact put
+    it 45 ms late with high confidence (a probe of stop 47); read as missing they are bridged and flagged like any
+    other gap. A line in time has no 2nd differences, which a marker on a rope moving under gravity always has (a
+    tip in free flight: g dt^2); a cubic has no 4th differences, which a free-flying tip nearly shares (a parabola),
+    so a cubic is told only where the file's numbers resolve it: its 4th differences below 1e-3 of the motion's
+    around it and that level 3000 times the file's number `resolution` (m; float32 at 1 m: 1.2e-7; a float32 file
+    at 200 Hz is below it, and its cubic fills go unseen). `skip`: markers that follow a polynomial by design
+    (marker 0 on the hand, whose path is a Bezier curve)."""
+    X = np.asarray(markers, np.float64)
+    T, M, _ = X.shape
+    out = np.zeros((T, M), bool)
+    if T < 2 * FILL_WINDOW:
+        return out
+    stencils = {2: (np.array([1.0, -2.0, 1.0]), 3, 10.0, 1e3), 4: (np.array([1.0, -4.0, 6.0, -4.0, 1.0]), 2, 0.0, 3e3)}
+    for m in range(M):
+        if m in skip:
+            continue
+        for coef, least_windows, slack, above in stencils.values():
+            w = len(coef)
+            d = np.linalg.norm(sum(c * X[k:T - w + 1 + k, m] for k, c in enumerate(coef)), axis=1)
+            finite = np.isfinite(d)
+            padded = np.pad(d, FILL_WINDOW, constant_values=np.nan)
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN window: no level, nothing marked
+                level = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, 2 * FILL_WINDOW + 1), axis=1)
+                smooth = finite & (level > above * resolution) & (d < FILL_RATIO * level + slack * resolution)
+            for a, n in true_runs(smooth):  # windows a .. a+n-1 span samples a .. a+n+w-2, one polynomial
+                end = a + n + w - 2
+                if n >= least_windows and np.linalg.norm(X[end, m] - X[a, m]) >= FILL_MOVE:
+                    out[a + 1:end, m] = True  # its ends are the observed samples the filling joined
+    return out
+
 
 def bridge_missing(markers: np.ndarray, dt: float, hand: np.ndarray | None = None, held_at_hand: bool = False):
     """Fill NaN marker samples by cubic interpolation in time (linear with fewer than 4 samples).
@@ -1058,11 +1098,37 @@ def closest_pair_at(ref, t: float):
     return float(gap), float(sab[0]), float(sab[1])
 
 
+REST_SPEED = 0.05  # m/s: markers' first step below this, the rope starts in its rest shape ..
+REST_TILT_DEG = 2.0  # .. and a rope hanging at rest further off -z than this says the frame is tilted
+
+
+def rest_tilt(ref) -> tuple[float, float] | None:
+    """(degrees off -z of the hand-to-rope-centre direction, speed of the markers' first step) when the rope starts
+    nearly at rest, else None. A rope hanging at rest from the hand hangs along gravity (the built-in, test and
+    generated references: 0.00 deg); a frame tilted 3 deg kept the measured chain, which falls along -z, from ever
+    hitting itself, and nothing said so (a probe of stop 47)."""
+    m, h = np.asarray(ref.markers, np.float64), np.asarray(ref.hand, np.float64)
+    if len(m) < 2:
+        return None
+    speed = float(np.nanmax(np.linalg.norm(m[1] - m[0], axis=1)) / (ref.time[1] - ref.time[0]))
+    centre = np.nanmean(m[0], axis=0) - h[0]
+    norm = np.linalg.norm(centre)
+    if not (speed < REST_SPEED and norm > 0):
+        return None
+    return float(np.degrees(np.arccos(np.clip(-centre[2] / norm, -1.0, 1.0)))), speed
+
+
 def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
     """The critical moment a reference contributes: its `critical_time` annotation when present (checked by
     the loader to lie inside the time axis), else the detected first contact."""
     det = detect_reference(ref)
     warnings = []
+    tilt = rest_tilt(ref)
+    if tilt is not None and tilt[0] > REST_TILT_DEG:
+        warnings.append(f"the rope starts nearly at rest (first step {tilt[1]:.3f} m/s) but hangs {tilt[0]:.1f} deg "
+                        "off -z (hand to rope centre): a frame tilted from gravity? the chain falls along -z, and a "
+                        "3 deg tilt kept it from hitting itself; level the frame, unless the rope was held so that it "
+                        "did not hang freely")
     missing = getattr(ref, "missing", None)
     if missing is not None and np.any(missing):
         cols = np.flatnonzero(np.any(missing, axis=0)).tolist()
