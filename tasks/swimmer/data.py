@@ -9,12 +9,15 @@ Formats (Michelis et al., srl-ethz/fishsim, MIT licence):
                             but the heading is constant by construction: Rate.frame "head", and
                             the head's yaw and sway cannot be measured from it).
 Label X.YZ (motor rate in Hz) comes from the file name (markers_fX.YZ.csv and any case read alike; another name
-that starts like a clip, markers_f1.csv or markers_f1_00_take2.csv, is refused); the frame rate is the format's 60
-fps unless given (--fps). Refused: two files of one label and kind, a marker at exactly (0, 0) (a tracking
-dropout), rotated files whose head markers are not ~0.142 m apart (not metres), clips in which many frames repeat
+that starts like a clip, markers_f1.csv or markers_f1_00_take2.csv, and any other CSV whose name holds "marker",
+markers_f_1_25.csv or fish_markers_f1_25.csv, is refused; other CSVs are left out with a warning, Rate.meta
+"load_warnings"); the frame rate is the format's 60 fps unless given (--fps). Refused: two files of one label and
+kind, a marker at exactly (0, 0) (a tracking dropout), rotated files whose head markers are not ~0.142 m apart (not
+metres), clips in which many frames repeat
 the previous one exactly (duplicated frames) or a few in a row do (a held tracker), frames cut out of a clip (the
 head's jump, in either format), a tail base not where this robot's is (another body), tail markers that swap order
-along the body during the clip (a tracker swapping identities).
+along the body during the clip (a tracker swapping identities), rows deleted from a clip (every marker's step 2-4x
+its neighbours'), a label of 0 Hz, two clips sharing most of their rows (one clip under two labels).
 Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
@@ -62,13 +65,31 @@ MAX_HEAD_DRIFT = 0.10  # the head markers' pixel distance, last third of the cli
 # changes along the path, as under a tilted camera (the five: -0.016 to -0.051; tilted 20-30 deg: up to 0.16)
 MAX_TAIL_JUMP = 10.0  # x the larger median step of a tail marker before and after it, in the head frame, for two or
 # more tail markers at one frame: two takes joined (the five clips: at most 4.6-6.3; seams: 10-24 on 2-3 markers)
+MAX_STEP_RATIO = 1.8  # a frame step along the mean of the steps either side of it, all markers but the one that
+# deviates most (_check_dropped_rows): a row deleted makes it ~2, two ~3, three ~4. The five clips at 60 fps: at most
+# 1.29; resampled to 25/30/50/120 fps: 1.35, but 1.64 for the 0.50 Hz clip at 120 fps (sub-pixel steps). Rows deleted
+# in runs of 1-3 (4 % of the rows): 2.5-4.1, speeds 5 % fast. A single deleted row (ratio 1.6-1.9 under the pixel
+# noise) goes unseen alone; so do deletions in the 0.50 Hz clip, whose markers move ~1 px a frame
+CLEAR_STEP_RATIO = 2.5  # .. one such step alone must reach this (two rows or more), else two steps must pass 1.8:
+# a foreign clip slower or finer than these (the 0.50 Hz clip at 120 fps: 1.64) may reach 1.8 once by noise
+MAX_SHARED_ROWS = 0.5  # share of the shorter clip's rows found exactly in another clip: one track under two labels
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
 # off by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by)
 # fishsim's names, markers_f1_00.csv; a decimal point (markers_f1.00.csv) and any case of the letters read alike
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)[_.](\d+)\.csv$", re.IGNORECASE)
 _CLIP_LIKE = re.compile(r"^(markers|rotatedmarkers)_f\d.*\.csv$", re.IGNORECASE)
+_MARKER_LIKE = re.compile(r"marker.*\.csv$", re.IGNORECASE)  # any CSV naming markers is meant as a clip
 BUILTIN = "fishsim_kinematics.npz"
+# A rotatedMarkers file's forward track is the head's frame-to-frame steps measured along the head's own axis, which
+# yaws with every beat, and summed (its marker-0 x follows that sum within 3-5 mm over the clip), with a sideways drift
+# summed alike: a path along the wobble, longer than the straight line, so its speed comes out high. The five fishsim
+# clips, rotated file against pixel file, same rule (measured_speed): +7.5 % (0.50 Hz), +6.7 (1.00), +4.8 (1.25),
+# +2.7 (1.75), +0.8 (2.25), most where the head wobbles much for little progress
+ROTATED_SPEED_NOTE = ("the forward speed of a rotatedMarkers clip is read from a track that sums the head's "
+                      "frame-to-frame steps along its yawing axis: 0.8-7.5 % above the same clip's markers_*.csv "
+                      "(straight-line) speed on the five fishsim clips, most at the lowest rates (0.50 Hz +7.5 %, "
+                      "2.25 Hz +0.8 %); give the markers_*.csv where there is one")
 
 
 @dataclass
@@ -117,6 +138,11 @@ def _read_csv(path: Path, columns: int) -> np.ndarray:
 
 def read_pixel_markers(path: Path) -> np.ndarray:
     """markers_*.csv -> (frames, 9, 2) metres (scale from the head-marker distance)."""
+    return _read_pixel(path)[1]
+
+
+def _read_pixel(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """markers_*.csv -> its rows as read (frames, 18) and the markers (frames, 9, 2) in metres."""
     data = _read_csv(path, 2 * N_MARKERS)
     if len(data) < MIN_FRAMES:
         raise InputError(str(path), "rows", f"{len(data)} frames, need at least {MIN_FRAMES}")
@@ -126,7 +152,7 @@ def read_pixel_markers(path: Path) -> np.ndarray:
     _check_head(path, markers, rows_per_frame=1)
     _check_jumps(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
-    return markers * (HEAD_MARKER_DISTANCE / head_px)
+    return data, markers * (HEAD_MARKER_DISTANCE / head_px)
 
 
 def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int) -> None:
@@ -139,8 +165,8 @@ def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int)
         marker = which[k]
         row = frame * rows_per_frame + (marker + 1 if rows_per_frame > 1 else 1)
         raise InputError(str(path), f"row {row} marker {marker}", f"at exactly (0, 0) in frame {frame + 1} "
-                         f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate or remove "
-                         "those frames")
+                         f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate those markers "
+                         "from the frames either side (rows removed would be read as frames cut out of the clip)")
 
 
 def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
@@ -178,6 +204,36 @@ def _check_jumps(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
                          "jump; give the clip without gaps")
 
 
+def _check_dropped_rows(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
+    """Rows are frames at one rate with no time column, so rows deleted where the tracker lost the fish for a frame or
+    three leave a step of every marker 2-4x the steps either side of it, under the head's jump limit: read through, the
+    clip swims too fast (rows deleted in runs of 1-3, 4 % of them: speeds +5 %, coefficients several stds off). With
+    d_k all markers' step from frame k to k+1 and p_k = (d_{k-1} + d_{k+1}) / 2, the step's ratio (d_k . p_k) /
+    (p_k . p_k) is ~1 in a clip and ~n + 1 where n rows are missing; the marker that raises it most is left out of
+    the sums, so one marker's tracking glitch is no deleted row (the 0.50 Hz clip's marker 5 jumps 13 px once)."""
+    d = np.diff(markers, axis=0)
+    if len(d) < 3:
+        return
+    p, c = 0.5 * (d[:-2] + d[2:]), d[1:-1]
+    num, den = np.einsum("kij,kij->ki", c, p), np.einsum("kij,kij->ki", p, p)
+    k, worst = np.arange(len(num)), np.argmax(num - den, axis=1)
+    num_rest, den_rest = num.sum(axis=1) - num[k, worst], den.sum(axis=1) - den[k, worst]
+    ratio = np.where(den_rest > 0, num_rest / np.where(den_rest > 0, den_rest, 1.0), 0.0)
+    held = ~np.any(d != 0, axis=(1, 2))  # a frame that repeats the one before is _check_repeated_frames' (one or two
+    ratio[held[:-2] | held[2:]] = 0.0  # in a row pass it: a pixel's rounding), and the step after it makes up for it
+    big = np.nonzero(ratio >= MAX_STEP_RATIO)[0]
+    if not big.size or (big.size < 2 and ratio.max() < CLEAR_STEP_RATIO):  # one step near the noise is no evidence
+        return
+    j = int(big[np.argmax(ratio[big])])  # the step from frame j + 1 to j + 2 (0-based)
+    first, last = (j + 1) * rows_per_frame + 1, (j + 3) * rows_per_frame
+    frames = ", ".join(f"{b + 2}-{b + 3}" for b in big[:6]) + (", ..." if len(big) > 6 else "")
+    steps = f"{len(big)} such step{'s' if len(big) > 1 else ''} in the clip, between frames {frames}"
+    raise InputError(str(path), f"rows {first}-{last}", f"every marker steps {ratio[j]:.1f} x the mean of its steps "
+                     f"either side between frames {j + 2} and {j + 3} ({steps}): rows deleted where the tracker lost "
+                     "the fish? rows are read as consecutive frames, so the clip would swim too fast; put the lost "
+                     "frames back, interpolated from the frames either side (no NaN or empty rows are read)")
+
+
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
     """The head frame (heading, pixel scale) needs head markers 0 and 1 apart in every frame."""
     apart = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1) > 0
@@ -200,6 +256,8 @@ def read_rotated_markers(path: Path) -> np.ndarray:
     _check_repeated_frames(path, markers)
     _check_head(path, markers, rows_per_frame=N_MARKERS)
     _check_jumps(path, markers, rows_per_frame=N_MARKERS)
+    # no _check_dropped_rows: in the head frame the steps of the tail markers are the tail's own wave and the head's
+    # track a sum of steps along its yawing axis; the five rotated files reach 2.1-2.9 in full, as if rows were missing
     # no pixel scale here: the file must already be in metres (a mm or cm export would swim at km/h)
     apart = float(np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean())
     lo, hi = (HEAD_MARKER_DISTANCE * f for f in HEAD_DISTANCE_RANGE)
@@ -240,14 +298,22 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
         raise InputError(str(path), "--data", "is a file: name the folder that holds the markers_f*.csv clips"
                          if path.exists() else "directory not found")
     by_kind: dict[tuple[str, float], Path] = {}
+    notes = []  # CSVs left out, said with the clips' flags (Rate.meta "load_warnings")
     for f in sorted(path.iterdir()):
         got = _label_of(f)
         if got is None:
-            if _CLIP_LIKE.match(f.name):  # meant as a clip: left out, the fit would run on fewer rates in silence
+            if _CLIP_LIKE.match(f.name) or (f.is_file() and _MARKER_LIKE.search(f.name)):
+                # meant as a clip (markers_f_1_25.csv, fish_markers_f1_25.csv): left out, the fit would run on
+                # fewer rates in silence
                 raise InputError(str(f), "file name", "looks like a clip but is not named markers_fX_YZ.csv or "
                                  "rotatedMarkers_fX_YZ.csv (label X.YZ Hz, e.g. markers_f2_25.csv or "
                                  "markers_f2.25.csv): rename it, or move it out of the folder")
+            if f.is_file() and f.suffix.lower() == ".csv":
+                notes.append(f"{f}: not read: only markers_fX_YZ.csv and rotatedMarkers_fX_YZ.csv files are clips")
             continue
+        if got[1] <= 0:  # the label is the motor rate, and the tail-beat check divides by it
+            raise InputError(str(f), "label", f"{got[1]:.2f} Hz: the motor rate in the name must be positive "
+                             "(markers_fX_YZ.csv, X.YZ Hz)")
         if got in by_kind:  # markers_f1_0.csv and markers_f1_00.csv: keeping either would hide the other
             raise InputError(str(path), "file names", f"{by_kind[got].name} and {f.name} both hold label "
                              f"{got[1]:.2f} Hz: keep one")
@@ -258,13 +324,39 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
             found[label] = (kind, f)
     if not found:
         raise InputError(str(path), "--data", "no markers_f*.csv or rotatedMarkers_f*.csv files")
-    rates = []
+    rates, rows = [], []
     for label in sorted(found):
         kind, f = found[label]
-        markers = read_pixel_markers(f) if kind == "markers" else read_rotated_markers(f)
+        if kind == "markers":
+            raw, markers = _read_pixel(f)
+        else:
+            markers = read_rotated_markers(f)
+            raw = markers.reshape(len(markers), -1)
+        rows.append((f, kind, raw))
         rates.append(analyse(Rate(label=label, markers=markers, source=f.name, fps=fps,
                                   frame="world" if kind == "markers" else "head")))
+        if kind == "markers":  # after the clip's own checks: a more telling refusal (a tail with no beat) comes first
+            _check_dropped_rows(f, raw.reshape(len(raw), N_MARKERS, 2), rows_per_frame=1)
+    _check_copies(rows)
+    for r in rates:
+        r.meta["load_warnings"] = list(notes)
     return rates
+
+
+def _check_copies(rows: list[tuple[Path, str, np.ndarray]]) -> None:
+    """Tracked video never gives two clips the same rows: most rows of one clip found exactly in another is one track
+    delivered under two labels (a held-out clip that copies a training clip validates the fit on its own data), also
+    when one is a trimmed copy of the other."""
+    seen = [(f, kind, len(raw), {r.tobytes() for r in np.ascontiguousarray(raw)}) for f, kind, raw in rows]
+    for i, (f, kind, raw) in enumerate(rows):
+        for g, kind_g, n_g, other in seen[:i]:
+            if kind_g != kind:  # pixels against metres: no row can match
+                continue
+            shared = sum(r.tobytes() in other for r in np.ascontiguousarray(raw))
+            if shared > MAX_SHARED_ROWS * min(len(raw), n_g):
+                raise InputError(str(f), "rows", f"{shared} of its {len(raw)} rows are rows of {g} ({n_g} rows), "
+                                 "exactly: one clip under two labels (a copy, or a trimmed copy)? each label needs "
+                                 "its own recording")
 
 
 def tail_beat_check(rates: list[Rate]) -> dict:

@@ -1,0 +1,119 @@
+"""Robotic-fish clips delivered in foreign ways that once went through in silence (a probe of stop 71): rows deleted
+where the tracker lost the fish, clips under names the loader skipped, one clip under two labels, a 0 Hz label, and
+the rotatedMarkers files' higher speed. Each foreign clip is built from the real fishsim tracks in a tmp folder."""
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wrenorm.errors import InputError
+from wrenorm.tasks.swimmer import data as sd
+from wrenorm.tasks.swimmer import problem as swimmer
+
+SRC = Path("/work/shared/data/fishsim/markers")
+LABELS = ("0_50", "1_00", "1_25", "1_75", "2_25")
+
+pytestmark = pytest.mark.skipif(not SRC.is_dir(), reason="the fishsim marker clips are not on this machine")
+
+
+def _pixels(lab: str) -> np.ndarray:
+    return np.loadtxt(SRC / f"markers_f{lab}.csv", delimiter=",")
+
+
+def _write(folder: Path, name: str, rows: np.ndarray) -> Path:
+    path = folder / name
+    np.savetxt(path, rows, delimiter=",", fmt="%.6f")
+    return path
+
+
+def test_swimmer_real_clips_have_no_dropped_rows():
+    assert [r.source for r in sd.load_dir(SRC)] == [f"markers_f{lab}.csv" for lab in LABELS]
+
+
+@pytest.mark.parametrize("lab", ["1_00", "1_75", "2_25"])
+def test_swimmer_dropped_rows_refused(tmp_path, lab):
+    """The tracker lost the fish for 1-3 frames and those rows were deleted: every marker steps 2-4x its usual step
+    there, the head's jump stays under its limit, and the clip read on the implicit clock swims ~5 % fast."""
+    rows = _pixels(lab)
+    keep = np.ones(len(rows), bool)
+    for first, n in ((40, 2), (120, 3), (200, 1), (250, 2)):
+        keep[first:first + n] = False
+    path = _write(tmp_path, f"markers_f{lab}.csv", rows[keep])
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.source == str(path) and e.value.field.startswith("rows ")
+    assert "rows deleted" in e.value.problem and "interpolated" in e.value.problem
+
+
+@pytest.mark.parametrize("name", ["markers_f_1_25.csv", "markers_1_25.csv", "fish_markers_f1_25.csv",
+                                  "Markers f1_25.csv"])
+def test_swimmer_misnamed_clip_refused(tmp_path, name):
+    for lab in ("1_00", "1_75"):
+        shutil.copy(SRC / f"markers_f{lab}.csv", tmp_path)
+    shutil.copy(SRC / "markers_f1_25.csv", tmp_path / name)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.source == str(tmp_path / name) and e.value.field == "file name"
+    assert "markers_fX_YZ.csv" in e.value.problem
+
+
+def test_swimmer_other_csv_left_out_with_a_warning(tmp_path):
+    for lab in ("1_00", "1_75"):
+        shutil.copy(SRC / f"markers_f{lab}.csv", tmp_path)
+    (tmp_path / "notes.csv").write_text("a,b\n1,2\n")
+    (tmp_path / "readme.txt").write_text("not a csv")
+    rates = sd.load_dir(tmp_path)
+    assert [r.label for r in rates] == [1.0, 1.75]
+    said = rates[0].meta["load_warnings"]
+    assert len(said) == 1 and "notes.csv" in said[0] and "not read" in said[0]
+    assert said[0] in swimmer.SwimmerProblem(rates, [1.0], dt=0.016).warnings
+
+
+def test_swimmer_no_warning_without_other_csv():
+    assert all(r.meta["load_warnings"] == [] for r in sd.load_dir(SRC))
+
+
+@pytest.mark.parametrize("trim", [None, (30, 250)])
+def test_swimmer_copied_clip_refused(tmp_path, trim):
+    """The training clip 1.75 delivered again as a held-out 1.80 (whole, or a trimmed part of it)."""
+    for lab in ("1_00", "1_25", "1_75"):
+        shutil.copy(SRC / f"markers_f{lab}.csv", tmp_path)
+    rows = _pixels("1_75")
+    _write(tmp_path, "markers_f1_80.csv", rows if trim is None else rows[trim[0]:trim[1]])
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.source == str(tmp_path / "markers_f1_80.csv") and e.value.field == "rows"
+    assert "markers_f1_75.csv" in e.value.problem
+
+
+def test_swimmer_real_clips_share_no_rows():
+    rates = sd.load_dir(SRC)  # five distinct recordings, each its own label
+    assert len(rates) == 5
+
+
+def test_swimmer_zero_label_refused(tmp_path):
+    for lab in ("1_00", "1_75"):
+        shutil.copy(SRC / f"markers_f{lab}.csv", tmp_path)
+    shutil.copy(SRC / "markers_f1_25.csv", tmp_path / "markers_f0_00.csv")
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.source == str(tmp_path / "markers_f0_00.csv") and e.value.field == "label"
+    assert "positive" in e.value.problem
+
+
+def test_swimmer_rotated_speed_offset_said(tmp_path):
+    """A rotatedMarkers clip's speed comes out 0.8-7.5 % above its pixel file's (the head's steps summed along its
+    yawing axis); the warning for rotated clips says so, and the numbers in it are the five clips'."""
+    offsets = {}
+    for lab in LABELS:
+        px = sd.read_pixel_markers(SRC / f"markers_f{lab}.csv")
+        rot = sd.read_rotated_markers(SRC / f"rotatedMarkers_f{lab}.csv")
+        offsets[lab] = sd.measured_speed(rot) / sd.measured_speed(px) - 1.0
+    assert min(offsets.values()) == pytest.approx(0.008, abs=0.002)
+    assert max(offsets.values()) == pytest.approx(0.075, abs=0.002) and offsets["0_50"] == max(offsets.values())
+    for lab in ("1_00", "1_25", "1_75"):
+        shutil.copy(SRC / f"rotatedMarkers_f{lab}.csv", tmp_path)
+    rates = sd.load_dir(tmp_path)
+    said = [w for w in swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016).warnings if "rotatedMarkers" in w]
+    assert len(said) == 1 and "0.8-7.5 %" in said[0] and "yawing axis" in said[0]
