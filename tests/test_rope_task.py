@@ -279,6 +279,14 @@ def test_same_recording_as_fit_and_validation_reference_is_refused(tmp_path, cap
     assert same_recording(load_reference(fast), load_reference(tmp_path / "cut_fast.npz"))
     newton_fast = load_reference(data / "newton_default_flick_fast.npz")
     assert not same_recording(load_reference(fast), newton_fast)
+    # the same throw with its first 30 and last 20 frames cut (its own origin, the hand at its new first frame) is
+    # still that recording (stop 47); cut from another throw it is not
+    for src, expect in ((fast, True), (wide, False)):
+        trimmed = reference_arrays(load_reference(src))
+        trimmed.update(time=trimmed["time"][30:-20], markers=trimmed["markers"][30:-20], hand=trimmed["hand"][30:-20])
+        np.savez(tmp_path / "trimmed.npz", **trimmed)
+        assert same_recording(load_reference(fast), load_reference(tmp_path / "trimmed.npz")) is expect
+        assert same_recording(load_reference(tmp_path / "trimmed.npz"), load_reference(fast)) is expect
     common = ["--generations", "2", "--popsize", "4", "--no-record", "--quiet"]
     cases = [(["--reference", str(fast), str(wide), "--validate", str(copy)], "as --reference and as --validate"),
              (["--reference", str(fast), str(copy)], "twice among --reference"),

@@ -293,9 +293,10 @@ def same_recording(a: RopeReference, b: RopeReference) -> bool:
     loader has moved each horizontal origin to its hand (so a copy moved in x, y is the same recording, whatever its
     clock or file name). Not found: a copy rounded to float32 and moved tens of metres (it differs by a few um).
     Marker sets of different sizes are one recording when the hand and every marker at an arc length both files
-    hold (at least two) agree so: the same throw cut to fewer markers."""
+    hold (at least two) agree so: the same throw cut to fewer markers. Of different lengths: the same throw with frames
+    cut from its start or end (_trimmed_copy; not found: one also turned, cut to fewer markers or resampled)."""
     if a.markers.shape[0] != b.markers.shape[0]:
-        return False
+        return _trimmed_copy(a, b) if a.markers.shape[0] > b.markers.shape[0] else _trimmed_copy(b, a)
     if a.markers.shape == b.markers.shape and np.array_equal(a.marker_arclength, b.marker_arclength):
         ia = ib = np.arange(a.markers.shape[1])
     else:
@@ -321,6 +322,31 @@ def same_recording(a: RopeReference, b: RopeReference) -> bool:
     c, s = np.cos(angle), np.sin(angle)
     turned = np.stack([c * xb[:, 0] - s * xb[:, 1], s * xb[:, 0] + c * xb[:, 1], xb[:, 2]], axis=1)
     return bool(np.all(np.abs(xa - turned) <= SAME_RECORDING_TOLERANCE))
+
+
+def _trimmed_copy(long: RopeReference, short: RopeReference) -> bool:
+    """Whether `short` is `long` with frames cut from its start or end (the same markers): a held-out throw that is a
+    training throw trimmed validated the fit on its own data. Each file's horizontal origin is its own first hand
+    position, so frame j of `short` is frame k + j of `long` moved by the hand's position at k."""
+    if long.markers.shape[1:] != short.markers.shape[1:] or not np.array_equal(long.marker_arclength,
+                                                                                short.marker_arclength):
+        return False
+    miss = [np.zeros(r.markers.shape[:2], bool) if r.missing is None else np.asarray(r.missing, bool)
+            for r in (long, short)]
+    xl, xs = np.asarray(long.markers, np.float64), np.asarray(short.markers, np.float64)
+    hl, hs = np.asarray(long.hand, np.float64), np.asarray(short.hand, np.float64)
+    n = len(xs)
+    first = (xs[0] - hs[0])[~miss[1][0]]
+    for k in range(len(xl) - n + 1):
+        if not np.array_equal(miss[0][k], miss[1][0]) or np.any(
+                np.abs((xl[k] - hl[k])[~miss[0][k]] - first) > SAME_RECORDING_TOLERANCE):
+            continue
+        shift = hl[k] - hs[0]
+        seen = ~miss[1]
+        if np.array_equal(miss[0][k:k + n], miss[1]) and np.all(
+                np.abs(xl[k:k + n][seen] - shift - xs[seen]) <= SAME_RECORDING_TOLERANCE):
+            return True
+    return False
 
 
 def load_reference(path) -> RopeReference:
