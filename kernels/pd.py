@@ -41,62 +41,24 @@ def rollout(
     q_ref: wp.array2d(dtype=wp.float64),
     ref_scale: wp.array(dtype=wp.float64),
     init: wp.array2d(dtype=wp.float64),
-    integrator: int,
-    dt: wp.float64,
-    n_steps: int,
-    record: int,
-    offset: int,
-    err: wp.array(dtype=wp.float64),
-    traj: wp.array2d(dtype=wp.float64),
-):
-    s = wp.tid() + offset
-    c = cond[s]
-    J = params[s, 0]
-    KP = params[s, 1]
-    KD = params[s, 2]
-    KFF = params[s, 3]
-    KAFF = params[s, 4]
-    q = init[c, 0]
-    v = init[c, 1]
-    acc = wp.float64(0.0)
-    if record != 0:
-        traj[s, 0] = q
-    for k in range(n_steps):
-        tau = KP * (q_des[c, k] - q) + KD * (qd_des[c, k] - v) + KFF * qd_des[c, k] + KAFF * qdd_des[c, k]
-        q, v = _step(integrator, dt, J, tau, q, v)
-        d = q - q_ref[c, k + 1]
-        acc += d * d
-        if record != 0:
-            traj[s, k + 1] = q
-    err[s] = wp.sqrt(acc / wp.float64(n_steps)) / ref_scale[c]
-
-
-@wp.kernel
-def rollout_start_fitted(
-    params: wp.array2d(dtype=wp.float64),
-    cond: wp.array(dtype=int),
-    q_des: wp.array2d(dtype=wp.float64),
-    qd_des: wp.array2d(dtype=wp.float64),
-    qdd_des: wp.array2d(dtype=wp.float64),
-    q_ref: wp.array2d(dtype=wp.float64),
-    ref_scale: wp.array(dtype=wp.float64),
-    init: wp.array2d(dtype=wp.float64),
     fit_start: wp.array(dtype=int),
     integrator: int,
     dt: wp.float64,
     n_steps: int,
     record: int,
+    record_unit: int,
     offset: int,
     err: wp.array(dtype=wp.float64),
     start_shift: wp.array(dtype=wp.float64),
     traj: wp.array2d(dtype=wp.float64),
     traj_unit: wp.array2d(dtype=wp.float64),
 ):
-    """`rollout` with the start velocity corrected by the shift that minimises the misfit (where fit_start[cond]).
-    The joint is linear in its state, so the rollout from a shifted start is the one from the logged start plus the
-    shift times the unforced response to a unit start velocity (hq, hv): both run in this one loop, and the misfit of
-    every shift is a quadratic in it from three sums. record: traj holds the rollout from the logged start, traj_unit
-    the unit response; the corrected trajectory is traj + start_shift traj_unit."""
+    """Slot s's rollout and its error against q_ref, with the start velocity corrected by the shift that minimises the
+    misfit where fit_start[cond] (a measured log's noisy start). The joint is linear in its state, so the rollout from
+    a shifted start is the one from the given start plus the shift times the unforced response to a unit start
+    velocity (hq, hv): both run in this one loop (as fast as the rollout alone: `bench`), and the misfit of every shift
+    is a quadratic in it from three sums. record: traj holds the rollout from the given start, and with record_unit
+    traj_unit the unit response; the corrected trajectory is traj + start_shift traj_unit."""
     s = wp.tid() + offset
     c = cond[s]
     J = params[s, 0]
@@ -113,6 +75,7 @@ def rollout_start_fitted(
     hh = wp.float64(0.0)
     if record != 0:
         traj[s, 0] = q
+    if record_unit != 0:
         traj_unit[s, 0] = hq
     for k in range(n_steps):
         tau = KP * (q_des[c, k] - q) + KD * (qd_des[c, k] - v) + KFF * qd_des[c, k] + KAFF * qdd_des[c, k]
@@ -124,14 +87,17 @@ def rollout_start_fitted(
         hh += hq * hq
         if record != 0:
             traj[s, k + 1] = q
+        if record_unit != 0:
             traj_unit[s, k + 1] = hq
     shift = wp.float64(0.0)
+    sq = dd  # a blown-up rollout keeps its inf here
     if fit_start[c] != 0:
         shift = -dh / hh
-        if not wp.isfinite(shift):
+        if wp.isfinite(shift):
+            sq = wp.max(dd + shift * (wp.float64(2.0) * dh + shift * hh), wp.float64(0.0))
+        else:
             shift = wp.float64(0.0)
     start_shift[s] = shift
-    sq = wp.max(dd + shift * (wp.float64(2.0) * dh + shift * hh), wp.float64(0.0))
     err[s] = wp.sqrt(sq / wp.float64(n_steps)) / ref_scale[c]
 
 
@@ -225,25 +191,8 @@ def _slots(values: np.ndarray, n_cond: int):
 
 def simulate(values: np.ndarray, cmds: PDCommands, integrator: int, dt: float, record: bool = False):
     """values (B, 5) -> errors (B, C) [normalised RMS of q - q_ref], and trajectories (B, C, T+1) if record."""
-    from wrenorm.kernels.launch import launch_sliced
-
-    B, C, T = values.shape[0], cmds.n_cond, cmds.n_steps
-    slot_params, cond = _slots(np.asarray(values, np.float64), C)
-    S = B * C
-    dev = cmds.device
-    params = wp.array(slot_params, dtype=wp.float64, device=dev)
-    cond_w = wp.array(cond, dtype=int, device=dev)
-    err = wp.zeros(S, dtype=wp.float64, device=dev)
-    traj = wp.zeros((S, T + 1) if record else (1, 1), dtype=wp.float64, device=dev)
-
-    def launch(offset, count):
-        wp.launch(rollout, dim=count, device=dev, inputs=[
-            params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, cmds.q_ref, cmds.ref_scale, cmds.init,
-            int(integrator), wp.float64(dt), T, int(record), offset, err, traj])
-
-    launch_sliced(launch, S, dev)
-    errors = err.numpy().reshape(B, C)
-    return errors, (traj.numpy().reshape(B, C, T + 1) if record else None)
+    errors, _, traj = simulate_start_fitted(values, cmds, np.zeros(cmds.n_cond, bool), integrator, dt, record)
+    return errors, traj
 
 
 def simulate_start_fitted(values: np.ndarray, cmds: PDCommands, fit_start, integrator: int, dt: float,
@@ -262,18 +211,22 @@ def simulate_start_fitted(values: np.ndarray, cmds: PDCommands, fit_start, integ
     fit_w = wp.array(np.asarray(fit_start, bool).astype(np.int32), dtype=int, device=dev)
     err = wp.zeros(S, dtype=wp.float64, device=dev)
     shift = wp.zeros(S, dtype=wp.float64, device=dev)
-    traj, unit = (wp.zeros((S, T + 1) if record else (1, 1), dtype=wp.float64, device=dev) for _ in range(2))
+    record_unit = record and bool(np.any(fit_start))
+    traj = wp.zeros((S, T + 1) if record else (1, 1), dtype=wp.float64, device=dev)
+    unit = wp.zeros((S, T + 1) if record_unit else (1, 1), dtype=wp.float64, device=dev)
 
     def launch(offset, count):
-        wp.launch(rollout_start_fitted, dim=count, device=dev, inputs=[
+        wp.launch(rollout, dim=count, device=dev, inputs=[
             params, cond_w, cmds.q_des, cmds.qd_des, cmds.qdd_des, cmds.q_ref, cmds.ref_scale, cmds.init, fit_w,
-            int(integrator), wp.float64(dt), T, int(record), offset, err, shift, traj, unit])
+            int(integrator), wp.float64(dt), T, int(record), int(record_unit), offset, err, shift, traj, unit])
 
     launch_sliced(launch, S, dev)
     shifts = shift.numpy().reshape(B, C)
     if not record:
         return err.numpy().reshape(B, C), shifts, None
-    corrected = traj.numpy().reshape(B, C, T + 1) + shifts[..., None] * unit.numpy().reshape(B, C, T + 1)
+    corrected = traj.numpy().reshape(B, C, T + 1)
+    if record_unit:
+        corrected = corrected + shifts[..., None] * unit.numpy().reshape(B, C, T + 1)
     return err.numpy().reshape(B, C), shifts, corrected
 
 
