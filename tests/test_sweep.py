@@ -629,3 +629,51 @@ def test_nothing_at_the_address_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--address" in err and "ray start --head" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_done_cells_warnings_are_in_the_table_and_equal_seeds_plot(tmp_path):
+    """A cell whose coarse model diverged said so in its result.json, but sweep.csv showed it as done beside the others
+    (a probe of stop 47): the fit's warnings are a column. Three seeds with one value: their mean can round a hair past
+    them, and the plot's negative error bar ended a finished sweep in a traceback (the same probe)."""
+    import numpy as np
+
+    from wrenorm.sweep import table
+    from wrenorm.sweep.spec import load
+    from wrenorm.viz.sweep_plot import plot_sweep
+
+    x = next(v for v in np.random.default_rng(0).uniform(0.01, 0.1, 1000) if np.mean([v, v, v]) > v)
+    spec = load(_write(tmp_path, 'task = "fit pd"\nseeds = [0, 1, 2]\n[axes]\nf-sim = [100, 200]\n'))
+    records = {c.id: {"status": "done"} for c in spec.cells}
+    said = "the semi-implicit update at f_sim 100 Hz is unstable with the fitted values"
+    results = {c.id: {"schema": "wrenorm.result/1", "loss": {"measured": 1.0, "fitted": 0.5},
+                      "warnings": [said] if c.index == 0 else [],
+                      "parameters": {"J": {"fitted": float(x), "std": 0.001, "frozen": False}}} for c in spec.cells}
+    rows = table.build(spec, records, results)
+    assert rows[0]["warnings"] == said and all(r["warnings"] == "" for r in rows[1:])
+    table.write_csv(tmp_path / "sweep.csv", spec, rows)
+    assert _rows(tmp_path)[0]["warnings"] == said
+    assert plot_sweep(tmp_path / "sweep.png", spec, rows, ["J"]) is not False
+    assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_sweep_folder_another_process_writes_is_refused_and_resume_force_too(tmp_path, capsys):
+    """A second sweep on the same --out with --force while the first ran emptied the folder under it: both said "done"
+    over a mix of the two (a probe of stop 47). The folder is held by the process writing it; --resume with --force is
+    refused as `fit` refuses it."""
+    _ray()
+    spec = _write(tmp_path)
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from wrenorm.runfolder import hold_folder; "
+                               f"hold_folder({str(out)!r}); print('held', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for extra in (["--force"], ["--resume"]):
+            assert main(["sweep", str(spec), "--out", str(out), *extra]) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "another wrenorm process is writing this folder now" in err, err
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["sweep", str(spec), "--out", str(out), "--resume", "--force"]) == 2
+    assert "--force: cannot go with --resume" in capsys.readouterr().err

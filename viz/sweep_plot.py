@@ -51,8 +51,9 @@ def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
                         continue
                     x.append(xs[v])
                     mid.append(ys.mean())
-                    lo.append(ys.mean() - ys.min())
-                    hi.append(ys.max() - ys.mean())
+                    # equal values: their mean can round a hair past them, and a negative bar is refused
+                    lo.append(max(ys.mean() - ys.min(), 0.0))
+                    hi.append(max(ys.max() - ys.mean(), 0.0))
                     ax.plot([xs[v]] * len(ys), ys, ".", color=f"C{g % 10}", alpha=0.35, ms=4)
                 label = ", ".join(f"{a}={k}" for a, k in zip(others, key)) if others and g < MAX_LINES else None
                 if x:

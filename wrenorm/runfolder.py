@@ -15,6 +15,8 @@ from pathlib import Path
 from .errors import InputError
 
 MARKER = ".wrenorm-run"
+LOCK = ".wrenorm-lock"  # held by the process writing the folder (hold_folder); no part of the run, kept by --force
+_held: dict = {}  # folder -> open lock file, for the life of the process
 
 
 def _is_run(folder: Path) -> bool:
@@ -36,6 +38,39 @@ def _guard(out: Path, inputs) -> None:
             raise InputError(str(out), "--out", f"holds an input of this command ({item}): refusing to clear it")
 
 
+def hold_folder(out) -> None:
+    """Take the folder for this process, before prepare_out: a second sweep on the same --out (with --force, or
+    --resume) while the first ran had emptied or rewritten it under the first, both saying "done" over a mix of the
+    two (a probe of stop 47). Refused in one line while another process holds it; released when this one ends, also
+    when it is killed. Where the platform has no advisory locks (not POSIX), nothing is held."""
+    try:
+        import fcntl
+    except ImportError:
+        return
+    out = Path(out)
+    key = str(out.resolve())
+    if key in _held:
+        return
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        f = open(out / LOCK, "a+")
+    except OSError as e:
+        raise InputError(str(out), "--out", f"cannot be written: {e.strerror or e}") from None
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        who = f.read().strip()
+        f.close()
+        raise InputError(str(out), "--out", f"another wrenorm process is writing this folder now ({who or 'pid ?'}): "
+                                            "wait for it to end, or give another --out") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()}, since {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
+    f.flush()
+    _held[key] = f
+
+
 def prepare_out(out, resume: bool = False, force: bool = False, state: str | None = None, inputs=(),
                 command: str = "") -> Path:
     """The run folder, ready to write into. Refuses to clobber an earlier run unless told to (--force), or
@@ -47,7 +82,7 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
     for parent in out.parents:
         if parent.exists() and not parent.is_dir():
             raise InputError(str(out), "--out", f"cannot be created: {parent} is a file")
-    existing = out.exists() and any(out.iterdir())
+    existing = out.exists() and any(c.name != LOCK for c in out.iterdir())
     if resume and force:  # one keeps the folder, the other empties it: which was meant is not ours to guess
         raise InputError(str(out), "--force", "cannot go with --resume: --resume continues the run in this folder, "
                                               "--force empties it for a new one; give one of them")
@@ -68,6 +103,8 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
                                                   ".wrenorm-run marker): refusing to clear it")
         _guard(out, inputs)
         for child in out.iterdir():
+            if child.name == LOCK:
+                continue
             if child.is_dir() and not child.is_symlink():
                 shutil.rmtree(child)
             else:

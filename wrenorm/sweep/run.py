@@ -271,7 +271,7 @@ def _warm_configs(spec) -> list:
 
 def cmd_sweep(args) -> int:
     from wrenorm.cli import content_hashes
-    from wrenorm.runfolder import prepare_out
+    from wrenorm.runfolder import hold_folder, prepare_out
 
     from .spec import load
 
@@ -285,6 +285,11 @@ def cmd_sweep(args) -> int:
     resume = args.resume or args.retry_failed
     out = args.out or Path("runs") / f"sweep-{spec.system}-{time.strftime('%Y%m%d-%H%M%S')}"
     records, results = {}, {}
+    if resume and args.force:  # checked before the folder is taken: prepare_out says why
+        prepare_out(out, resume=True, force=True)
+    if resume and not Path(out).exists():
+        prepare_out(out, resume=True, state=STATE_FILE, command="sweep")  # says there is nothing to resume
+    hold_folder(out)
     if resume:
         out = prepare_out(out, resume=True, state=STATE_FILE, command="sweep")
         records = _load_state(out, spec).get("records", {})
@@ -518,6 +523,10 @@ def _finish(sweep: dict) -> None:
     print(f"\nsweep {spec.task}: {done}/{len(spec.cells)} cells done, {len(failed)} failed")
     for c in failed:
         print(f"  {c.id}: {records[c.id].get('error')}")
+    warned = list(dict.fromkeys(r["cell"] for r in rows if r.get("warnings")))
+    if warned:
+        print(f"  {len(warned)} done cell{'s' if len(warned) > 1 else ''} with warnings ({', '.join(warned[:8])}"
+              f"{', ...' if len(warned) > 8 else ''}): see the `warnings` column of sweep.csv")
     if "ray_start_s" in timing:
         ov = _overhead({k: records[k] for k in records})
         print(f"Ray start-up {timing['ray_start_s']:.1f} s (+ warm-up {timing['startup_s'] - timing['ray_start_s']:.1f}"

@@ -3,9 +3,10 @@ spreadsheet.
 
 Columns: cell, the axes, seed, status, resolution; per parameter its fitted value (`J`) and standard deviation
 (`J_std`), as `fitted_J` and `fitted_J_std` where an axis is named `J` too (the axis column keeps the swept value);
-loss_measured, loss_fitted; per held-out condition heldout_<name>_measured / _fitted, heldout_mean_fitted,
-verdict; error; then the columns that differ from run to run of the same cell (VOLATILE): the fit's own
-wall_seconds, the cell's cell_seconds (as the worker saw it), host, started, finished.
+loss_measured, loss_fitted; warnings (the fit's own, joined by "; "); per held-out condition
+heldout_<name>_measured / _fitted, heldout_mean_fitted, verdict; error; then the columns that differ from run to run
+of the same cell (VOLATILE): the fit's own wall_seconds, the cell's cell_seconds (as the worker saw it), host,
+started, finished.
 """
 from __future__ import annotations
 
@@ -41,6 +42,9 @@ def _fitted_columns(point: dict, std_key: str, axes) -> dict:
         row[f"{col}_std"] = p.get(std_key)
     loss = point.get("loss", {})
     row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
+    # what the fit said of its own result (a diverged coarse model, a search that found nothing better) travels with
+    # its numbers: a summary without it showed a blown-up cell as "done" beside the others
+    row["warnings"] = "; ".join(map(str, point.get("warnings") or []))
     return row
 
 
