@@ -163,6 +163,13 @@ def rms_kernel(acc: wp.array(dtype=wp.float64), cond: wp.array(dtype=int), ref_s
     err[s] = wp.sqrt(acc[s] / wp.float64(n_steps)) / ref_scale[cond[s]]
 
 
+def motion_scale(q_ref: np.ndarray, origin) -> np.ndarray:
+    """The scale of each condition's error: the RMS of its q_ref (C, T+1) about its origin (C,), after the start."""
+    q_ref = np.atleast_2d(np.asarray(q_ref, np.float64))
+    origin = np.asarray(origin, np.float64).reshape(-1)
+    return np.maximum(np.sqrt(np.mean((q_ref[:, 1:] - origin[:, None]) ** 2, axis=1)), 1e-12)
+
+
 class PDCommands:
     """Commands and reference trajectories of C conditions, sampled at the simulator's steps."""
 
@@ -178,8 +185,7 @@ class PDCommands:
         # around 2 rad) does not shrink the relative error (it turned a friction log's "expand" into "absorbed");
         # the built-in commands move about q = 0, where this is the RMS of q itself
         origin = np.zeros(len(q_ref)) if origin is None else np.asarray(origin, np.float64)
-        scale = np.sqrt(np.mean((q_ref[:, 1:] - origin[:, None]) ** 2, axis=1))
-        self.ref_scale = wp.array(np.maximum(scale, 1e-12), dtype=wp.float64, device=device)
+        self.ref_scale = wp.array(motion_scale(q_ref, origin), dtype=wp.float64, device=device)
         self.init = wp.array(init, dtype=wp.float64, device=device)
 
 

@@ -341,6 +341,12 @@ def test_the_noise_of_q_is_estimated_from_the_samples():
     for sigma in (1e-4, 1e-3):
         noisy = smooth + sigma * np.random.default_rng(1).standard_normal(len(t))
         assert q_noise(noisy) == pytest.approx(sigma, rel=0.05)
+    # a 12-bit encoder's counts on a slow, small motion: most 4th differences are exactly 0; its rounding is step /
+    # sqrt(12) (review of stop 47: it read 0), written as a log writes it (9 digits)
+    count = 2 * np.pi / 4096
+    for scale in (0.05, 0.5):
+        logged = np.array([float(f"{v:.9g}") for v in np.round(scale * np.sin(0.5 * t) / count) * count])
+        assert q_noise(logged) >= count / np.sqrt(12) * 0.999
 
 
 def test_friction_absorbed_within_tolerance_is_said(tmp_path):

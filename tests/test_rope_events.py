@@ -709,6 +709,8 @@ def test_gaps_the_tracker_filled_read_as_the_gaps_they_were(tmp_path, kind):
         refs[name] = load_reference(tmp_path / f"{name}.npz")
     assert refs["clean"].missing is None
     assert refs["filled"].missing is not None and np.array_equal(refs["filled"].missing, refs["nan"].missing)
+    assert refs["filled"].tracker_filled == int(refs["nan"].missing.sum()) > 0 == refs["nan"].tracker_filled
+    assert any("gap filling" in w for w in critical(refs["filled"]).warnings)
     found = {n: critical(r).detection for n, r in refs.items()}
     assert found["clean"].status == "contact" and found["clean"].confidence == "high"
     assert found["filled"].status == found["nan"].status != "contact"  # 40 ms bounding the contact: unusable
@@ -738,8 +740,13 @@ def test_a_frame_tilted_from_gravity_is_said(tmp_path):
     angle = np.radians(3.0)
     turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(angle), -np.sin(angle)], [0.0, np.sin(angle), np.cos(angle)]])
     base = {k: z[k] for k in ("time", "length", "mass", "radius")}
-    np.savez(tmp_path / "level.npz", **base, markers=z["markers"], hand=z["hand"])
-    np.savez(tmp_path / "tilted.npz", **base, markers=z["markers"] @ turn.T, hand=z["hand"] @ turn.T)
+    noise = 5e-4 * np.random.default_rng(3).standard_normal(z["markers"].shape)  # a rope at rest reads 0.2-0.5 m/s
+    for tag, extra in (("", 0.0), ("_noisy", noise)):
+        np.savez(tmp_path / f"level{tag}.npz", **base, markers=z["markers"] + extra, hand=z["hand"])
+        np.savez(tmp_path / f"tilted{tag}.npz", **base, markers=(z["markers"] + extra) @ turn.T,
+                 hand=z["hand"] @ turn.T)
     said = {n: [w for w in critical(load_reference(tmp_path / f"{n}.npz")).warnings if "off -z" in w]
-            for n in ("level", "tilted")}
-    assert said["level"] == [] and len(said["tilted"]) == 1 and "3.0 deg" in said["tilted"][0]
+            for n in ("level", "tilted", "level_noisy", "tilted_noisy")}
+    assert said["level"] == said["level_noisy"] == []
+    assert len(said["tilted"]) == 1 and "3.0 deg" in said["tilted"][0]
+    assert len(said["tilted_noisy"]) == 1 and " 3.0 deg" in said["tilted_noisy"][0]

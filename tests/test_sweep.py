@@ -654,6 +654,10 @@ def test_a_done_cells_warnings_are_in_the_table_and_equal_seeds_plot(tmp_path):
     assert _rows(tmp_path)[0]["warnings"] == said
     assert plot_sweep(tmp_path / "sweep.png", spec, rows, ["J"]) is not False
     assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+    # a flow's points say theirs in one string, `warning` (the review of stop 47: the column stayed empty there)
+    flow = {"points": [{"resolution": {"f_sim": 50}, "parameters": {}, "loss": {}, "warning": said},
+                       {"resolution": {"f_sim": 100}, "parameters": {}, "loss": {}, "warning": None}]}
+    assert [r["warnings"] for r in table.result_rows("flow", flow)] == [said, ""]
 
 
 def test_a_sweep_folder_another_process_writes_is_refused_and_resume_force_too(tmp_path, capsys):
@@ -677,3 +681,8 @@ def test_a_sweep_folder_another_process_writes_is_refused_and_resume_force_too(t
         holder.wait()
     assert main(["sweep", str(spec), "--out", str(out), "--resume", "--force"]) == 2
     assert "--force: cannot go with --resume" in capsys.readouterr().err
+    mine = tmp_path / "mine"  # not wrenorm's: refused, and nothing is left in it
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    assert main(["sweep", str(spec), "--out", str(mine), "--force"]) == 2
+    assert "not written by wrenorm" in capsys.readouterr().err and sorted(os.listdir(mine)) == ["notes.txt"]

@@ -1,4 +1,4 @@
-"""Robotic-fish clips delivered in foreign ways that once went through in silence (a probe of stop 71): rows deleted
+"""Robotic-fish clips delivered in foreign ways that once went through in silence (a probe of stop 47): rows deleted
 where the tracker lost the fish, clips under names the loader skipped, one clip under two labels, a 0 Hz label, and
 the rotatedMarkers files' higher speed. Each foreign clip is built from the real fishsim tracks in a tmp folder."""
 import shutil
@@ -63,6 +63,7 @@ def test_swimmer_other_csv_left_out_with_a_warning(tmp_path):
         shutil.copy(SRC / f"markers_f{lab}.csv", tmp_path)
     (tmp_path / "notes.csv").write_text("a,b\n1,2\n")
     (tmp_path / "readme.txt").write_text("not a csv")
+    (tmp_path / "._markers_f1_00.csv").write_bytes(b"\x00\x05\x16\x07")  # a Mac's resource fork: hidden, not read
     rates = sd.load_dir(tmp_path)
     assert [r.label for r in rates] == [1.0, 1.75]
     said = rates[0].meta["load_warnings"]

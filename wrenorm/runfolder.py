@@ -42,15 +42,20 @@ def hold_folder(out) -> None:
     """Take the folder for this process, before prepare_out: a second sweep on the same --out (with --force, or
     --resume) while the first ran had emptied or rewritten it under the first, both saying "done" over a mix of the
     two (a probe of stop 47). Refused in one line while another process holds it; released when this one ends, also
-    when it is killed. Where the platform has no advisory locks (not POSIX), nothing is held."""
+    when it is killed. Where the platform or the file system has no advisory locks (not POSIX; Lustre mounted
+    noflock), nothing is held; a folder that is not wrenorm's is left to prepare_out to refuse, untouched."""
     try:
         import fcntl
     except ImportError:
         return
+    import errno
+
     out = Path(out)
     key = str(out.resolve())
     if key in _held:
         return
+    if out.is_dir() and not _is_run(out) and any(c.name != LOCK for c in out.iterdir()):
+        return  # not wrenorm's: prepare_out refuses it, and nothing may be left in it
     try:
         out.mkdir(parents=True, exist_ok=True)
         f = open(out / LOCK, "a+")
@@ -58,7 +63,10 @@ def hold_folder(out) -> None:
         raise InputError(str(out), "--out", f"cannot be written: {e.strerror or e}") from None
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except OSError as e:
+        if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):  # a file system without locks: none held
+            f.close()
+            return
         f.seek(0)
         who = f.read().strip()
         f.close()

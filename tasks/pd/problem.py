@@ -353,9 +353,21 @@ UNEXPLAINED = 3.0  # a held-out misfit this many times what the noise explains (
 
 def q_noise(q: np.ndarray) -> float:
     """The samples' own scatter (rad): 4th differences take out any motion smooth over five samples, and their
-    median absolute value is robust to a few spikes (white noise sigma: 4th difference sigma sqrt(70))."""
-    d4 = np.diff(np.asarray(q, np.float64), 4)
-    return float(1.4826 * np.median(np.abs(d4)) / np.sqrt(70.0)) if len(d4) else 0.0
+    median absolute value is robust to a few spikes (white noise sigma: 4th difference sigma sqrt(70)). An encoder's
+    counts put q on a grid, where most 4th differences of a slow motion are exactly 0 (a 12-bit encoder on a 0.05 rad
+    motion read 0, review of stop 47): never less than the grid's rounding, step / sqrt(12)."""
+    q = np.asarray(q, np.float64)
+    d4 = np.diff(q, 4)
+    if not len(d4):
+        return 0.0
+    sigma = float(1.4826 * np.median(np.abs(d4)) / np.sqrt(70.0))
+    steps = np.abs(np.diff(q))
+    steps = steps[steps > 1e-9 * max(float(np.max(np.abs(q))), 1e-300)]
+    if steps.size >= 10:
+        count = steps / steps.min()
+        if np.all(np.abs(count - np.round(count)) < 1e-3 * np.maximum(count, 1.0)):  # on a grid of steps.min()
+            sigma = max(sigma, float(steps.min()) / np.sqrt(12.0))
+    return sigma
 
 
 UNSTABLE_GROWTH = 10.0  # growth of a free oscillation over the longest command that the unstable-step line names
@@ -422,7 +434,8 @@ class PDProblem(Problem):
                 # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
                 # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
                 "q_ref": q_spline(t), "init": self._start(log, a, q_spline), "origin": float(np.mean(q_spline(t))),
-                "start_velocity_fitted": True, "noise_floor": noise / _motion(q_spline(t))},
+                "start_velocity_fitted": True, "noise_floor": noise / float(
+                    self.kpd.motion_scale(q_spline(t), np.mean(q_spline(t)))[0])},
                 {"source": log.path}))
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
@@ -643,11 +656,6 @@ ANALYTIC_DELAY = {
     "explicit": {"K_D": 1.0, "J": 0.5,
                  "why": "explicit Euler: the force from (q_k, v_k) acts at t_k + dt; q lags by dt, v by dt/2"},
 }
-
-
-def _motion(q_ref: np.ndarray) -> float:
-    """A part's motion, the scale of its error (PDCommands.ref_scale: RMS of q about its mean after the start)."""
-    return max(float(np.sqrt(np.mean((q_ref[1:] - np.mean(q_ref)) ** 2))), 1e-12)
 
 
 def _check_positive(values: dict) -> None:

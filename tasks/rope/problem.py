@@ -45,7 +45,7 @@ from wrenorm.tasks.rope.observable import (
     stack_targets,
 )
 from wrenorm.tasks.rope.options import DT_DEFAULT, FLOW_DT, FLOW_SEGMENTS, ITERATIONS, SEGMENTS_DEFAULT
-from wrenorm.tasks.rope.reference.events import estimate_noise
+from wrenorm.tasks.rope.reference.events import still_within_noise
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
@@ -104,11 +104,7 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     # paths do) start the chain at rest. So does one whose start velocity is within its markers' noise: 0.5 mm of it
     # read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05 over noise draws
     # against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
-    missing = None if getattr(ref, "missing", None) is None else ref.missing[:20]
-    noise_speed = np.sqrt(2.0) * estimate_noise(ref.markers[:20], missing) / ref.dt  # of one coordinate's difference
-    # pure noise gives an RMS of noise_speed (over 3 M samples its spread is about a tenth of it): 1.5x is rest, and a
-    # rope moving at more than about 1.1x noise_speed keeps its velocity
-    if np.abs(vel0).max() < START_AT_REST_BELOW or np.sqrt(np.mean(step ** 2)) < 1.5 * noise_speed:
+    if np.abs(vel0).max() < START_AT_REST_BELOW or still_within_noise(ref):
         vel0[:] = 0.0
     return RopeCase(name, ref, ev, hand, pos0.astype(np.float32), vel0.astype(np.float32), steps,
                     Target.from_reference(ref, ev, weights, source=name), crit)

@@ -16,8 +16,8 @@ kind, a marker at exactly (0, 0) (a tracking dropout), rotated files whose head 
 metres), clips in which many frames repeat
 the previous one exactly (duplicated frames) or a few in a row do (a held tracker), frames cut out of a clip (the
 head's jump, in either format), a tail base not where this robot's is (another body), tail markers that swap order
-along the body during the clip (a tracker swapping identities), rows deleted from a clip (every marker's step 2-4x
-its neighbours'), a label of 0 Hz, two clips sharing most of their rows (one clip under two labels).
+along the body during the clip (a tracker swapping identities), rows deleted from a pixel clip (every marker's
+step 2-4x its neighbours'), a label of 0 Hz, two clips sharing most of their rows (one clip under two labels).
 Flagged, not refused (tail_beat_check):
 a tail-beat frequency far from ~0.75 x the label, which on this robot points at a wrong frame rate.
 
@@ -300,6 +300,8 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
     by_kind: dict[tuple[str, float], Path] = {}
     notes = []  # CSVs left out, said with the clips' flags (Rate.meta "load_warnings")
     for f in sorted(path.iterdir()):
+        if f.name.startswith("."):  # hidden: a Mac's ._markers_f1_00.csv beside each clip copied off it
+            continue
         got = _label_of(f)
         if got is None:
             if _CLIP_LIKE.match(f.name) or (f.is_file() and _MARKER_LIKE.search(f.name)):

@@ -44,7 +44,8 @@ def _fitted_columns(point: dict, std_key: str, axes) -> dict:
     row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
     # what the fit said of its own result (a diverged coarse model, a search that found nothing better) travels with
     # its numbers: a summary without it showed a blown-up cell as "done" beside the others
-    row["warnings"] = "; ".join(map(str, point.get("warnings") or []))
+    said = list(point.get("warnings") or []) + ([point["warning"]] if point.get("warning") else [])  # a flow point's
+    row["warnings"] = "; ".join(map(str, said))
     return row
 
 

@@ -1102,18 +1102,29 @@ REST_SPEED = 0.05  # m/s: markers' first step below this, the rope starts in its
 REST_TILT_DEG = 2.0  # .. and a rope hanging at rest further off -z than this says the frame is tilted
 
 
+def still_within_noise(ref) -> bool:
+    """Whether the markers' first step is within their noise: RMS below 1.5x the speed pure noise gives (over 3 M
+    samples its spread is about a tenth of it); a rope moving faster than about 1.1x that keeps its velocity. 0.5 mm
+    of noise read 0.23-0.48 m/s on a rope at rest (a probe of stop 46)."""
+    missing = None if getattr(ref, "missing", None) is None else ref.missing[:20]
+    noise_speed = np.sqrt(2.0) * estimate_noise(ref.markers[:20], missing) / ref.dt  # of one coordinate's difference
+    step = (np.asarray(ref.markers[1], np.float64) - ref.markers[0]) / ref.dt
+    return bool(np.sqrt(np.mean(step ** 2)) < 1.5 * noise_speed)
+
+
 def rest_tilt(ref) -> tuple[float, float] | None:
     """(degrees off -z of the hand-to-rope-centre direction, speed of the markers' first step) when the rope starts
-    nearly at rest, else None. A rope hanging at rest from the hand hangs along gravity (the built-in, test and
-    generated references: 0.00 deg); a frame tilted 3 deg kept the measured chain, which falls along -z, from ever
-    hitting itself, and nothing said so (a probe of stop 47)."""
+    at rest (its first step under REST_SPEED, or within the markers' noise as the chain's start takes it), else
+    None. A rope hanging at rest from the hand hangs along gravity (the built-in, test and generated references:
+    0.00 deg); a frame tilted 3 deg kept the measured chain, which falls along -z, from ever hitting itself, and
+    nothing said so (a probe of stop 47)."""
     m, h = np.asarray(ref.markers, np.float64), np.asarray(ref.hand, np.float64)
     if len(m) < 2:
         return None
     speed = float(np.nanmax(np.linalg.norm(m[1] - m[0], axis=1)) / (ref.time[1] - ref.time[0]))
     centre = np.nanmean(m[0], axis=0) - h[0]
     norm = np.linalg.norm(centre)
-    if not (speed < REST_SPEED and norm > 0):
+    if not (norm > 0 and (speed < REST_SPEED or still_within_noise(ref))):
         return None
     return float(np.degrees(np.arccos(np.clip(-centre[2] / norm, -1.0, 1.0)))), speed
 
@@ -1125,14 +1136,16 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
     warnings = []
     tilt = rest_tilt(ref)
     if tilt is not None and tilt[0] > REST_TILT_DEG:
-        warnings.append(f"the rope starts nearly at rest (first step {tilt[1]:.3f} m/s) but hangs {tilt[0]:.1f} deg "
-                        "off -z (hand to rope centre): a frame tilted from gravity? the chain falls along -z, and a "
-                        "3 deg tilt kept it from hitting itself; level the frame, unless the rope was held so that it "
-                        "did not hang freely")
+        warnings.append(f"the rope starts at rest (first step {tilt[1]:.3f} m/s, or within its noise) but hangs "
+                        f"{tilt[0]:.1f} deg off -z (hand to rope centre): a frame tilted from gravity? the chain falls "
+                        "along -z, and a 3 deg tilt kept it from hitting itself; level the frame, unless the rope was "
+                        "held so that it did not hang freely")
     missing = getattr(ref, "missing", None)
     if missing is not None and np.any(missing):
         cols = np.flatnonzero(np.any(missing, axis=0)).tolist()
-        warnings.append(f"{int(np.sum(missing))} marker samples were missing (NaN) and bridged in time (markers "
+        filled = int(getattr(ref, "tracker_filled", 0) or 0)
+        how = f"NaN, or {filled} of them filled by the recording's gap filling, read as missing" if filled else "NaN"
+        warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
     t_c = getattr(ref, "critical_time", None)
     if t_c is not None:
@@ -1153,7 +1166,7 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
         return Critical(ev, det, True, warnings)
     if det.status != "contact" or det.event is None:
         why = det.reasons[-1] if det.reasons else det.status
-        return Critical(None, det, False, [f"no usable first contact: {why}"],
+        return Critical(None, det, False, warnings + [f"no usable first contact: {why}"],
                         problem=f"no usable first self-contact in the markers ({det.status}): {why}")
     if det.flagged:
         warnings += [f"uncertain event: {r}" for r in det.reasons]

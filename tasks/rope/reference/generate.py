@@ -64,6 +64,7 @@ class RopeReference:
     sim_contact_s: np.ndarray | None = None  # (2,) its arc-length fractions
     missing: np.ndarray | None = None  # (T, M) bool: samples that were NaN in the file, bridged in time
     file: str = ""  # where it was read from
+    tracker_filled: int = 0  # of the missing samples, those the file held as a tracker's gap filling (read as missing)
 
     @property
     def dt(self) -> float:
@@ -191,11 +192,13 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     markers[partial] = np.nan
     stored = np.asarray(data["markers"]).dtype
     resolution = float(np.finfo(stored).eps * np.nanmax(np.abs(markers))) if np.issubdtype(stored, np.floating) else 0.0
-    markers[software_filled(markers, (0,) if s[0] == 0.0 else (), resolution)] = np.nan  # read as the gaps they were
+    filled = software_filled(markers, (0,) if s[0] == 0.0 else (), resolution)
+    markers[filled] = np.nan  # read as the gaps they were
     markers, missing, frac = bridge_missing(markers, mean_dt, hand, held_at_hand=s[0] == 0.0)
     if frac.mean() > MAX_MISSING_FRACTION or np.any(frac > MAX_MISSING_FRACTION):
         worst = int(np.argmax(frac))
-        raise InputError(src, "markers", f"mostly missing: marker {worst} is NaN in {100 * frac[worst]:.0f}% of the "
+        how = "NaN or filled by the tracker" if filled[:, worst].any() else "NaN"
+        raise InputError(src, "markers", f"mostly missing: marker {worst} is {how} in {100 * frac[worst]:.0f}% of the "
                                          f"frames ({100 * frac.mean():.0f}% of all samples; at most "
                                          f"{100 * MAX_MISSING_FRACTION:.0f}% per marker can be bridged)")
 
@@ -281,7 +284,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         if sim_s.shape != (2,) or np.any(sim_s[np.isfinite(sim_s)] < 0) or np.any(sim_s[np.isfinite(sim_s)] > 1):
             raise InputError(src, "sim_contact_s", "must be two arc-length fractions in [0, 1] (or NaN)")
     return RopeReference(time, markers, hand, length, mass, radius, bend, s, source, critical_time, sim_t, sim_s,
-                         missing if missing.any() else None, src)
+                         missing if missing.any() else None, src, int(filled.sum()))
 
 
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
@@ -335,16 +338,15 @@ def _trimmed_copy(long: RopeReference, short: RopeReference) -> bool:
             for r in (long, short)]
     xl, xs = np.asarray(long.markers, np.float64), np.asarray(short.markers, np.float64)
     hl, hs = np.asarray(long.hand, np.float64), np.asarray(short.hand, np.float64)
-    n = len(xs)
-    first = (xs[0] - hs[0])[~miss[1][0]]
+    # compared where both files saw the marker: the gaps read as missing near a file's ends can differ between a
+    # recording and its trimmed copy (software_filled looks at the frames around), and most samples must be seen in both
+    n, tol = len(xs), SAME_RECORDING_TOLERANCE
     for k in range(len(xl) - n + 1):
-        if not np.array_equal(miss[0][k], miss[1][0]) or np.any(
-                np.abs((xl[k] - hl[k])[~miss[0][k]] - first) > SAME_RECORDING_TOLERANCE):
+        both0 = ~miss[0][k] & ~miss[1][0]
+        if not both0.any() or np.any(np.abs((xl[k] - hl[k])[both0] - (xs[0] - hs[0])[both0]) > tol):
             continue
-        shift = hl[k] - hs[0]
-        seen = ~miss[1]
-        if np.array_equal(miss[0][k:k + n], miss[1]) and np.all(
-                np.abs(xl[k:k + n][seen] - shift - xs[seen]) <= SAME_RECORDING_TOLERANCE):
+        both = ~miss[0][k:k + n] & ~miss[1]
+        if both.mean() >= 0.9 and np.all(np.abs(xl[k:k + n][both] - (hl[k] - hs[0]) - xs[both]) <= tol):
             return True
     return False
 
