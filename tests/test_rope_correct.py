@@ -1608,3 +1608,17 @@ def test_correct_says_what_it_cannot_steer_by(tmp_path, capsys):
     assert run["stop_reason"] == "chain_never_hits" and "does not hit itself" in run["stopped"]
     assert run["trials_used"] == 1
     assert "3 links" in (out / "report.md").read_text()
+
+
+def test_the_report_divides_a_refit_by_the_measured_values_as_its_column_says():
+    """The column "parameters changed (x measured)" divided the refit by the run's start values, the fitted ones in the
+    default arm (a probe of stop 47): it divides by the refit's prior centre, the measured values."""
+    from wrenorm.tasks.rope.control.correct_cli import TRIAL_COLUMNS, trial_cells
+
+    trial = {"trial": 1, "error": 0.3, "predicted_error": None, "model_alone_error": None, "accepted": True,
+             "measured_state": {"self_collision": False}, "trust_radius": 1.0, "trust": {},
+             "refit": {"values": {"bend_stiffness": 0.06, "radius": 0.005}, "loss_before": 1.0, "loss": 0.5}}
+    run = {"parameters": {"bend_stiffness": 0.02, "radius": 0.005}, "trials": [trial],
+           "renormalise": {"prior_centre": {"bend_stiffness": 0.03, "radius": 0.005}}}
+    cells = trial_cells({"runs": {"arm": run}}, "arm")
+    assert TRIAL_COLUMNS[-1] == "parameters changed (x measured)" and cells[0][-1] == "bend_stiffness 2"

@@ -551,7 +551,9 @@ def trial_cells(result: dict, label: str) -> list[list[str]]:
         return "" if x is None else f"{x:.3f}"
 
     r = result["runs"][label]
-    measured = r.get("parameters") or {}
+    # the refit's prior centre is the measured values; the run's own `parameters` are its start values, which for the
+    # default arm are the fitted ones (the column divided by those while saying "x measured": a probe of stop 47)
+    measured = (r.get("renormalise") or {}).get("prior_centre") or r.get("parameters") or {}
     rows, floor = [], None
     for t in r["trials"]:
         ms = t.get("measured_state") or {}
