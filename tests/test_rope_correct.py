@@ -1622,3 +1622,20 @@ def test_the_report_divides_a_refit_by_the_measured_values_as_its_column_says():
            "renormalise": {"prior_centre": {"bend_stiffness": 0.03, "radius": 0.005}}}
     cells = trial_cells({"runs": {"arm": run}}, "arm")
     assert TRIAL_COLUMNS[-1] == "parameters changed (x measured)" and cells[0][-1] == "bend_stiffness 2"
+
+
+def test_the_report_names_its_start_seed_and_budget_and_does_not_blame_the_model_for_a_spent_budget():
+    """A run from another start read like one from flick, and a 3-trial budget that ran out was said to be "stopped
+    by the model" (a probe of stop 47)."""
+    from wrenorm.tasks.rope.control.correct_cli import report_markdown
+
+    trial = {"trial": 3, "error": 0.34, "predicted_error": 0.1, "model_alone_error": None, "accepted": False,
+             "measured_state": {"self_collision": False}, "trust_radius": 1.0, "trust": {},
+             "next_step": {"model_floor": {"error": 0.0744}}}
+    run = {"success": False, "trials_used": 3, "best_error": 0.2, "method": "gn", "parameters": {},
+           "trials": [trial]}
+    text = report_markdown({"variant": "soft", "goal": {"path": "flick_high"}, "start": {"path": "flick_wide"},
+                            "settings": {"seed": 73}, "max_trials": 3, "real_system": "newton", "model":
+                            {"segments": 10}, "tolerance": 0.05, "error_meaning": "e", "runs": {"fitted": run}})
+    assert "from flick_wide" in text and "seed 73" in text and "at most 3 trials" in text
+    assert "when its last trial was planned" in text and "stopped it" not in text

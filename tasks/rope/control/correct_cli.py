@@ -538,9 +538,11 @@ def run_verdict(r: dict, tolerance: float) -> str:
     floor = last_floor(r)
     if r.get("stop_reason") == "chain_never_hits":
         return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}): {r['stopped']}"
+    # the floor is the model's belief when the last trial was planned, not why the run ended (a 3-trial budget ran
+    # out and was said to be "stopped by the model": a probe of stop 47)
     why = "" if floor is None else (
-        f"; at its last step the corrected model predicted no command better than {floor['error']:.4f}"
-        + (", so the model, not the trust radius, stopped it" if floor["error"] > tolerance else ""))
+        f"; when its last trial was planned the corrected model predicted no command better than {floor['error']:.4f}"
+        + (", above the tolerance: the model saw no way to the goal" if floor["error"] > tolerance else ""))
     return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}{why})"
 
 
@@ -589,8 +591,11 @@ def run_method(r: dict) -> str:
 def report_markdown(result: dict) -> str:
     """Per run, per trial: what was tried, what the model predicted, what the rope did, and how the model and
     the trust region reacted; a reader sees why the run converged or did not."""
-    lines = [f"# correct rope: {result['variant']} rope, goal {result['goal']['path']}",
+    start, settings = result.get("start") or {}, result.get("settings") or {}
+    begun = start.get("path", "?") + (f" perturbed ({start['perturb']})" if start.get("perturb") is not None else "")
+    lines = [f"# correct rope: {result['variant']} rope, goal {result['goal']['path']}, from {begun}",
              "", f"real system: {result['real_system']}; coarse chain {result['model']['segments']} links; "
+                 f"seed {settings.get('seed', '?')}; at most {result.get('max_trials', '?')} trials; "
                  f"tolerance {result['tolerance']:g}; error = {result['error_meaning']}", ""]
     for label, r in result["runs"].items():
         lines += [f"## {label} ({run_method(r)}): {run_verdict(r, result['tolerance'])}", "",
