@@ -19,10 +19,7 @@ def benchmark(batch: int, steps: int = 1000, device: str = "cpu", repeats: int =
     values = np.tile([0.05, 20.0, 0.5, 0.0, 0.0], (batch, 1))
 
     def run():
-        if start_fitted:
-            simulate_start_fitted(values, cmds, [True], SEMI_IMPLICIT, 1e-3)
-        else:
-            simulate(values, cmds, SEMI_IMPLICIT, 1e-3)
+        simulate_start_fitted(values, cmds, [start_fitted], SEMI_IMPLICIT, 1e-3)
 
     run()
     wp.synchronize_device(device)

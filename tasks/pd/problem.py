@@ -427,15 +427,16 @@ class PDProblem(Problem):
         for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items():
             n = int(np.floor((b - a) * self.f_sim))
             t = a + np.arange(n + 1) * self.dt
+            q_ref = q_spline(t)
+            origin = float(np.mean(q_ref))
             conds.append(Condition(name, {
                 "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
                 "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
                 # each part's errors measured against its own motion about its own mean: a held-out third at
                 # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
                 # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
-                "q_ref": q_spline(t), "init": self._start(log, a, q_spline), "origin": float(np.mean(q_spline(t))),
-                "start_velocity_fitted": True, "noise_floor": noise / float(
-                    self.kpd.motion_scale(q_spline(t), np.mean(q_spline(t)))[0])},
+                "q_ref": q_ref, "init": self._start(log, a, q_spline), "origin": origin,
+                "start_velocity_fitted": True, "noise_floor": noise / float(self.kpd.motion_scale(q_ref, origin)[0])},
                 {"source": log.path}))
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
@@ -474,12 +475,9 @@ class PDProblem(Problem):
                 origin=[c.data.get("origin", 0.0) for c in conditions])
         return self._cache[key]
 
-    def errors(self, values, conditions):
-        if self._fits_start(conditions):
-            return self.kpd.simulate_start_fitted(values, self._commands(conditions), self._start_fitted(conditions),
-                                                  self.integrator, self.dt)[0]
-        errs, _ = self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt)
-        return errs
+    def errors(self, values, conditions):  # the built-in commands fit no start: the same kernel, no shift
+        return self.kpd.simulate_start_fitted(values, self._commands(conditions), self._start_fitted(conditions),
+                                              self.integrator, self.dt)[0]
 
     @property
     def differentiable(self) -> bool:  # the tape has no start-velocity fit: a log's problem is searched without it
@@ -489,12 +487,11 @@ class PDProblem(Problem):
         return self.kpd.simulate_with_grad(values, self._commands(conditions), self.integrator, self.dt)
 
     @staticmethod
-    def _fits_start(conditions) -> bool:
-        return any(c.data.get("start_velocity_fitted") for c in conditions)
-
-    @staticmethod
     def _start_fitted(conditions) -> np.ndarray:
         return np.array([bool(c.data.get("start_velocity_fitted")) for c in conditions])
+
+    def _fits_start(self, conditions) -> bool:
+        return bool(self._start_fitted(conditions).any())
 
     def _start_corrected(self, values, conditions):
         """Trajectories (B, C, T+1) of a log's parts with each part's start velocity corrected for each candidate:
@@ -510,16 +507,13 @@ class PDProblem(Problem):
 
     def _scaled_misfit(self, values, conditions):
         cmds = self._commands(conditions)
-        traj = self._start_corrected(values, conditions)[0][:, :, 1:] if self._fits_start(conditions) else \
-            self.kpd.simulate(values, cmds, self.integrator, self.dt, record=True)[1][:, :, 1:]
+        traj = self.trajectories(values, conditions)[:, :, 1:]
         ref = np.stack([c.data["q_ref"][1:cmds.n_steps + 1] for c in conditions])
         with np.errstate(all="ignore"):
             return (traj - ref[None]) / cmds.ref_scale.numpy()[None, :, None]
 
     def trajectories(self, values, conditions):
-        if self._fits_start(conditions):
-            return self._start_corrected(values, conditions)[0]
-        return self.kpd.simulate(values, self._commands(conditions), self.integrator, self.dt, record=True)[1]
+        return self._start_corrected(values, conditions)[0]
 
     def residuals(self, values, conditions):
         """Signed residuals (B, R): q_sim - q_ref over all conditions, each scaled as in `errors`."""

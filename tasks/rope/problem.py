@@ -45,13 +45,12 @@ from wrenorm.tasks.rope.observable import (
     stack_targets,
 )
 from wrenorm.tasks.rope.options import DT_DEFAULT, FLOW_DT, FLOW_SEGMENTS, ITERATIONS, SEGMENTS_DEFAULT
-from wrenorm.tasks.rope.reference.events import still_within_noise
+from wrenorm.tasks.rope.reference.events import starts_at_rest
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
 # newton reference: 1e6 N/m per joint of 1.1/64 m, i.e. EA = 1.7e4 N; a link of length l has compliance l / EA
 STRETCH_EA = 1e6 * 1.1 / 64
-START_AT_REST_BELOW = 0.05  # m/s
 HAND_SPLINE_ABOVE = 0.0051  # s between frames: coarser than 200 Hz (a 200 Hz clock's rounding stays below)
 
 
@@ -98,13 +97,11 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     s_nodes = np.linspace(0.0, 1.0, n_nodes)
     pos0 = resample(ref.markers[0], ref.marker_arclength, s_nodes)
     pos0[0] = hand[0]
-    step = (ref.markers[1] - ref.markers[0]) / ref.dt
-    vel0 = resample(step, ref.marker_arclength, s_nodes)
-    # A forward difference of a rope released at rest reads g dt, not 0; references that start at rest (all built-in
-    # paths do) start the chain at rest. So does one whose start velocity is within its markers' noise: 0.5 mm of it
-    # read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05 over noise draws
-    # against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
-    if np.abs(vel0).max() < START_AT_REST_BELOW or still_within_noise(ref):
+    vel0 = resample((ref.markers[1] - ref.markers[0]) / ref.dt, ref.marker_arclength, s_nodes)
+    # a rope at rest starts the chain at rest (events.starts_at_rest), also one whose first step is within its markers'
+    # noise: 0.5 mm of it read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05
+    # over noise draws against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
+    if starts_at_rest(ref):
         vel0[:] = 0.0
     return RopeCase(name, ref, ev, hand, pos0.astype(np.float32), vel0.astype(np.float32), steps,
                     Target.from_reference(ref, ev, weights, source=name), crit)

@@ -1098,7 +1098,7 @@ def closest_pair_at(ref, t: float):
     return float(gap), float(sab[0]), float(sab[1])
 
 
-REST_SPEED = 0.05  # m/s: markers' first step below this, the rope starts in its rest shape ..
+REST_SPEED = 0.05  # m/s: every coordinate of the markers' first step below this, the rope starts at rest ..
 REST_TILT_DEG = 2.0  # .. and a rope hanging at rest further off -z than this says the frame is tilted
 
 
@@ -1112,21 +1112,31 @@ def still_within_noise(ref) -> bool:
     return bool(np.sqrt(np.mean(step ** 2)) < 1.5 * noise_speed)
 
 
+def first_step_speed(ref) -> float:
+    """The fastest coordinate of the markers' first step (m/s)."""
+    return float(np.nanmax(np.abs(np.asarray(ref.markers[1], np.float64) - ref.markers[0])) / ref.dt)
+
+
+def starts_at_rest(ref) -> bool:
+    """Whether the rope starts at rest: its first step under REST_SPEED (a forward difference of a rope released at
+    rest reads g dt, not 0; every built-in path starts so) or within the markers' noise. The chain then starts at rest
+    (the rope's prepare_case), and a rope so at rest hangs along gravity (rest_tilt)."""
+    return first_step_speed(ref) < REST_SPEED or still_within_noise(ref)
+
+
 def rest_tilt(ref) -> tuple[float, float] | None:
     """(degrees off -z of the hand-to-rope-centre direction, speed of the markers' first step) when the rope starts
     at rest (its first step under REST_SPEED, or within the markers' noise as the chain's start takes it), else
     None. A rope hanging at rest from the hand hangs along gravity (the built-in, test and generated references:
     0.00 deg); a frame tilted 3 deg kept the measured chain, which falls along -z, from ever hitting itself, and
     nothing said so (a probe of stop 47)."""
-    m, h = np.asarray(ref.markers, np.float64), np.asarray(ref.hand, np.float64)
-    if len(m) < 2:
+    if len(ref.markers) < 2:
         return None
-    speed = float(np.nanmax(np.linalg.norm(m[1] - m[0], axis=1)) / (ref.time[1] - ref.time[0]))
-    centre = np.nanmean(m[0], axis=0) - h[0]
+    centre = np.nanmean(np.asarray(ref.markers[0], np.float64), axis=0) - np.asarray(ref.hand[0], np.float64)
     norm = np.linalg.norm(centre)
-    if not (norm > 0 and (speed < REST_SPEED or still_within_noise(ref))):
+    if not (norm > 0 and starts_at_rest(ref)):
         return None
-    return float(np.degrees(np.arccos(np.clip(-centre[2] / norm, -1.0, 1.0)))), speed
+    return float(np.degrees(np.arccos(np.clip(-centre[2] / norm, -1.0, 1.0)))), first_step_speed(ref)
 
 
 def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
