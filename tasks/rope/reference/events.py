@@ -1154,9 +1154,16 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
     if missing is not None and np.any(missing):
         cols = np.flatnonzero(np.any(missing, axis=0)).tolist()
         filled = int(getattr(ref, "tracker_filled", 0) or 0)
-        how = f"NaN, or {filled} of them filled by the recording's gap filling, read as missing" if filled else "NaN"
+        broken = int(getattr(ref, "length_broken", 0) or 0)
+        how = "NaN" + "".join(f", or {n} of them {what}, read as missing" for n, what in (
+            (filled, "filled by the recording's gap filling"),
+            (broken, "farther from their neighbours than the rope between them is long (ghost samples, or where "
+                     "two markers' labels were exchanged)")) if n)
         warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
+    for t_swap, i, j in getattr(ref, "label_swaps", ()) or ():
+        warnings.append(f"markers {i} and {j} exchanged labels at {t_swap:.4f} s (each then sat where the other "
+                        "belongs, farther from its neighbours than the rope is long): read back in order from there")
     t_c = getattr(ref, "critical_time", None)
     if t_c is not None:
         time = ref.time
