@@ -68,6 +68,27 @@ def test_round_trip(tmp_path):
     assert not [f for f in os.listdir(p.parent) if f != "ref.npz"], "temporary file left behind"
 
 
+@pytest.mark.parametrize("clock, rate", [
+    (lambda t: np.round(t, 3), 240.0),  # milliseconds in a CSV export: steps of 4 and 5 ms
+    (lambda t: np.round(t, 3), 360.0),
+    (lambda t: (1000.0 + t).astype(np.float32), 250.0),  # float32 seconds 1000 s into a session: steps off 1.5 %
+])
+def test_a_uniform_clock_stored_rounded_loads_as_uniform(tmp_path, clock, rate):
+    """Refused as not uniform before stop 48; a frame dropped from the same clock still is."""
+    d = as_dict(hanging_ref(T=300, dt=1.0 / rate))
+    true = d["time"] + (1000.0 if np.asarray(clock(np.zeros(1))).dtype == np.float32 else 0.0)
+    d["time"] = clock(d["time"])
+    write_npz(tmp_path / "r.npz", d)
+    got = load_reference(tmp_path / "r.npz")
+    np.testing.assert_allclose(got.time, true, atol=0.6e-3 if rate != 250.0 else 2e-4)
+    assert np.ptp(np.diff(got.time)) < 1e-9
+    d["time"] = clock(np.concatenate([true[:100], true[100:] + 1.0 / rate]) - (true[0] - hanging_ref().time[0]))
+    write_npz(tmp_path / "dropped.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "dropped.npz")
+    assert e.value.field == "time" and "uniformly spaced" in e.value.problem
+
+
 def test_optional_fields_default(tmp_path):
     d = as_dict(hanging_ref())
     d["bend_stiffness"] = None
