@@ -89,6 +89,19 @@ def test_a_uniform_clock_stored_rounded_loads_as_uniform(tmp_path, clock, rate):
     assert e.value.field == "time" and "uniformly spaced" in e.value.problem
 
 
+@pytest.mark.parametrize("arclength", [True, False])
+def test_markers_stored_free_end_first_are_refused_as_such(tmp_path, arclength):
+    """Another lab's order (tip first) was refused as a hand off the held end or markers without arc lengths."""
+    d = as_dict(hanging_ref())
+    d["markers"] = d["markers"][:, ::-1].copy()
+    if not arclength:
+        d["marker_arclength"] = None
+    write_npz(tmp_path / "tip_first.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "tip_first.npz")
+    assert e.value.field == "markers" and "free end first" in e.value.problem
+
+
 def test_optional_fields_default(tmp_path):
     d = as_dict(hanging_ref())
     d["bend_stiffness"] = None

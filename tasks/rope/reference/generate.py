@@ -274,6 +274,12 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
     # confident contact 20-240 ms early at another place.
     steady = float(np.median(offset)) if offset.size else 0.0
+    tail = np.linalg.norm(markers[:, -1] - hand, axis=1)[~missing[:, -1]]
+    if steady > max(2.0 * radius, HELD_END_OFFSET) and tail.size and \
+            np.median(tail) <= max(2.0 * radius, HELD_END_OFFSET) < steady:
+        raise InputError(src, "markers", f"the last marker sits at the hand ({1000 * np.median(tail):.0f} mm, median "
+                         f"over the frames) and marker 0 {1000 * steady:.0f} mm from it: markers stored free end "
+                         "first? marker 0 must be the held end (reverse the marker axis, and marker_arclength with it)")
     if not has_arclength and steady > max(2.0 * radius, HELD_END_OFFSET):
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
