@@ -11,7 +11,10 @@ from wrenorm.errors import InputError
 from wrenorm.tasks.swimmer import data as sd
 from wrenorm.tasks.swimmer import problem as swimmer
 
-SRC = Path("/work/shared/data/fishsim/markers")
+# ../shared beside the checkout (as CI has it), else this machine's copy
+SRC = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/fishsim/markers",
+                        Path("/work/shared/data/fishsim/markers")) if p.is_dir()), Path("shared/data/fishsim/markers"))
+MORE = Path(__file__).parent / "data" / "fishsim_more"  # the repository's three other rates, never used for a choice
 LABELS = ("0_50", "1_00", "1_25", "1_75", "2_25")
 
 pytestmark = pytest.mark.skipif(not SRC.is_dir(), reason="the fishsim marker clips are not on this machine")
@@ -118,3 +121,20 @@ def test_swimmer_rotated_speed_offset_said(tmp_path):
     rates = sd.load_dir(tmp_path)
     said = [w for w in swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016).warnings if "rotatedMarkers" in w]
     assert len(said) == 1 and "0.8-7.5 %" in said[0] and "yawing axis" in said[0]
+
+
+def test_the_three_rates_the_shipped_data_lacks_load_unflagged(tmp_path):
+    """fishsim's 0.75, 1.50 and 2.00 Hz clips (tests/data/fishsim_more), which set no threshold: read beside the five
+    with nothing refused and nothing flagged. The 0.75 Hz clip had been flagged as not cruising (beats at 0.003 and
+    0.010 m/s by a line fitted along each beat's own principal axis, its sideways sway; the features' beat speeds are
+    0.042 and 0.043 m/s)."""
+    for f in list(SRC.glob("markers_f*.csv")) + list(MORE.glob("markers_f*.csv")):
+        shutil.copy(f, tmp_path)
+    rates = {r.name: r for r in sd.load_dir(tmp_path)}
+    assert sorted(rates) == ["f0.50", "f0.75", "f1.00", "f1.25", "f1.50", "f1.75", "f2.00", "f2.25"]
+    for name in ("f0.75", "f1.50", "f2.00"):
+        r = rates[name]
+        assert r.meta["flags"] == [] and 0.74 < r.tail_freq / r.label < 0.76
+        speeds = sd.beat_speeds(r)
+        assert len(speeds) >= 2 and np.ptp(speeds) < 0.1 * np.median(speeds)
+        assert abs(np.median(speeds) / r.speed - 1.0) < 0.1
