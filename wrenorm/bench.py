@@ -27,10 +27,18 @@ CUDA_BATCHES = [4096, 32768, 262144, 1048576]
 MAX_BATCH = 16 * 1048576  # 16x the largest default: far beyond, the run ends out of memory, not in a table
 
 
+def default_out() -> Path:
+    """The checkout's bench/ folder, whose committed results a run replaces, when wrenorm runs from a checkout;
+    else ./bench. A relative ./bench wrote a second set of results wherever the command was typed."""
+    checkout = Path(__file__).resolve().parents[1] / "bench"
+    return checkout if (checkout / "results.md").is_file() else Path("bench")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    p.add_argument("--out", type=Path, default=Path("bench"),
-                   help="folder for results.{json,md,png} (results-cuda.* on cuda)")
+    p.add_argument("--out", type=Path, default=default_out(),
+                   help="folder for results.{json,md,png} (results-cuda.* on cuda; default: the checkout's bench/, "
+                        "else ./bench)")
     p.add_argument("--quick", action="store_true", help="small batches only (smoke test)")
     p.add_argument("--no-fits", action="store_true", help="skip the end-to-end default fits")
     add_list(p, "--batches", item=number(integer=True), default=None, metavar="N", help="chains per launch")
