@@ -95,7 +95,7 @@ def test_a_length_too_short_is_still_refused(tmp_path, clean, factor):
     np.savez(f, **(d | {"length": d["length"] * factor, "mass": d["mass"] * factor}))
     with pytest.raises(InputError) as e:
         load_reference(f)
-    assert e.value.field == "markers" and "wrong units or wrong length" in e.value.problem
+    assert e.value.field == "markers" and "wrong units, wrong length" in e.value.problem
     assert "in 100% of the frames" in e.value.problem
 
 

@@ -1157,8 +1157,9 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
         broken = int(getattr(ref, "length_broken", 0) or 0)
         how = "NaN" + "".join(f", or {n} of them {what}, read as missing" for n, what in (
             (filled, "filled by the recording's gap filling"),
-            (broken, "farther from their neighbours than the rope between them is long (ghost samples, or where "
-                     "two markers' labels were exchanged)")) if n)
+            (broken, "farther from their neighbours than the rope between them is long (ghost samples, where two "
+                     "markers' labels were exchanged, or a rope that stretches more than 10 %, which the chain "
+                     "cannot)")) if n)
         warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
     for t_swap, i, j in getattr(ref, "label_swaps", ()) or ():

@@ -231,9 +231,9 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         most = " and ".join(str(m) for m in labels.worst_markers)
         raise InputError(src, "markers", f"marker spacing up to {labels.worst_chord_over_arc:.3g}x the arc length "
                          f"between markers (length {length:g} m) in {100 * labels.broken_frames / T:.0f}% of the "
-                         f"frames, markers {most} most often: wrong units or wrong length? (a tracker's label swaps "
-                         f"or ghost samples are read as missing when they break the length in at most "
-                         f"{100 * MAX_BROKEN_FRAMES:.0f}% of the frames)")
+                         f"frames, markers {most} most often: wrong units, wrong length, or a rope that stretches? "
+                         f"(a tracker's label swaps or ghost samples are read as missing when they break the length "
+                         f"in at most {100 * MAX_BROKEN_FRAMES:.0f}% of the frames)")
     markers = labels.markers
     stored = np.asarray(data["markers"]).dtype
     resolution = float(np.finfo(stored).eps * np.nanmax(np.abs(markers))) if np.issubdtype(stored, np.floating) else 0.0
