@@ -406,18 +406,24 @@ def test_a_sweep_killed_with_sigkill_resumes_to_the_same_table_running_only_miss
     assert _stable(_rows(out)) == _stable(_rows(ref))
 
 
-def test_resume_runs_a_cell_again_whose_result_the_table_cannot_read(finished, tmp_path):
-    """A finished cell's result.json replaced by something else is not a finished cell: said, and run again."""
+@pytest.mark.parametrize("how", ["replaced", "deleted"])
+def test_resume_runs_a_cell_again_whose_result_the_table_cannot_read(finished, tmp_path, how):
+    """A finished cell's result.json replaced by something else, or its folder deleted, is not a finished cell: said,
+    and run again (a deleted folder was run again without a word until stop 48)."""
     _, ref, _ = finished
     out = tmp_path / "copy"
     shutil.copytree(ref, out)
     cell = next(r["cell"] for r in _rows(ref) if r["status"] == "done")
     bad = out / "cells" / cell / "result.json"
-    bad.write_text('{"schema": "x", "parameters": {}}')
+    if how == "replaced":
+        bad.write_text('{"schema": "x", "parameters": {}}')
+    else:
+        shutil.rmtree(bad.parent)
     before = json.loads((out / "sweep-state.json").read_text())["records"]
     proc = _sweep(out / "spec.toml", out, "--resume")
     assert proc.returncode == 3, proc.stderr
-    assert f"wrenorm: warning: {bad}: schema is 'x', not wrenorm.result/*; running cell {cell} again" in proc.stderr
+    why = "schema is 'x', not wrenorm.result/*" if how == "replaced" else "recorded as done but missing"
+    assert f"wrenorm: warning: {bad}: {why}; running cell {cell} again" in proc.stderr
     after = json.loads((out / "sweep-state.json").read_text())["records"]
     assert after[cell]["started"] != before[cell]["started"]
     assert {k: after[k]["started"] for k in before if k != cell} == {k: r["started"] for k, r in before.items()

@@ -129,7 +129,8 @@ def _read_result(out: Path, verb: str, cell_id: str, say_why: bool) -> dict | No
         result = json.loads(path.read_text())
         problem = _result_problem(verb, result)
     except FileNotFoundError:
-        return None
+        # a cell recorded as done whose result is gone (its folder deleted or moved) runs again, and says so
+        problem = "recorded as done but missing"
     except (OSError, ValueError) as e:
         problem = f"cannot be read: {e}"
     if problem and say_why:
