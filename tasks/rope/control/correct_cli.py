@@ -920,8 +920,10 @@ def _plot(path: Path, runs: dict, args) -> None:
             floor_label = None
     ax.axhline(args.tolerance, color="k", lw=0.7, ls="--", label="tolerance")
     ax.set_xlabel("real trial")
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_ylabel("critical-state error to goal")
-    ax.set_title(f"rope command correction ({args.variant} rope, goal {args.goal}); x = rejected")
+    ax.set_title(f"rope command correction: {args.engine} {args.variant} rope, {args.start} to {args.goal}, "
+                 f"{args.segments} links, seed {args.seed}, at most {args.max_trials} trials; x = rejected", fontsize=8)
     ax.legend(fontsize=8)
     save_figure(fig, path)
     plt.close(fig)
