@@ -93,3 +93,20 @@ def test_a_gpu_fit_row_holds_its_ratios_against_the_cpu_default_on_two_cores(mon
     table = bench._table({"machine": {"processor": "x", "cpu_count": 16, "device": "cuda:0"}, "date": "d",
                           "fits": rows})
     assert "| rope | 2.00 | 4.00 | 120.0 | 0.50 |" in table
+
+
+def test_bench_writes_to_the_checkouts_folder_from_anywhere(tmp_path, monkeypatch):
+    """`bench --force` replaces the committed results wherever it is typed (a relative ./bench had written a second
+    set of results into the current folder); outside a checkout it falls back to ./bench."""
+    import argparse
+    from pathlib import Path
+
+    from wrenorm import bench
+
+    monkeypatch.chdir(tmp_path)
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    out = p.parse_args([]).out
+    checkout = Path(bench.__file__).resolve().parents[1] / "bench"
+    assert out == (checkout if (checkout / "results.md").is_file() else Path("bench"))
+    assert out.is_absolute() == (checkout / "results.md").is_file()

@@ -68,33 +68,48 @@ def test_round_trip(tmp_path):
     assert not [f for f in os.listdir(p.parent) if f != "ref.npz"], "temporary file left behind"
 
 
-@pytest.mark.parametrize("clock, rate", [
-    (lambda t: np.round(t, 3), 240.0),  # milliseconds in a CSV export: steps of 4 and 5 ms
-    (lambda t: np.round(t, 3), 360.0),
-    (lambda t: (1000.0 + t).astype(np.float32), 250.0),  # float32 seconds 1000 s into a session: steps off 1.5 %
+@pytest.mark.parametrize("offset, dtype, rate, decimals", [
+    (0.0, np.float64, 240.0, 3),  # milliseconds in a CSV export: steps of 4 and 5 ms
+    (0.0, np.float64, 360.0, 3),
+    (1000.0, np.float32, 250.0, None),  # float32 seconds 1000 s into a session: steps off 1.5 %
+    (1000.0, np.float32, 100.0, None),
+    (1000.0, np.float32, 1000.0, None),
+    (1e4, np.float32, 250.0, None),  # float32 spacing 1 ms: a quarter of a step
 ])
-def test_a_uniform_clock_stored_rounded_loads_as_uniform(tmp_path, clock, rate):
-    """Refused as not uniform before stop 48; a frame dropped from the same clock still is."""
+def test_a_uniform_clock_stored_rounded_loads_as_uniform(tmp_path, offset, dtype, rate, decimals):
+    """Refused as not uniform before stop 48; a frame dropped from the same clock, anywhere, still is (float32 at
+    1e4 s had accepted most drops when the rounding unit was taken as a decimal its spacing cannot resolve)."""
     d = as_dict(hanging_ref(T=300, dt=1.0 / rate))
-    true = d["time"] + (1000.0 if np.asarray(clock(np.zeros(1))).dtype == np.float32 else 0.0)
-    d["time"] = clock(d["time"])
+    true = offset + d["time"]
+
+    def stored(t):
+        return (np.round(t, decimals) if decimals is not None else t).astype(dtype)
+
+    d["time"] = stored(true)
     write_npz(tmp_path / "r.npz", d)
     got = load_reference(tmp_path / "r.npz")
-    np.testing.assert_allclose(got.time, true, atol=0.6e-3 if rate != 250.0 else 2e-4)
-    assert np.ptp(np.diff(got.time)) < 1e-9
-    d["time"] = clock(np.concatenate([true[:100], true[100:] + 1.0 / rate]) - (true[0] - hanging_ref().time[0]))
-    write_npz(tmp_path / "dropped.npz", d)
-    with pytest.raises(InputError) as e:
-        load_reference(tmp_path / "dropped.npz")
-    assert e.value.field == "time" and "uniformly spaced" in e.value.problem
+    np.testing.assert_allclose(got.time, true, atol=0.75 * max(10.0 ** -(decimals or 9),
+                                                               float(np.spacing(dtype(true.max())))))
+    assert np.ptp(np.diff(got.time)) < 1e-6 * np.diff(got.time).mean()
+    for at in (1, 37, 150, 298):
+        d["time"] = stored(np.concatenate([true[:at], true[at:] + 1.0 / rate]))
+        write_npz(tmp_path / "dropped.npz", d)
+        with pytest.raises(InputError) as e:
+            load_reference(tmp_path / "dropped.npz")
+        assert e.value.field == "time" and "uniformly spaced" in e.value.problem, at
 
 
-@pytest.mark.parametrize("arclength", [True, False])
+@pytest.mark.parametrize("arclength", ["even", "none", "uneven"])
 def test_markers_stored_free_end_first_are_refused_as_such(tmp_path, arclength):
-    """Another lab's order (tip first) was refused as a hand off the held end or markers without arc lengths."""
+    """Another lab's order (tip first) was refused as a hand off the held end or markers without arc lengths (and,
+    unevenly spaced, as breaking the rope's length)."""
     d = as_dict(hanging_ref())
+    if arclength == "uneven":
+        s = np.linspace(0.0, 1.0, M) ** 2
+        d["markers"][:, :, 2] = 1.6 - s * L
+        d["marker_arclength"] = s
     d["markers"] = d["markers"][:, ::-1].copy()
-    if not arclength:
+    if arclength == "none":
         d["marker_arclength"] = None
     write_npz(tmp_path / "tip_first.npz", d)
     with pytest.raises(InputError) as e:

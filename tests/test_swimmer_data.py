@@ -324,3 +324,19 @@ def test_a_long_clip_without_a_tail_beat_says_so_rather_than_too_short(tmp_path,
     with pytest.raises(InputError) as e:
         sd.load_dir(tmp_path)
     assert "no tail beat found" in e.value.problem and "too short" not in e.value.problem
+
+
+def test_the_three_rates_the_shipped_data_lacks_load_alone_unflagged(tmp_path):
+    """fishsim's 0.75, 1.50 and 2.00 Hz clips ship in tests/data/fishsim_more (no ../shared needed): read with nothing
+    refused or flagged, each beat's speed within 10 % of the clip's."""
+    import shutil
+    from pathlib import Path
+
+    for f in (Path(__file__).parent / "data" / "fishsim_more").glob("markers_f*.csv"):
+        shutil.copy(f, tmp_path)
+    rates = {r.name: r for r in sd.load_dir(tmp_path)}
+    assert sorted(rates) == ["f0.75", "f1.50", "f2.00"]
+    for r in rates.values():
+        assert r.meta["flags"] == [] and 0.74 < r.tail_freq / r.label < 0.76
+        speeds = sd.beat_speeds(r)
+        assert len(speeds) >= 2 and np.ptp(speeds) < 0.1 * np.median(speeds)

@@ -13,7 +13,8 @@ from wrenorm.tasks.swimmer import problem as swimmer
 
 # ../shared beside the checkout (as CI has it), else this machine's copy
 SRC = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/fishsim/markers",
-                        Path("/work/shared/data/fishsim/markers")) if p.is_dir()), Path("shared/data/fishsim/markers"))
+                        Path("/work/shared/data/fishsim/markers")) if p.is_dir()),
+           Path(__file__).resolve().parents[2] / "shared/data/fishsim/markers")
 MORE = Path(__file__).parent / "data" / "fishsim_more"  # the repository's three other rates, never used for a choice
 LABELS = ("0_50", "1_00", "1_25", "1_75", "2_25")
 

@@ -584,7 +584,8 @@ def beat_speeds(rate: Rate) -> np.ndarray:
     each beat's own principal axis, as here until stop 48, read the sideways sway of a slow beat as its axis: the
     0.75 Hz clip of fishsim's repository, which the shipped data lacks, cruises at 0.042 and 0.043 m/s and was
     flagged as not cruising at 0.003 and 0.010 m/s."""
-    from wrenorm.tasks.swimmer.features import real_features
+    from wrenorm.tasks.swimmer.features import real_features  # features imports this module
+
 
     return np.asarray(real_features(rate)[2]["speed"], np.float64)
 

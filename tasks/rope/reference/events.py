@@ -1162,6 +1162,10 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
                      "cannot)")) if n)
         warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
+    replaced = int(getattr(ref, "hand_replaced", 0) or 0)
+    if replaced:
+        warnings.append(f"{replaced} samples of marker 0 lay farther from the hand than the rope allows (ghost "
+                        "samples): read as missing and taken from the hand, where marker 0 sits")
     for t_swap, i, j in getattr(ref, "label_swaps", ()) or ():
         warnings.append(f"markers {i} and {j} exchanged labels at {t_swap:.4f} s (each then sat where the other "
                         "belongs, farther from its neighbours than the rope is long): read back in order from there")

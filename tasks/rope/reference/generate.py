@@ -16,6 +16,7 @@ import argparse
 import os
 import sys
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,6 +69,7 @@ class RopeReference:
     tracker_filled: int = 0  # of the missing samples, those the file held as a tracker's gap filling (read as missing)
     length_broken: int = 0  # of the missing samples, those that broke the rope's length (labels.repair_length)
     label_swaps: tuple = ()  # (time s, marker i, marker j): label exchanges undone from that frame on
+    hand_replaced: int = 0  # samples of marker 0 that broke the rope's length, taken from the hand (marker 0 is there)
 
     @property
     def dt(self) -> float:
@@ -132,27 +134,42 @@ def _check_gravity_axis(src: str, markers: np.ndarray, hand: np.ndarray, s: np.n
                                          "be -z (rotate a Y-up or z-down frame)")
 
 
+def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, radius: float) -> None:
+    """Markers stored free end first (another lab's order): the last marker at the hand, marker 0 away from it
+    (median over the frames that see them). Refused before anything else reads the markers as held end first."""
+    near = max(2.0 * radius, HELD_END_OFFSET)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a marker never seen: no median, nothing to say
+        first, last = (float(np.nanmedian(np.linalg.norm(markers[:, m] - hand, axis=1))) for m in (0, -1))
+    if last <= near < first:
+        raise InputError(src, "markers", f"the last marker sits at the hand ({1000 * last:.0f} mm, median over the "
+                         f"frames) and marker 0 {1000 * first:.0f} mm from it: markers stored free end first? marker 0 "
+                         "must be the held end (reverse the marker axis, and marker_arclength with it)")
+
+
 def rounded_uniform_clock(time: np.ndarray, stored) -> np.ndarray | None:
     """The uniform clock a file stored rounded, or None: milliseconds in a CSV export at 240 or 360 Hz (steps of 4 and
     5 ms), float32 seconds of a long session (1000 s in: steps off by 1.5 % at 250 Hz) had a usable recording refused
-    as not uniform. Accepted when every time lies within 3/4 of its rounding unit (the decimal the times are multiples
-    of, or float32's spacing) of the least-squares line through them, and that unit is at most half a step; a dropped
-    frame lies a whole step off and is still refused. Returns the line's times."""
+    as not uniform. The rounding unit is the smallest that explains the times: float32's (or float64's) spacing at
+    the clock's largest value, or a decimal the times are multiples of and that spacing resolves (8 spacings or
+    more); accepted when every time lies within 3/4 of it of the least-squares line through them and it is at most
+    half a step. A dropped frame lies half a step or more off and is refused. Returns the line's times."""
     i = np.arange(len(time), dtype=np.float64)
     slope, intercept = np.polyfit(i, time, 1)
     line = intercept + slope * i
+    residual = float(np.max(np.abs(time - line)))
     spacing = float(np.spacing(np.asarray(np.abs(time).max(), dtype=stored))) if np.issubdtype(stored, np.floating) \
         else 0.0
-    unit = spacing
-    for k in range(7):
-        scaled = time * 10.0**k
-        if np.all(np.abs(scaled - np.round(scaled)) <= 1e-6 + 2.0 * spacing * 10.0**k):
-            unit = max(unit, 10.0**-k)
+    units = ([spacing] if spacing > 0.0 else []) + [10.0**-k for k in range(6, -1, -1) if 10.0**-k >= 8.0 * spacing]
+    for unit in units:
+        if unit > 0.5 * slope:
             break
-    if unit == 0.0 or unit > 0.5 * slope:
-        return None
-    # the true clock lies within half a unit of every time; the least-squares line within a little more
-    return line if np.max(np.abs(time - line)) <= 0.75 * unit + 2.0 * spacing + 1e-12 else None
+        scaled = time / unit
+        if unit != spacing and np.any(np.abs(scaled - np.round(scaled)) > 1e-6 + spacing / unit):
+            continue  # the times are not multiples of this decimal (within the numbers' own rounding)
+        if residual <= 0.75 * unit:
+            return line
+    return None
 
 
 def validate_arrays(src: str, data: dict) -> RopeReference:
@@ -226,14 +243,25 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if np.nanmax(np.abs(markers), initial=0.0) > box or np.abs(hand).max() > box:
         raise InputError(src, "markers" if np.nanmax(np.abs(markers), initial=0.0) > box else "hand",
                          f"coordinates beyond {box:g} m: metres expected (millimetres?)")
-    labels = repair_length(markers, hand, s, length, mean_dt, 0.05 * length + HELD_END_OFFSET)
-    if labels.broken_frames > MAX_BROKEN_FRAMES * T:
+    _check_marker_order(src, markers, hand, radius)
+    labels = repair_length(markers, hand, s, length, radius, mean_dt, 0.05 * length + HELD_END_OFFSET)
+    if labels.hand_frames:
+        k = labels.hand_frames[0]
+        raise InputError(src, "hand", f"at {time[k]:.4f} s (frame {k}) the hand is off its path and farther from the "
+                         f"markers than the rope reaches ({len(labels.hand_frames)} such frames): a glitch in the "
+                         "hand's track? the hand drives the chain: give a clean track (no NaN, no jumps)")
+    if labels.refused:
         most = " and ".join(str(m) for m in labels.worst_markers)
+        share = labels.broken_frames_as_read / T
+        how_often = (f"{100 * share:.0f}% of the frames" if share > MAX_BROKEN_FRAMES else
+                     f"more than {100 * MAX_BROKEN_FRAMES:.0f}% of the frames once exchanges were undone")
         raise InputError(src, "markers", f"marker spacing up to {labels.worst_chord_over_arc:.3g}x the arc length "
-                         f"between markers (length {length:g} m) in {100 * labels.broken_frames / T:.0f}% of the "
-                         f"frames, markers {most} most often: wrong units, wrong length, or a rope that stretches? "
-                         f"(a tracker's label swaps or ghost samples are read as missing when they break the length "
-                         f"in at most {100 * MAX_BROKEN_FRAMES:.0f}% of the frames)")
+                         f"between markers (length {length:g} m) in {how_often}, markers {most} most often: wrong "
+                         f"units, wrong length, a rope that stretches, or "
+                         f"labels exchanged in a way one swap does not undo? (marker noise "
+                         f"{1000 * labels.noise:.1f} mm, allowed for; a tracker's label swaps and ghost samples are "
+                         f"read as missing when they break the length in at most {100 * MAX_BROKEN_FRAMES:.0f}% of "
+                         "the frames)")
     markers = labels.markers
     stored = np.asarray(data["markers"]).dtype
     resolution = float(np.finfo(stored).eps * np.nanmax(np.abs(markers))) if np.issubdtype(stored, np.floating) else 0.0
@@ -274,12 +302,6 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
     # confident contact 20-240 ms early at another place.
     steady = float(np.median(offset)) if offset.size else 0.0
-    tail = np.linalg.norm(markers[:, -1] - hand, axis=1)[~missing[:, -1]]
-    if steady > max(2.0 * radius, HELD_END_OFFSET) and tail.size and \
-            np.median(tail) <= max(2.0 * radius, HELD_END_OFFSET) < steady:
-        raise InputError(src, "markers", f"the last marker sits at the hand ({1000 * np.median(tail):.0f} mm, median "
-                         f"over the frames) and marker 0 {1000 * steady:.0f} mm from it: markers stored free end "
-                         "first? marker 0 must be the held end (reverse the marker axis, and marker_arclength with it)")
     if not has_arclength and steady > max(2.0 * radius, HELD_END_OFFSET):
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
@@ -326,8 +348,10 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         if sim_s.shape != (2,) or np.any(sim_s[np.isfinite(sim_s)] < 0) or np.any(sim_s[np.isfinite(sim_s)] > 1):
             raise InputError(src, "sim_contact_s", "must be two arc-length fractions in [0, 1] (or NaN)")
     return RopeReference(time, markers, hand, length, mass, radius, bend, s, source, critical_time, sim_t, sim_s,
-                         missing if missing.any() else None, src, int(filled.sum()), int(labels.broken.sum()),
-                         tuple((float(time[k]), i, j) for k, i, j, _ in labels.swaps))
+                         missing if missing.any() else None, src, int(filled.sum()),
+                         int((labels.broken & missing).sum()),
+                         tuple((float(time[k]), i, j) for k, i, j in labels.swaps),
+                         int((labels.broken & ~missing).sum()))
 
 
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
