@@ -257,8 +257,8 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                      f"more than {100 * MAX_BROKEN_FRAMES:.0f}% of the frames once exchanges were undone")
         raise InputError(src, "markers", f"marker spacing up to {labels.worst_chord_over_arc:.3g}x the arc length "
                          f"between markers (length {length:g} m) in {how_often}, markers {most} most often: wrong "
-                         f"units, wrong length, a rope that stretches, or "
-                         f"labels exchanged in a way one swap does not undo? (marker noise "
+                         "units, wrong length, a rope that stretches, or labels exchanged in a way one swap does not "
+                         f"undo? (marker noise "
                          f"{1000 * labels.noise:.1f} mm, allowed for; a tracker's label swaps and ghost samples are "
                          f"read as missing when they break the length in at most {100 * MAX_BROKEN_FRAMES:.0f}% of "
                          "the frames)")
@@ -279,7 +279,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     seen = ~(missing[:, 1:] | missing[:, :-1])
     chord = np.linalg.norm(np.diff(markers, axis=1), axis=2)  # (T, M-1)
     arc = np.diff(s) * length
-    # ... and the marker intervals must straighten somewhere in a throw (a rope hanging at rest, a taut swing; the
+    # The marker intervals must straighten somewhere in a throw (a rope hanging at rest, a taut swing; the
     # built-in and test references reach 1.000-1.009 in median). Without marker_arclength, tip markers dropped leave
     # intervals that never come near their arc's length (two of twelve: a contact "found" at 0.08 s instead of 0.88 s,
     # with high confidence); with it, a length too long does.

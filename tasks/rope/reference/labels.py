@@ -67,10 +67,17 @@ def _merged(X: np.ndarray, radius: float, noise: float) -> list[tuple[int, int, 
     limit = min(radius, 2.0 * radius - 4.0 * np.sqrt(2.0) * noise)
     if limit <= 0.0:
         return []
-    with np.errstate(invalid="ignore"):
-        near = np.linalg.norm(X[:, :, None] - X[:, None], axis=3) < limit
-    t, i, j = np.nonzero(np.triu(near, 1))
-    return list(zip(t.tolist(), i.tolist(), j.tolist()))
+    T, M, _ = X.shape
+    out = []
+    chunk = max(1, 2_000_000 // (M * M))  # frames at a time: every pair of a long 65-marker recording is gigabytes
+    for a in range(0, T, chunk):
+        Y = X[a:a + chunk]
+        sq = np.einsum("tmk,tmk->tm", Y, Y)
+        with np.errstate(invalid="ignore"):
+            near = sq[:, :, None] + sq[:, None, :] - 2.0 * np.einsum("tmk,tnk->tmn", Y, Y) < limit * limit
+        t, i, j = np.nonzero(np.triu(near, 1))
+        out += zip((a + t).tolist(), i.tolist(), j.tolist())
+    return out
 
 
 def _frame_breaks(X: np.ndarray, hand: np.ndarray, t: int, rope: RopeLimits):
@@ -180,8 +187,7 @@ def repair_length(markers: np.ndarray, hand: np.ndarray, s: np.ndarray, length: 
                 X[blur, [i, j]] = np.nan
                 out.swaps.append((int(k), i, j))
                 # every frame from k on now reads the other way round: those beside i and j are judged again
-                later = _suspect_frames(X[k:], hand[k:], rope, (i, j)) + k
-                queue, q = np.union1d(queue[q:], later[later >= max(k - 1, 0)]), 0
+                queue, q = np.union1d(queue[q:], _suspect_frames(X[k:], hand[k:], rope, (i, j)) + k), 0
             b, idx = _frame_breaks(X, hand, t, rope)
             if not b.any():
                 break
@@ -239,6 +245,21 @@ def _confirmed(X: np.ndarray, hand: np.ndarray, t: int, rope: RopeLimits, swaps)
     return bool(later) and _mends(X, hand, later[0], rope, swaps)
 
 
+def _fits_at(X: np.ndarray, hand: np.ndarray, t: int, rope: RopeLimits, a: int) -> np.ndarray:
+    """(M,) whether each marker's sample in frame t would sit within the rope's reach of marker a's seen neighbour
+    on one side or the other: the partners worth trying for an exchange with a (a 65-marker rope had tried all 64)."""
+    seen = np.flatnonzero(np.isfinite(X[t]).all(axis=1))
+    seen = seen[seen != a]
+    before, after = seen[seen < a], seen[seen > a]
+    ok = np.zeros(X.shape[1], bool)
+    for n in ([before[-1]] if before.size else [-1]) + ([after[0]] if after.size else []):
+        point, arc = (hand[t], rope.s[a]) if n < 0 else (X[t, n], abs(rope.s[a] - rope.s[n]))
+        reach = CHORD_SLACK * arc * rope.length + (rope.hand_slack if n < 0 else rope.slack)
+        with np.errstate(invalid="ignore"):
+            ok |= np.linalg.norm(X[t] - point, axis=1) <= reach
+    return ok
+
+
 def _undoing_swaps(X, hand, t: int, rope: RopeLimits, involved: list[int]) -> list[tuple[int, int]]:
     """The exchange of two labels seen in frame t, one among `involved` and the other any marker, that mends frame t
     and is confirmed in the next; where none alone does, two at once (a knot can exchange two pairs of neighbours,
@@ -248,8 +269,9 @@ def _undoing_swaps(X, hand, t: int, rope: RopeLimits, involved: list[int]) -> li
     if not involved or len(involved) > MAX_SWAP_CANDIDATES:
         return []
     seen = np.isfinite(X[t]).all(axis=1)
-    pairs = [(i, j) for i, j in sorted({(min(a, c), max(a, c)) for a in involved for c in range(X.shape[1]) if c != a})
-             if seen[i] and seen[j]]
+    fits = {a: _fits_at(X, hand, t, rope, a) for a in involved if seen[a]}
+    pairs = sorted({(min(a, int(c)), max(a, int(c))) for a, ok in fits.items() for c in np.flatnonzero(ok & seen)
+                    if c != a})
 
     def cost(swaps):
         return sum(_off_path(X[:, i], t, X[t, j]) + _off_path(X[:, j], t, X[t, i]) for i, j in swaps)
