@@ -586,7 +586,6 @@ def beat_speeds(rate: Rate) -> np.ndarray:
     flagged as not cruising at 0.003 and 0.010 m/s."""
     from wrenorm.tasks.swimmer.features import real_features  # features imports this module
 
-
     return np.asarray(real_features(rate)[2]["speed"], np.float64)
 
 

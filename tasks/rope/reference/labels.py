@@ -1,15 +1,15 @@
 """Marker samples that break the rope's length: a motion-capture tracker's label swaps and ghost samples.
 
 A rope carries identical markers, and a tracker labels them by continuity: where two come close (the pieces that touch
-at a self-contact, a knot forming after it) it can exchange their labels and keep them exchanged, and a reflection can
-stand in for a marker for a frame. Either puts a marker farther from its neighbours along the rope than the rope
-between them is long, which no rope does. Such a sample anywhere in a recording had the whole file refused as "wrong
-units or wrong length?" (a probe of stop 48: one ghost sample 0.1 s after the contact, or two labels exchanged after
-it). Here each exchange that a swap of two labels undoes, in the frame it shows and in the next, is undone from the
-frame it began (found by the smoothness of their paths; that frame is read as missing where the exchange showed
-only later), and any other sample that breaks the length is read as missing; the
-loader bridges and the detector flags such gaps as it does any other; so is one of two markers seen nearer each
-other than the rope's pieces can come (two labels on one marker). A hand sample off its path that breaks the
+at a self-contact, a knot forming after it) it can exchange their labels and keep them exchanged, a reflection can
+stand in for a marker for a frame, and two labels can sit on one marker. The first two put a marker farther from its
+neighbours along the rope than the rope between them is long, the third two centre-line points nearer each other
+than touching pieces come; no rope does either. Such a sample anywhere in a recording had the whole file refused as
+"wrong units or wrong length?" (a probe of stop 48: one ghost sample 0.1 s after the contact, or two labels exchanged
+after it). Here each exchange that a swap of two labels undoes (or two swaps, where a knot exchanges two pairs), in
+the frame it shows and in the next, is undone from the frame it began (found by the smoothness of the two paths;
+that frame is read as missing where the exchange showed only later); any other such sample is read as missing, and
+the loader bridges and the detector flags such gaps as it does any other. A hand sample off its path that breaks the
 rope's reach is no marker's fault: it is reported (`hand_frames`) for the loader to refuse."""
 from __future__ import annotations
 
@@ -49,7 +49,8 @@ class RopeLimits:
 class LengthRepair:
     markers: np.ndarray  # (T, M, 3) with exchanges undone and samples breaking the length NaN
     swaps: list = field(default_factory=list)  # (frame exchanged from, i, j)
-    broken: np.ndarray | None = None  # (T, M) bool: samples read as missing (ghosts, and around each exchange)
+    broken: np.ndarray | None = None  # (T, M) bool: samples read as missing (ghosts, second labels, each exchange's
+    # first frame where it showed only later)
     hand_frames: list = field(default_factory=list)  # frames whose hand sample, off its path, breaks the reach
     refused: bool = False  # more than MAX_BROKEN_FRAMES of the frames break the length: the caller refuses
     broken_frames: int = 0  # frames that broke the length as read (an exchange counted once, where it shows)
