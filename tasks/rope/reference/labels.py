@@ -25,7 +25,6 @@ NOISE_SIGMAS = 5.0
 MAX_BROKEN_FRAMES = 0.1  # more frames than this breaking the length: the file's length or units are wrong
 SWAP_LOOKBACK = 0.25  # s searched back for the frame an exchange began in
 MAX_SWAP_CANDIDATES = 12  # markers in (or beside) a frame's broken intervals, each tried against every other
-MAX_SWAPS_PER_FRAME = 4  # searches for exchanges in one frame (two at once happen where a knot forms)
 CONFIRM_FRAMES = 3  # frames after the one an exchange shows in, searched for one holding both markers
 
 
@@ -172,26 +171,20 @@ def repair_length(markers: np.ndarray, hand: np.ndarray, s: np.ndarray, length: 
         if b[0] and _off_path(hand, t) > _off_path(X[:, idx[1]], t):
             out.hand_frames.append(t)  # the hand left its path here, not the marker
             continue
-        for _ in range(MAX_SWAPS_PER_FRAME):
-            involved = sorted({int(m) for k in np.flatnonzero(b) for m in idx[k:k + 2] if m >= 0})
-            # a neighbour's exchange breaks only the intervals beside the pair (5 and 6 exchanged: 4-"5" and "6"-7)
-            near = sorted({n for m in involved for n in (m - 1, m, m + 1) if 0 <= n < M})
-            swaps = _undoing_swaps(X, hand, t, rope, near)
-            if not swaps:
-                break
-            for i, j in swaps:
-                k = _exchange_frame(X, t, i, j, lookback)
-                X[k:, [i, j]] = X[k:, [j, i]]
-                # the frame of the exchange is a guess within the two markers' distance there: read it as missing
-                blur = slice(max(k - 1, 0), k + 1) if k < t else slice(t, t)
-                broken[blur, [i, j]] |= np.isfinite(X[blur, [i, j]]).all(axis=2)
-                X[blur, [i, j]] = np.nan
-                out.swaps.append((int(k), i, j))
-                # every frame from k on now reads the other way round: those beside i and j are judged again
-                queue, q = np.union1d(queue[q:], _suspect_frames(X[k:], hand[k:], rope, (i, j)) + k), 0
-            b, idx = _frame_breaks(X, hand, t, rope)
-            if not b.any():
-                break
+        involved = sorted({int(m) for k in np.flatnonzero(b) for m in idx[k:k + 2] if m >= 0})
+        # a neighbour's exchange breaks only the intervals beside the pair (5 and 6 exchanged: 4-"5" and "6"-7)
+        near = sorted({n for m in involved for n in (m - 1, m, m + 1) if 0 <= n < M})
+        for i, j in _undoing_swaps(X, hand, t, rope, near):
+            k = _exchange_frame(X, t, i, j, lookback)
+            X[k:, [i, j]] = X[k:, [j, i]]
+            # the frame of the exchange is a guess within the two markers' distance there: read it as missing
+            blur = slice(max(k - 1, 0), k + 1) if k < t else slice(t, t)
+            broken[blur, [i, j]] |= np.isfinite(X[blur, [i, j]]).all(axis=2)
+            X[blur, [i, j]] = np.nan
+            out.swaps.append((int(k), i, j))
+            # every frame from k on now reads the other way round: those beside i and j are judged again
+            queue, q = np.union1d(queue[q:], _suspect_frames(X[k:], hand[k:], rope, (i, j)) + k), 0
+        b, idx = _frame_breaks(X, hand, t, rope)
         while b.any():  # what no exchange explains: drop the marker in most broken intervals, the one off its path
             hits = np.zeros(len(idx), np.int64)
             for k in np.flatnonzero(b):
@@ -262,8 +255,8 @@ def _fits_at(X: np.ndarray, hand: np.ndarray, t: int, rope: RopeLimits, a: int) 
 
 
 def _undoing_swaps(X, hand, t: int, rope: RopeLimits, involved: list[int]) -> list[tuple[int, int]]:
-    """The exchange of two labels seen in frame t, one among `involved` and the other any marker, that mends frame t
-    and is confirmed in the next; where none alone does, two at once (a knot can exchange two pairs of neighbours,
+    """The exchange of two labels seen in frame t, one among `involved` and the other any marker, that makes frame t
+    whole and is confirmed in the next; where none alone does, two at once (a knot can exchange two pairs of neighbours,
     4-7 and 5-10, and neither mends the intervals beside it alone). Among several, the one whose samples lie
     nearest their new paths. Empty: none found (or too many markers involved to try). The partner may sit anywhere
     along the rope: at 8 markers, markers 5 and 7 exchanged break only the interval 4-5."""
@@ -277,13 +270,16 @@ def _undoing_swaps(X, hand, t: int, rope: RopeLimits, involved: list[int]) -> li
     def cost(swaps):
         return sum(_off_path(X[:, i], t, X[t, j]) + _off_path(X[:, j], t, X[t, i]) for i, j in swaps)
 
-    whole = [[p] for p in pairs if _mends(X, hand, t, rope, [p]) and _confirmed(X, hand, t, rope, [p])]
-    if whole:
-        return min(whole, key=cost)
+    # the frame must come out whole: a swap that mends only the intervals beside it can be a wrong one that
+    # shortens a longer exchange (markers 2 and 6 exchanged on a rope hanging straight at 8 markers: swapping 3 and 5
+    # mends 3's and 5's intervals and then blocks the right swap; a MuJoCo throw of stop 48's probe)
+    ones = [[p] for p in pairs if _after(X, hand, t, rope, [p])[0] == 0 and _confirmed(X, hand, t, rope, [p])]
+    if ones:
+        return min(ones, key=cost)
     before = int(_frame_breaks(X, hand, t, rope)[0].sum())
     partial = [p for p in pairs if _after(X, hand, t, rope, [p])[0] < before]
     twos = [[p, r] for n, p in enumerate(partial) for r in partial[n + 1:] if not set(p) & set(r)]
-    twos = [w for w in twos if _mends(X, hand, t, rope, w) and _confirmed(X, hand, t, rope, w)]
+    twos = [w for w in twos if _after(X, hand, t, rope, w)[0] == 0 and _confirmed(X, hand, t, rope, w)]
     return min(twos, key=cost) if twos else []
 
 
