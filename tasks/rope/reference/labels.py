@@ -37,11 +37,15 @@ class RopeLimits:
     slack: float  # m beyond 10 % of every interval
     hand_slack: float  # m the hand may sit off the held end beyond 10 % of the rope to the first seen marker
 
+    def reach(self, arc: np.ndarray, from_hand: bool = False) -> np.ndarray:
+        """Longest chord over these arc fractions of rope, between two markers or (from_hand) from the hand, where
+        the loader's own rule for marker 0's reach applies."""
+        return CHORD_SLACK * np.asarray(arc) * self.length + (self.hand_slack if from_hand else self.slack)
+
     def allowed(self, nodes_s: np.ndarray) -> np.ndarray:
         """Longest chord between consecutive nodes at these arc fractions, node 0 the hand (at arc 0)."""
-        allowed = CHORD_SLACK * np.diff(nodes_s) * self.length + self.slack
-        allowed[:1] += self.hand_slack - self.slack  # the loader's own rule for marker 0's reach from the hand
-        return allowed
+        arc = np.diff(nodes_s)
+        return np.concatenate([self.reach(arc[:1], from_hand=True), self.reach(arc[1:])])
 
 
 @dataclass
@@ -248,9 +252,8 @@ def _fits_at(X: np.ndarray, hand: np.ndarray, t: int, rope: RopeLimits, a: int) 
     ok = np.zeros(X.shape[1], bool)
     for n in ([before[-1]] if before.size else [-1]) + ([after[0]] if after.size else []):
         point, arc = (hand[t], rope.s[a]) if n < 0 else (X[t, n], abs(rope.s[a] - rope.s[n]))
-        reach = CHORD_SLACK * arc * rope.length + (rope.hand_slack if n < 0 else rope.slack)
         with np.errstate(invalid="ignore"):
-            ok |= np.linalg.norm(X[t] - point, axis=1) <= reach
+            ok |= np.linalg.norm(X[t] - point, axis=1) <= rope.reach(arc, from_hand=n < 0)
     return ok
 
 
