@@ -692,3 +692,78 @@ def test_a_sweep_folder_another_process_writes_is_refused_and_resume_force_too(t
     (mine / "notes.txt").write_text("x")
     assert main(["sweep", str(spec), "--out", str(mine), "--force"]) == 2
     assert "not written by wrenorm" in capsys.readouterr().err and sorted(os.listdir(mine)) == ["notes.txt"]
+
+
+CORRECT_SPEC = """
+task = "correct rope"
+seeds = [0, 1]
+
+[options]
+real = "coarse"
+max-trials = 2
+no-record = true
+params = ["measured", "fitted"]
+"""
+
+
+def test_a_correction_sweep_tabulates_each_arms_outcome_as_its_run_wrote_it(tmp_path):
+    """A sweep of `correct rope` cells gave a table of the result's top-level numbers (tolerance, max_trials, ...)
+    and none of what the runs did: a campaign run as a sweep could not be read from it. Each arm is a row now, with
+    the trials to the tolerance as the campaign counts them, and the sweep counts the runs reached per arm. The real
+    rope is the coarse chain here (`--real coarse`): seconds, not minutes."""
+    _ray()
+    spec, out = _write(tmp_path, CORRECT_SPEC), tmp_path / "out"
+    proc = _sweep(spec, out)
+    assert proc.returncode == 0, proc.stderr
+    rows = _rows(out)
+    assert [(r["seed"], r["arm"]) for r in rows] == [("0", "measured"), ("0", "fitted"), ("1", "measured"),
+                                                     ("1", "fitted")]
+    for r in rows:
+        mine = json.loads((out / "cells" / r["cell"] / "correct.json").read_text())
+        run = mine["runs"][r["arm"]]
+        want = run["trials_to_tolerance"] if run["success"] else mine["max_trials"] + 1
+        assert int(r["trials"]) == want and r["reached"] == str(run["success"])
+        assert float(r["best_error"]) == run["best_error"]
+        assert float(r["first_trial_error"]) == run["trials"][0]["error"]
+        assert r["resolution"] == "segments=10;dt=0.005" and r["status"] == "done"
+    summary = json.loads((out / "sweep.json").read_text())["summary"]
+    for arm in ("measured", "fitted"):
+        mine = [r for r in rows if r["arm"] == arm]
+        reached = sum(r["reached"] == "True" for r in mine)
+        assert any(line.startswith(f"{arm}: reached the tolerance in {reached} of 2 runs") for line in summary), summary
+    # the cell is the command: a separate `correct rope` with the cell's options and seed tried the same commands
+    direct = tmp_path / "direct"
+    assert main(["correct", "rope", "--real", "coarse", "--max-trials", "2", "--no-record", "--quiet", "--params",
+                 "measured", "fitted", "--seed", "0", "--out", str(direct)]) == 0
+    theirs = json.loads((direct / "correct.json").read_text())["runs"]
+    mine = json.loads((out / "cells" / rows[0]["cell"] / "correct.json").read_text())["runs"]
+    for arm in ("measured", "fitted"):
+        assert [t["command_u"] for t in mine[arm]["trials"]] == [t["command_u"] for t in theirs[arm]["trials"]]
+        assert [t["error"] for t in mine[arm]["trials"]] == [t["error"] for t in theirs[arm]["trials"]]
+
+
+def test_a_commands_own_columns_keep_off_the_axes_and_other_commands_keep_their_numbers(tmp_path):
+    from wrenorm.sweep import table
+
+    result = {"schema": "wrenorm.correct/1", "tolerance": 0.05, "max_trials": 10,
+              "model": {"segments": 10, "dt": 0.005},
+              "runs": {"measured": {"success": False, "trials_to_tolerance": None, "best_error": 0.08, "best_trial": 3,
+                                    "trials_used": 10, "trials": [{"error": 0.3}]}}}
+    row, = table.result_rows("correct", result, axes=("arm",), system="rope")
+    assert row["result_arm"] == "measured" and "arm" not in row and row["trials"] == 11 and row["reached"] is False
+    assert row["first_trial_error"] == 0.3 and row["last_floor"] is None
+    # a command without its own rows: the result's top-level numbers and strings, as before
+    assert table.result_rows("sensitivity", {"schema": "s", "directions": 5, "nested": {}}, system="rope") == \
+        [{"directions": 5}]
+
+
+@pytest.mark.parametrize("name, task, cells", [("sweep-pd.toml", "fit pd", None), ("sweep-rope.toml", "fit rope", 8),
+                                               ("sweep-swimmer.toml", "fit swimmer", None),
+                                               ("sweep-correct-rope.toml", "correct rope", 21)])
+def test_the_example_specs_load_with_the_commands_own_parsers(name, task, cells, monkeypatch):
+    from wrenorm.sweep.spec import load
+
+    monkeypatch.chdir(ROOT)  # their paths, if any, are relative to the checkout
+    spec = load(EXAMPLES / name)
+    assert spec.task == task and spec.cells
+    assert cells is None or len(spec.cells) == cells

@@ -59,6 +59,10 @@ class ExtraCommand:
     help: str
     add_arguments: Ref  # (parser) -> None; called only when this command is the one asked for
     run: Ref  # (args) -> exit code
+    # (result dict) -> [row dict]: what a sweep's table shows of one finished cell of this command (its outcome, one
+    # row per part, e.g. per arm of a correction); None: the result's top-level numbers and strings
+    table_rows: Ref | None = None
+    sweep_summary: Ref | None = None  # (the done cells' rows) -> [line]: what the sweep says of them all at its end
 
 
 @dataclass(frozen=True)

@@ -498,7 +498,8 @@ def _write_tables(sweep: dict) -> None:
     write_json(out / "sweep.json", {
         "schema": SCHEMA, "task": spec.task, "description": spec.description,
         "spec": {"file": str(spec.path), "options": spec.options, "axes": spec.axes, "seeds": spec.seeds},
-        "counts": counts, "ray": sweep["ray"], "timing": sweep["timing"], "cell_overhead": _overhead(records),
+        "counts": counts, "summary": table.summary(spec, records, results), "ray": sweep["ray"],
+        "timing": sweep["timing"], "cell_overhead": _overhead(records),
         "cells": cells, "columns": table.columns(spec, rows), "table": rows,
         "volatile_columns": list(table.VOLATILE)})
     table.write_csv(out / "sweep.csv", spec, rows)
@@ -509,10 +510,11 @@ def _finish(sweep: dict) -> None:
     rows = table.build(spec, records, sweep["results"])
     names = table.free_names(spec.verb, {k: v for k, v in sweep["results"].items()
                                          if records.get(k, {}).get("status") == "done"}, spec.axes)
+    plotted = False
     try:
         from wrenorm.viz.sweep_plot import plot_sweep
 
-        plot_sweep(out / "sweep.png", spec, rows, names)
+        plotted = plot_sweep(out / "sweep.png", spec, rows, names)
     except ImportError:  # matplotlib missing: the plot is a convenience, never fatal
         pass
     if not args.no_record:
@@ -524,6 +526,8 @@ def _finish(sweep: dict) -> None:
     print(f"\nsweep {spec.task}: {done}/{len(spec.cells)} cells done, {len(failed)} failed")
     for c in failed:
         print(f"  {c.id}: {records[c.id].get('error')}")
+    for line in table.summary(spec, records, sweep["results"]):
+        print(f"  {line}")
     warned = list(dict.fromkeys(r["cell"] for r in rows if r.get("warnings")))
     if warned:
         print(f"  {len(warned)} done cell{'s' if len(warned) > 1 else ''} with warnings ({', '.join(warned[:8])}"
@@ -534,5 +538,5 @@ def _finish(sweep: dict) -> None:
               f" s), cells {timing.get('cells_s', 0):.1f} s on {timing.get('slots')} slots"
               + (f"; per cell {ov['mean_s']:.2f} s (max {ov['max_s']:.2f} s) beyond the command's own wall_seconds, "
                  f"{ov['setup_mean_s']:.2f} s of it the command's set-up" if ov else ""))
-    print(f"table: {out / 'sweep.csv'}  plot: {out / 'sweep.png'}"
+    print(f"table: {out / 'sweep.csv'}" + (f"  plot: {out / 'sweep.png'}" if plotted else "")
           + ("" if args.no_record else f"  view: python -m wrenorm view {out}"))

@@ -6,7 +6,8 @@ Columns: cell, the axes, seed, status, resolution; per parameter its fitted valu
 loss_measured, loss_fitted; warnings (the fit's own, joined by "; "); per held-out condition
 heldout_<name>_measured / _fitted, heldout_mean_fitted, verdict; error; then the columns that differ from run to run
 of the same cell (VOLATILE): the fit's own wall_seconds, the cell's cell_seconds (as the worker saw it), host,
-started, finished.
+started, finished. A command beyond fit and flow gives the rows its system says (ExtraCommand.table_rows: a
+correction's one per arm), else its result's top-level numbers and strings.
 """
 from __future__ import annotations
 
@@ -81,11 +82,48 @@ def _other_rows(r: dict, axes) -> list[dict]:
     return [row]
 
 
-def result_rows(verb: str, result: dict | None, axes=()) -> list[dict]:
-    """axes: the spec's axis keys, which result columns must not take."""
+def _command_rows(table_rows):
+    """A command's own rows (ExtraCommand.table_rows), its keys kept off the axes' columns as _other_rows keeps them."""
+    def rows(r: dict, axes) -> list[dict]:
+        return [{(f"result_{k}" if k in axes else k): v for k, v in row.items()} for row in table_rows(r)]
+
+    return rows
+
+
+def _command(verb: str, system: str | None):
+    """The ExtraCommand a sweep's cells run (None for fit and flow, or without a system)."""
+    if verb in ("fit", "flow") or not system:
+        return None
+    from wrenorm.system import get
+
+    return next((c for c in get(system).commands if c.verb == verb), None)
+
+
+def result_rows(verb: str, result: dict | None, axes=(), system: str | None = None) -> list[dict]:
+    """axes: the spec's axis keys, which result columns must not take. system: where a command beyond fit and flow
+    says what its table shows (ExtraCommand.table_rows), else the result's top-level numbers and strings."""
     if not result:
         return [{}]
-    return {"fit": _fit_rows, "flow": _flow_rows}.get(verb, _other_rows)(result, set(axes)) or [{}]
+    rows = {"fit": _fit_rows, "flow": _flow_rows}.get(verb)
+    if rows is None:
+        from wrenorm.system import resolve
+
+        command = _command(verb, system)
+        rows = _command_rows(resolve(command.table_rows)) if command and command.table_rows else _other_rows
+    return rows(result, set(axes)) or [{}]
+
+
+def summary(spec, records: dict, results: dict) -> list[str]:
+    """What the command says of all finished cells together (ExtraCommand.sweep_summary over its table_rows; e.g. a
+    correction campaign's runs reached per arm), or nothing."""
+    from wrenorm.system import resolve
+
+    command = _command(spec.verb, spec.system)
+    if command is None or command.sweep_summary is None or command.table_rows is None:
+        return []
+    rows = [row for cell in spec.cells if (records.get(cell.id) or {}).get("status") == "done"
+            and results.get(cell.id) for row in resolve(command.table_rows)(results[cell.id])]
+    return list(resolve(command.sweep_summary)(rows)) if rows else []
 
 
 def build(spec, records: dict, results: dict) -> list[dict]:
@@ -95,7 +133,8 @@ def build(spec, records: dict, results: dict) -> list[dict]:
         rec = records.get(cell.id) or {}
         base = {"cell": cell.id, **{k: _text(v) for k, v in cell.axes.items()}, "seed": cell.seed,
                 "status": rec.get("status", "pending")}
-        extra = result_rows(spec.verb, results.get(cell.id), spec.axes) if rec.get("status") == "done" else [{}]
+        extra = (result_rows(spec.verb, results.get(cell.id), spec.axes, spec.system) if rec.get("status") == "done"
+                 else [{}])
         for part in extra:
             row = dict(base)
             row.update({k: v for k, v in part.items() if k not in VOLATILE})

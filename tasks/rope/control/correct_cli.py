@@ -532,6 +532,42 @@ def last_floor(r: dict) -> dict | None:
     return next((f for f in reversed(floors) if f), None)
 
 
+def sweep_rows(result: dict) -> list[dict]:
+    """A sweep's rows of one finished correction (wrenorm.sweep.table): one per arm, the run's outcome as the campaign
+    table counts it (trials to the tolerance, max_trials + 1 where never reached), the best error, trial 1's, and the
+    corrected model's last floor."""
+    rows = []
+    tolerance, budget = result.get("tolerance"), result.get("max_trials")
+    for label, r in result.get("runs", {}).items():
+        trials, floor = r.get("trials") or [], last_floor(r)
+        reached = r.get("trials_to_tolerance")
+        model = result.get("model") or {}
+        rows.append({"resolution": {k: model[k] for k in ("segments", "dt") if k in model},
+                     "arm": label, "reached": bool(r.get("success")),
+                     "trials": reached if reached is not None else (budget + 1 if budget is not None else None),
+                     "best_error": r.get("best_error"), "best_trial": r.get("best_trial"),
+                     "trials_used": r.get("trials_used"), "first_trial_error": trials[0]["error"] if trials else None,
+                     "last_floor": floor["error"] if floor else None,
+                     "floor_above_tolerance": (floor["error"] > tolerance) if floor and tolerance is not None else None,
+                     "stop_reason": r.get("stop_reason") or "", "tolerance": tolerance, "max_trials": budget,
+                     "real_system": result.get("real_system", ""), "wall_seconds": result.get("wall_seconds")})
+    return rows
+
+
+def sweep_summary(rows: list[dict]) -> list[str]:
+    """Per arm over a sweep's finished corrections, as the campaign counts them: runs that reached the tolerance, the
+    median trials (a miss counting max_trials + 1) and the median best error."""
+    lines = []
+    for arm in dict.fromkeys(r["arm"] for r in rows if r.get("arm")):
+        mine = [r for r in rows if r.get("arm") == arm]
+        trials = [r["trials"] for r in mine if r.get("trials") is not None]
+        best = [r["best_error"] for r in mine if r.get("best_error") is not None]
+        lines.append(f"{arm}: reached the tolerance in {sum(bool(r.get('reached')) for r in mine)} of {len(mine)} "
+                     f"runs, median {np.median(trials):g} trials (a miss counts max_trials + 1), median best error "
+                     f"{np.median(best):.3f}" if trials and best else f"{arm}: {len(mine)} runs")
+    return lines
+
+
 def run_verdict(r: dict, tolerance: float) -> str:
     if r["success"]:
         return f"reached the tolerance in {r['trials_to_tolerance']} trials"
