@@ -13,6 +13,7 @@ from wrenorm.tasks.rope.control.command import CommandSpace
 from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct, parameters_from_file, qp_step
 from wrenorm.tasks.rope.control.plan import Offset, plan, predicted_cost, state_vector, with_offset
 from wrenorm.tasks.rope.control.sensitivity import resolvable
+from wrenorm.tasks.rope.observable import SAMPLES
 from wrenorm.tasks.rope.problem import RopeProblem
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
 from wrenorm.tasks.rope.reference.paths import HandPath, builtin_hand_paths
@@ -355,6 +356,35 @@ def test_residual_weights_make_the_observables_residual_linear_in_the_state(prob
     assert np.all(w > 0)
 
 
+def test_velocity_projection_is_a_polynomial_fit_of_the_velocity_profile_and_keeps_the_rest(problem):
+    """secant.velocity_projection keeps, of the velocity rows, each axis's least-squares polynomial of degree modes - 1
+    in arc length (checked against numpy's polyfit, an independent fit) and every other row as it is; every mode
+    (SAMPLES) keeps everything."""
+    goal = crit.Target.from_reference(problem.train[0].data.ref)
+    b = goal.blocks
+    assert secant.velocity_projection(goal, SAMPLES) is None
+    s = np.linspace(0.0, 1.0, SAMPLES)
+    r = np.random.default_rng(7).normal(size=goal.dim)
+    for modes in (1, 3, 6):
+        Q = secant.velocity_projection(goal, modes)
+        assert np.allclose(Q @ Q, Q) and np.allclose(Q, Q.T)
+        kept = Q @ r
+        rest = np.r_[b["position"], b["time"], b["place"]]
+        assert np.array_equal(kept[rest], r[rest])
+        v, fit = r[b["velocity"]].reshape(SAMPLES, 3), kept[b["velocity"]].reshape(SAMPLES, 3)
+        for axis in range(3):
+            expected = np.polyval(np.polyfit(s, v[:, axis], modes - 1), s)
+            assert np.allclose(fit[:, axis], expected, atol=1e-10)
+    # a profile of degree 2 is kept whole by 3 modes; what lies off every quadratic is dropped whole
+    smooth = np.zeros(goal.dim)
+    smooth[b["velocity"]] = np.stack([1 + s, s**2, 2 - s + 3 * s**2], axis=1).ravel()
+    Q = secant.velocity_projection(goal, 3)
+    assert np.allclose(Q @ smooth, smooth)
+    rough = np.zeros(goal.dim)
+    rough[b["velocity"]] = (np.eye(SAMPLES * 3)[5] - Q[b["velocity"], b["velocity"]] @ np.eye(SAMPLES * 3)[5])
+    assert np.allclose(Q @ rough, 0.0, atol=1e-12)
+
+
 def test_secant_corrections_reproduce_the_trials():
     """Ridge over the secant pairs: with one pair and a vanishing prior weight it is Broyden's update (the pair
     reproduced exactly, directions orthogonal to it left at the prior); with several, a vanishing weight reproduces
@@ -493,6 +523,12 @@ def test_gn_correction_records_what_each_step_learned(problem):
     assert alike["gauss_newton"]["velocity_weight"] == 1.0
     assert np.array_equal(alike["trials"][0].u, tr[0].u)  # trial 1 is the chain's plan, no step
     assert not np.allclose(alike["trials"][1].u, tr[1].u)  # trial 2 is the first step, and the weight moves it
+    # fixed parameters keep every velocity row in their steps by default; fewer modes move the first step
+    assert res["gauss_newton"]["velocity_modes"] == SAMPLES
+    smooth = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
+                     max_trials=2, tolerance=1e-6, method="gn", velocity_modes=3, **FAST_PLAN)
+    assert smooth["gauss_newton"]["velocity_modes"] == 3 and np.array_equal(smooth["trials"][0].u, tr[0].u)
+    assert not np.allclose(smooth["trials"][1].u, tr[1].u)
 
 
 def test_space_mapping_first_step_moves_by_the_match_the_other_way(problem):
@@ -702,6 +738,11 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
         space = CommandSpace(PATHS["flick"])
         with pytest.raises(InputError, match="velocity_weight"):
             correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
+    for kw in ({"method": "plan", "velocity_modes": 3}, {"velocity_modes": 0}, {"velocity_modes": 22},
+               {"velocity_modes": 3.0}, {"velocity_modes": True}):
+        space = CommandSpace(PATHS["flick"])
+        with pytest.raises(InputError, match="velocity_modes"):
+            correct(None, SimpleNamespace(space=space), None, np.zeros(space.dim), **kw)
     for kw in ({"method": "plan", "secant_locality": 1.0}, {"secant_locality": 0.0}, {"secant": False,
                                                                                      "secant_locality": 1.0},
                {"secant_locality": float("inf")}, {"secant_locality": "1"}):
@@ -729,6 +770,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "0.5", "--method", "plan", "--params", "measured"], "--method plan"),
+                      (["--velocity-modes", "0"], "neither a whole number of modes in 1-21 nor all"),
+                      (["--velocity-modes", "22"], "neither a whole number of modes in 1-21 nor all"),
+                      (["--velocity-modes", "2.5"], "neither a whole number of modes in 1-21 nor all"),
+                      (["--velocity-modes", "3", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
                       (["--max-radius", "7"], "(0, 6]"),
                       (["--min-radius", "0.5", "--params", "fitted"], "no run here has one"),
@@ -1050,8 +1095,12 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     cells = [line.split("|")[3].strip() for line in r.stdout.splitlines() if line.startswith("| best error")][:8]
     assert len(cells) == 8 and sum(c == "1.00" for c in cells) >= 6 and set(cells) <= {"1.00", "nan"}, r.stdout
     assert "No step recorded the corrected model's floor" in r.stdout
-    along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:]
+    along = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][8:10]
     assert len(along) == 2 and all(row[2].strip() == row[3].strip() == "1.00" for row in along), r.stdout
+    # every prediction came true: each part of the velocity change, in the first modes and the rest, at cosine 1
+    split = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][10:]
+    assert [int(row[2]) for row in split] == [1, 2, 3, 5] * 2, r.stdout
+    assert all(row[4].strip() == "1.00 / 1.00" and row[5].strip() == "0.00 / 0.00" for row in split), r.stdout
     # each step's floor, recorded with the trial before it, set to 0.6 of the best error then: the table says 0.60
     with_floor, best = [], np.inf
     for t in trials:
@@ -1102,6 +1151,16 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     assert diag.along_the_step(-p, p, 0.5 * p) == pytest.approx({"projection": 0.5, "cosine": 1.0, "best_length": 2.0})
     assert diag.along_the_step(-p, p, np.array([0.4, 0.3, 0.0]))["cosine"] == pytest.approx(0.0)
     assert all(np.isnan(v) for v in diag.along_the_step(-p, p, np.zeros(3)).values())  # no change: no direction
+    # the velocity split: a change on a straight line in arc length lies in the first two modes whole; predicted
+    # right there and wrong in the rest (the opposite sign), the parts score cosine 1 and -1
+    v, arc = goal.blocks["velocity"], np.linspace(0.0, 1.0, crit.SAMPLES)
+    smooth, rough = np.zeros(goal.dim), np.zeros(goal.dim)
+    smooth[v] = np.stack([1 + arc, 2 * arc, -arc], axis=1).ravel()
+    rough[v] = rng.normal(size=3 * crit.SAMPLES)
+    rough -= secant.velocity_projection(goal, 2) @ rough
+    split = diag.velocity_modes(goal, smooth - rough, smooth + rough)["modes2"]
+    assert split["share"] == pytest.approx(smooth @ smooth / (smooth @ smooth + rough @ rough))
+    assert split["kept"] == pytest.approx((1.0, 0.0), abs=1e-12) and split["rest"] == pytest.approx((-1.0, 2.0))
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
                                ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),
@@ -1299,7 +1358,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     old = {k: v for k, v in vars(parser.parse_args(["--segments", "12"])).items()
            if k not in correct_cli._NOT_SAVED and k not in ("start_pair", "trust_region", "max_radius",
                                                              "velocity_weight", "secant_locality",
-                                                             "first_plan_reg", "first_plan_offset")}
+                                                             "first_plan_reg", "first_plan_offset", "velocity_modes")}
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(old))
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
@@ -1349,7 +1408,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # and before --velocity-weight: its steps weighed the velocity rows as the others
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "secant_locality": None}
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "velocity_modes": None,
+                                                         "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
@@ -1366,7 +1426,12 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "secant_locality": None}
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "velocity_modes": None,
+                                                               "secant_locality": None}
+    # and before --velocity-modes: its steps kept every velocity row; another number on its resume is refused
+    args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-modes", "3"])
+    with pytest.raises(InputError, match="kept every velocity row"):
+        correct_cli._restore_settings(args)
     # an old plan run: its fixed arms had no trust region and its renormalised arms adapted, which is by-arm now;
     # its --min-radius, where no arm used it, is dropped rather than refused
     for params, kept in ((["measured"], None), (["measured", "renormalised"], 0.5)):
@@ -1393,7 +1458,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     for given in ([], ["--velocity-weight", ".5"]):
         args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
         correct_cli._restore_settings(args)
-        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "secant_locality": None}
+        assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "velocity_modes": None,
+                                                             "secant_locality": None}
     with pytest.raises(InputError, match="ran with 0.5"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
@@ -1408,7 +1474,8 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # the default arm renormalises from the fitted values, in the renormalised arms' adaptive trust region
     assert new.params == ["renormalised-from-fitted"] and correct_cli._trust_rule(new, new.params[0]) == "adaptive"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
-    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "secant_locality": None}  # by method
+    assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "velocity_modes": None,
+                                                        "secant_locality": None}  # by arm; every velocity mode
     # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own
     assert new.first_plan_reg == "by-method" and correct_cli._first_plan_reg(new, "fitted") is None
     as_plans = parser.parse_args(["--first-plan-reg", "as-plans", "--method", "plan"])

@@ -11,6 +11,9 @@ A second table, printed before the floors' and pooled over every run named, sets
 residual against the predicted change as vectors: how much of the predicted change it made along it, at what angle,
 and the multiple of the step that would have left the least squared weighted residual had the rope answered in
 proportion along it (1: the step as taken; README, "More changes to the default arm").
+A last table splits the velocity block's change into the velocity profile's first N Legendre modes in arc length per
+axis and the rest (secant.velocity_projection, N = 1, 2, 3, 5): the rope's share in the first N, and how well the
+step predicted each part (README, "The velocity profile's smooth part").
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
@@ -27,10 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control import secant
 from wrenorm.tasks.rope.control.correct_cli import builtin_throws_of
 from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
 
 TERMS = ("shape", "velocity", "time", "place")
+MODES = (1, 2, 3, 5)
 STAGES = (("best error above 0.1", lambda b: b > 0.1), ("best error at or below 0.1", lambda b: b <= 0.1))
 
 
@@ -114,6 +119,7 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
                                                                     for k in TERMS},
                          "best_terms": {k: goal.weights[k] * best["terms"][k] for k in TERMS}}
                         | along_the_step(r_best, r_predicted - r_best, r_actual - r_best)
+                        | velocity_modes(goal, r_predicted - r_best, r_actual - r_best)
                         | {f"{k}_actual": goal.weights[k] * (t["terms"][k] - best["terms"][k]) for k in TERMS}
                         | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
                            for k in TERMS})
@@ -135,6 +141,47 @@ def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray
         return {"projection": np.nan, "cosine": np.nan, "best_length": np.nan}
     return {"projection": float(actual @ predicted) / pp, "cosine": float(actual @ predicted) / np.sqrt(pp * aa),
             "best_length": -float(r_best @ actual) / aa}
+
+
+def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray) -> dict:
+    """Per number of modes N in MODES, of the weighted residual's velocity rows: the share of the rope's change in the
+    profile's first N Legendre modes (squared norm), and for that part and the rest the cosine between the predicted
+    and the actual change and the relative error |actual - predicted| / |actual| (NaN where a part has no length)."""
+    def compare(p, a):
+        pn, an = np.linalg.norm(p), np.linalg.norm(a)
+        if pn < 1e-15 or an < 1e-15:
+            return np.nan, np.nan
+        return float(p @ a / (pn * an)), float(np.linalg.norm(a - p) / an)
+
+    out = {}
+    for n in MODES:
+        Q = secant.velocity_projection(goal, n)
+        keep_p, keep_a = Q @ predicted, Q @ actual
+        rest_p, rest_a = predicted - keep_p, actual - keep_a
+        v = goal.blocks["velocity"]
+        total = float(actual[v] @ actual[v])
+        out[f"modes{n}"] = {"share": float(keep_a[v] @ keep_a[v]) / total if total > 0 else np.nan,
+                            "kept": compare(keep_p[v], keep_a[v]), "rest": compare(rest_p[v], rest_a[v])}
+    return out
+
+
+def modes_table(rows: list[dict]) -> str:
+    """Per stage and number of modes, the medians of velocity_modes over the steps."""
+    lines = ["| steps | modes per axis | rope's velocity change in them (share) | cosine, predicted vs actual: in "
+             "them / the rest | relative error: in them / the rest |", "|---|---|---|---|---|"]
+    for label, keep in STAGES:
+        sub = [x for x in rows if keep(x["best"])]
+        for n in MODES:
+            parts = [x[f"modes{n}"] for x in sub]
+
+            def med(values):
+                values = [v for v in values if np.isfinite(v)]
+                return float(np.median(values)) if values else np.nan
+
+            lines.append(f"| {label}: {len(sub)} | {n} | {med([p['share'] for p in parts]):.2f} | "
+                         f"{med([p['kept'][0] for p in parts]):.2f} / {med([p['rest'][0] for p in parts]):.2f} | "
+                         f"{med([p['kept'][1] for p in parts]):.2f} / {med([p['rest'][1] for p in parts]):.2f} |")
+    return "\n".join(lines)
 
 
 def along_table(rows: list[dict]) -> str:
@@ -200,6 +247,8 @@ def main(argv=None) -> int:
     print(table(rows))
     print("\nThe rope's change of the weighted residual against the step's prediction, as vectors:\n")
     print(along_table(rows))
+    print("\nThe velocity block's change split into the velocity profile's first modes in arc length and the rest:\n")
+    print(modes_table(rows))
     if any(x["floor"] is not None for x in rows):
         print("\nWhat the corrected model said any command in the box could still reach (its floor), per step:\n")
         print(floor_table(rows))

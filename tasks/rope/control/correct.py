@@ -285,7 +285,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
             secant_locality: float | None = None, first_plan_reg: float | None = None,
-            first_plan_offset: tuple | None = None) -> dict:
+            first_plan_offset: tuple | None = None, velocity_modes: int | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 1 is the model's own plan (as "plan"); every next command a trust-region
@@ -298,6 +298,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       recorded_until "first": only until the trials give a pair of their own, "every": at every step.
       velocity_weight: the steps' weight on the velocity rows of the residual (the step only; acceptance and the
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
+      velocity_modes: the steps keep the velocity rows' first this many Legendre modes in arc length per axis
+      (secant.velocity_projection; the step only), at most observable.SAMPLES; left out, every mode (README,
+      "The velocity profile's smooth part": 3 measured, not the default).
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
@@ -374,6 +377,14 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                        f"weighs Gauss-Newton steps; the {method} loop (steps {steps}) has none")
     _check_loop_number(secant_locality, "--secant-locality", "secant_locality", True, gn_steps,
                        f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
+    if velocity_modes is not None:
+        if not gn_steps:
+            raise InputError("--velocity-modes", "velocity_modes",
+                             f"shapes Gauss-Newton steps; the {method} loop (steps {steps}) has none")
+        if isinstance(velocity_modes, bool) or not isinstance(velocity_modes, (int, np.integer)) or not (
+                1 <= velocity_modes <= crit.SAMPLES):
+            raise InputError("--velocity-modes", "velocity_modes",
+                             f"{velocity_modes!r} is not a whole number of modes in 1-{crit.SAMPLES}")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
@@ -381,6 +392,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             first_plan_reg = gauss_newton.FIRST_PLAN_REG
         if velocity_weight is None:
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
+        if velocity_modes is None:
+            velocity_modes = crit.SAMPLES
         renorm = None
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
@@ -390,7 +403,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                                linearise_at=linearise_at, first_step=first_step, recorded=recorded,
                                recorded_until=recorded_until, velocity_weight=float(velocity_weight),
                                secant_locality=None if secant_locality is None else float(secant_locality),
-                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset)
+                               first_plan_reg=first_plan_reg, first_plan_offset=first_plan_offset,
+                               velocity_modes=int(velocity_modes))
     if method == "renormalise":
         return _correct_renormalising(real, model, goal, np.asarray(u0, dtype=np.float64), max_trials, tolerance,
                                       radius, reg, seed, popsize, generations, freeze_place, refit_offset,
@@ -770,7 +784,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
                     recorded_until: str = "first", velocity_weight: float = 1.0,
                     secant_locality: float | None = None, first_plan_reg: float | None = None,
-                    first_plan_offset: tuple | None = None) -> dict:
+                    first_plan_offset: tuple | None = None, velocity_modes: int = crit.SAMPLES) -> dict:
     """The correction loop of Gauss-Newton steps through the chain's sensitivity corrected by the trials
     (secant.py); with `renorm` the chain is refitted to the trials after each one (renormalise.refit). Without
     plan_first the start command is trial 1; without secant the trials do not correct the chain's sensitivity.
@@ -792,6 +806,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
     reg = gauss_newton.GN_REG if reg is None else float(reg)
     w = gauss_newton.residual_weights(goal)
     rows = gauss_newton.step_row_weights(goal, velocity_weight)
+    projection = gauss_newton.velocity_projection(goal, velocity_modes)
     u, scale_used, planning = u0.copy(), None, None
     if plan_first:
         _, u, scale_used, planning, offset = _first_plan(model, goal, u0, seed, plan_opts, progress, first_plan_reg,
@@ -849,7 +864,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                 if progress:
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
-                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows)
+                u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows,
+                                                     projection)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             floor = gauss_newton.floor_record(goal, best.state, sens.S, best.u,
                                               gauss_newton.model_floor(goal, best.state, sens.S, w, e_best, best.u,
@@ -882,6 +898,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
         "first_step": (trials[0].sensitivity or {}).get("step"),  # how trial 2 was chosen (None: no trial 2)
         "recorded_pairs": len(recorded) if secant else 0, "recorded_until": recorded_until,
         "gauss_newton": {"fd_step": gauss_newton.GN_FD_STEP, "reg": reg, "velocity_weight": velocity_weight,
+                         "velocity_modes": velocity_modes,
                          "ridge": gauss_newton.RIDGE if secant else None,
                          "secant_locality": secant_locality if secant else None,
                          "correction": "ridge over all trials" if secant else "none",

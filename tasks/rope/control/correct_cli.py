@@ -114,6 +114,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weight of the velocity rows in each Gauss-Newton step's least-squares problem "
                         "(the step only: trials are accepted and reported on the observable's error), a number >= 0; "
                         "by-arm (default): secant.VELOCITY_WEIGHT (0.5) for fixed parameters, 1 for renormalised ones")
+    p.add_argument("--velocity-modes", type=velocity_modes_arg, default="all",
+                   help="(gn steps) keep the velocity rows of each Gauss-Newton step's least-squares problem to the "
+                        "velocity profile's first N Legendre modes in arc length on each axis, N in 1-21 (the step "
+                        "only: trials are accepted and reported on the observable's error); all (default): every row. "
+                        "3 was measured on unseen seeds and not adopted (README)")
     p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
@@ -494,7 +499,8 @@ def run(args) -> int:
                      "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
-                     "velocity_weight": args.velocity_weight, "secant_locality": args.secant_locality,
+                     "velocity_weight": args.velocity_weight, "velocity_modes": args.velocity_modes,
+                     "secant_locality": args.secant_locality,
                      "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
@@ -615,13 +621,17 @@ def trial_cells(result: dict, label: str) -> list[list[str]]:
 
 def run_method(r: dict) -> str:
     """The run's method and trust region, as it ran (a run saved before the rule was recorded: the method alone)."""
+    from wrenorm.tasks.rope.observable import SAMPLES
+
     region = (r.get("gauss_newton") or r.get("renormalise") or {}).get("trust_region") or {}
     if "rule" not in region:
         return r["method"]
     radius = (f"fixed at {region['max_radius']:g}" if region["rule"] == "fixed"
               else f"{region['min_radius']:g}-{region['max_radius']:g}")
     weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
-    return f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
+    modes = (r.get("gauss_newton") or {}).get("velocity_modes")
+    return (f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
+            + ("" if modes is None or modes >= SAMPLES else f", velocity rows' first {modes} modes"))
 
 
 def report_markdown(result: dict) -> str:
@@ -679,6 +689,7 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
+                             "velocity_modes": ("all", "kept every velocity row of its steps"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
                              "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
@@ -852,6 +863,26 @@ secant_locality_arg = number_or_word("none", positive=True)  # --secant-locality
 first_plan_reg_arg = number_or_word(("by-method", "as-plans"), positive=False)  # --first-plan-reg
 
 
+def velocity_modes_arg(text):
+    """--velocity-modes: all, or a whole number of modes in 1-21."""
+    from wrenorm.tasks.rope.observable import SAMPLES
+
+    if text == "all":
+        return text
+    try:
+        value = int(str(text))
+    except ValueError:
+        value = 0
+    if not 1 <= value <= SAMPLES:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a whole number of modes in 1-{SAMPLES} nor all")
+    return value
+
+
+def _velocity_modes(args) -> int | None:
+    """--velocity-modes as a number of modes; None for all (correct() keeps every one)."""
+    return None if args.velocity_modes == "all" else int(args.velocity_modes)
+
+
 def _velocity_weight(args) -> float | None:
     """--velocity-weight as a number; None for by-arm (correct() picks it by the arm's method)."""
     return None if args.velocity_weight == "by-arm" else float(args.velocity_weight)
@@ -907,6 +938,7 @@ def _check_step_options(args) -> None:
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
+                             ("--velocity-modes", "velocity_modes", args.velocity_modes != "all"),
                              ("--secant-locality", "secant_locality", args.secant_locality != "none")):
         if given:
             raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
@@ -919,7 +951,7 @@ def _step_options(args, label: str) -> dict:
 
     if not takes_gn_steps(*_arm_method(args, label)):
         return {}
-    return {"velocity_weight": _velocity_weight(args),
+    return {"velocity_weight": _velocity_weight(args), "velocity_modes": _velocity_modes(args),
             "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 

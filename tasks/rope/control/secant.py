@@ -218,13 +218,37 @@ def step_row_weights(goal: crit.Target, velocity_weight: float) -> np.ndarray:
     return rows
 
 
+def velocity_projection(goal: crit.Target, modes: int) -> np.ndarray | None:
+    """(m, m) the orthogonal projection of a residual in state_vector's layout that keeps the velocity profile's first
+    `modes` Legendre modes in arc length on each axis and every other row; None where it keeps everything (modes at
+    or above the profile's samples). The steps' velocity rows: near the goal the corrected sensitivity predicts the
+    profile's smooth change (cosine 0.8-0.9 to the rope's) and not the rest (no better than zero), so a step that
+    chases the rest aims at what it cannot predict (README, "The velocity profile's smooth part")."""
+    from numpy.polynomial import legendre
+
+    block = np.arange(goal.dim)[goal.blocks["velocity"]]
+    samples = len(block) // 3
+    if modes >= samples:
+        return None
+    basis = legendre.legvander(np.linspace(-1.0, 1.0, samples), modes - 1)  # (samples, modes)
+    keep = basis @ np.linalg.pinv(basis)
+    Q = np.eye(goal.dim)
+    Q[np.ix_(block, block)] = np.kron(keep, np.eye(3))  # rows are sample-major: (x, y, z) of sample 0, then 1, ...
+    return Q
+
+
 def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
-            reg: float = GN_REG, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+            reg: float = GN_REG, rows: np.ndarray | None = None,
+            projection: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale; `rows`
-    (step_row_weights) scales each row of the least-squares problem."""
+    (step_row_weights) scales each row of the least-squares problem, `projection` (velocity_projection) then keeps
+    its part of the weighted residual."""
     if rows is not None:
         w, e_best = rows * w, rows * e_best
-    du = qp_step(w[:, None] * S, e_best, u_best, space, radius, reg)
+    F = w[:, None] * S
+    if projection is not None:
+        F, e_best = projection @ F, projection @ e_best
+    du = qp_step(F, e_best, u_best, space, radius, reg)
     return space.limit_step(u_best, du)
 
 
