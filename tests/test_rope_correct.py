@@ -770,9 +770,9 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
                       (["--velocity-weight", "half"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "inf"], "neither a finite number >= 0 nor by-arm"),
                       (["--velocity-weight", "0.5", "--method", "plan", "--params", "measured"], "--method plan"),
-                      (["--velocity-modes", "0"], "neither a whole number of modes in 1-21 nor all"),
-                      (["--velocity-modes", "22"], "neither a whole number of modes in 1-21 nor all"),
-                      (["--velocity-modes", "2.5"], "neither a whole number of modes in 1-21 nor all"),
+                      (["--velocity-modes", "0"], "neither a whole number of modes in 1-21 nor by-arm or all"),
+                      (["--velocity-modes", "22"], "neither a whole number of modes in 1-21 nor by-arm or all"),
+                      (["--velocity-modes", "2.5"], "neither a whole number of modes in 1-21 nor by-arm or all"),
                       (["--velocity-modes", "3", "--method", "plan", "--params", "measured"], "--method plan"),
                       (["--max-radius", "0.5", "--params", "renormalised"], "largest 0.5"),
                       (["--max-radius", "7"], "(0, 6]"),
@@ -1408,12 +1408,12 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     # and before --velocity-weight: its steps weighed the velocity rows as the others
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "velocity_modes": None,
+    assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "velocity_modes": SAMPLES,
                                                          "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
-                        ("--segments", "12")):
+                        ("--segments", "12"), ("--velocity-modes", "all")):
         assert line[line.index(flag) + 1] == value, line
     assert "--builtin-throws" not in line  # at 64 segments the built-in throws are what a fresh run takes anyway
     derived = lambda ns: {k: v for k, v in vars(ns).items() if k != "builtin_throws"}  # noqa: E731 (run() derives it)
@@ -1426,7 +1426,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
-    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "velocity_modes": None,
+    assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "velocity_modes": SAMPLES,
                                                                "secant_locality": None}
     # and before --velocity-modes: its steps kept every velocity row; another number on its resume is refused
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-modes", "3"])

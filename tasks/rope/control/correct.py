@@ -299,8 +299,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       velocity_weight: the steps' weight on the velocity rows of the residual (the step only; acceptance and the
       reported error are the observable's); left out, secant.VELOCITY_WEIGHT for gn and 1 for renormalise.
       velocity_modes: the steps keep the velocity rows' first this many Legendre modes in arc length per axis
-      (secant.velocity_projection; the step only), at most observable.SAMPLES; left out, every mode (README,
-      "The velocity profile's smooth part": 3 measured, not the default).
+      (secant.velocity_projection; the step only), at most observable.SAMPLES (every mode); left out,
+      secant.VELOCITY_MODES for renormalise and every mode for gn.
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
@@ -393,7 +393,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
         if velocity_weight is None:
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
         if velocity_modes is None:
-            velocity_modes = crit.SAMPLES
+            velocity_modes = crit.SAMPLES if method == "gn" else gauss_newton.VELOCITY_MODES
         renorm = None
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)

@@ -114,11 +114,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) weight of the velocity rows in each Gauss-Newton step's least-squares problem "
                         "(the step only: trials are accepted and reported on the observable's error), a number >= 0; "
                         "by-arm (default): secant.VELOCITY_WEIGHT (0.5) for fixed parameters, 1 for renormalised ones")
-    p.add_argument("--velocity-modes", type=velocity_modes_arg, default="all",
+    p.add_argument("--velocity-modes", type=velocity_modes_arg, default="by-arm",
                    help="(gn steps) keep the velocity rows of each Gauss-Newton step's least-squares problem to the "
                         "velocity profile's first N Legendre modes in arc length on each axis, N in 1-21 (the step "
-                        "only: trials are accepted and reported on the observable's error); all (default): every row. "
-                        "3 was measured on unseen seeds and not adopted (README)")
+                        "only: trials are accepted and reported on the observable's error); all: every row; by-arm "
+                        "(default): secant.VELOCITY_MODES (3) for renormalised parameters, all for fixed ones")
     p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
@@ -544,10 +544,10 @@ def sweep_rows(result: dict) -> list[dict]:
     corrected model's last floor."""
     rows = []
     tolerance, budget = result.get("tolerance"), result.get("max_trials")
+    model = result.get("model") or {}
     for label, r in result.get("runs", {}).items():
         trials, floor = r.get("trials") or [], last_floor(r)
         reached = r.get("trials_to_tolerance")
-        model = result.get("model") or {}
         rows.append({"resolution": {k: model[k] for k in ("segments", "dt") if k in model},
                      "arm": label, "reached": bool(r.get("success")),
                      "trials": reached if reached is not None else (budget + 1 if budget is not None else None),
@@ -568,9 +568,12 @@ def sweep_summary(rows: list[dict]) -> list[str]:
         mine = [r for r in rows if r.get("arm") == arm]
         trials = [r["trials"] for r in mine if r.get("trials") is not None]
         best = [r["best_error"] for r in mine if r.get("best_error") is not None]
+        if not (trials and best):
+            lines.append(f"{arm}: {len(mine)} runs")
+            continue
         lines.append(f"{arm}: reached the tolerance in {sum(bool(r.get('reached')) for r in mine)} of {len(mine)} "
                      f"runs, median {np.median(trials):g} trials (a miss counts max_trials + 1), median best error "
-                     f"{np.median(best):.3f}" if trials and best else f"{arm}: {len(mine)} runs")
+                     f"{np.median(best):.3f}")
     return lines
 
 
@@ -864,23 +867,28 @@ first_plan_reg_arg = number_or_word(("by-method", "as-plans"), positive=False)  
 
 
 def velocity_modes_arg(text):
-    """--velocity-modes: all, or a whole number of modes in 1-21."""
+    """--velocity-modes: by-arm, all, or a whole number of modes in 1-21."""
     from wrenorm.tasks.rope.observable import SAMPLES
 
-    if text == "all":
+    if text in ("by-arm", "all"):
         return text
     try:
         value = int(str(text))
     except ValueError:
         value = 0
     if not 1 <= value <= SAMPLES:
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a whole number of modes in 1-{SAMPLES} nor all")
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a whole number of modes in 1-{SAMPLES} nor by-arm or "
+                                         "all")
     return value
 
 
 def _velocity_modes(args) -> int | None:
-    """--velocity-modes as a number of modes; None for all (correct() keeps every one)."""
-    return None if args.velocity_modes == "all" else int(args.velocity_modes)
+    """--velocity-modes as a number of modes (all: every one); None for by-arm (correct() picks it by the arm)."""
+    from wrenorm.tasks.rope.observable import SAMPLES
+
+    if args.velocity_modes == "by-arm":
+        return None
+    return SAMPLES if args.velocity_modes == "all" else int(args.velocity_modes)
 
 
 def _velocity_weight(args) -> float | None:
@@ -938,7 +946,7 @@ def _check_step_options(args) -> None:
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
-                             ("--velocity-modes", "velocity_modes", args.velocity_modes != "all"),
+                             ("--velocity-modes", "velocity_modes", args.velocity_modes != "by-arm"),
                              ("--secant-locality", "secant_locality", args.secant_locality != "none")):
         if given:
             raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
