@@ -742,7 +742,7 @@ def test_a_correction_sweep_tabulates_each_arms_outcome_as_its_run_wrote_it(tmp_
         assert [t["error"] for t in mine[arm]["trials"]] == [t["error"] for t in theirs[arm]["trials"]]
 
 
-def test_a_commands_own_columns_keep_off_the_axes_and_other_commands_keep_their_numbers(tmp_path):
+def test_a_commands_own_columns_keep_off_the_axes_and_other_commands_keep_their_numbers():
     from wrenorm.sweep import table
 
     result = {"schema": "wrenorm.correct/1", "tolerance": 0.05, "max_trials": 10,

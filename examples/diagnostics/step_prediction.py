@@ -165,6 +165,11 @@ def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray)
     return out
 
 
+def _finite_median(values) -> float:
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.median(values)) if values else np.nan
+
+
 def modes_table(rows: list[dict]) -> str:
     """Per stage and number of modes, the medians of velocity_modes over the steps."""
     lines = ["| steps | modes per axis | rope's velocity change in them (share) | cosine, predicted vs actual: in "
@@ -173,11 +178,7 @@ def modes_table(rows: list[dict]) -> str:
         sub = [x for x in rows if keep(x["best"])]
         for n in MODES:
             parts = [x[f"modes{n}"] for x in sub]
-
-            def med(values):
-                values = [v for v in values if np.isfinite(v)]
-                return float(np.median(values)) if values else np.nan
-
+            med = _finite_median
             lines.append(f"| {label}: {len(sub)} | {n} | {med([p['share'] for p in parts]):.2f} | "
                          f"{med([p['kept'][0] for p in parts]):.2f} / {med([p['rest'][0] for p in parts]):.2f} | "
                          f"{med([p['kept'][1] for p in parts]):.2f} / {med([p['rest'][1] for p in parts]):.2f} |")
