@@ -165,6 +165,12 @@ def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray)
     return out
 
 
+def by_stage(rows: list[dict], scored=lambda x: True):
+    """(stage label, its steps that `scored` keeps) per stage of STAGES, in order."""
+    for label, keep in STAGES:
+        yield label, [x for x in rows if keep(x["best"]) and scored(x)]
+
+
 def _finite_median(values) -> float:
     values = [v for v in values if np.isfinite(v)]
     return float(np.median(values)) if values else np.nan
@@ -174,8 +180,7 @@ def modes_table(rows: list[dict]) -> str:
     """Per stage and number of modes, the medians of velocity_modes over the steps."""
     lines = ["| steps | modes per axis | rope's velocity change in them (share) | cosine, predicted vs actual: in "
              "them / the rest | relative error: in them / the rest |", "|---|---|---|---|---|"]
-    for label, keep in STAGES:
-        sub = [x for x in rows if keep(x["best"])]
+    for label, sub in by_stage(rows):
         for n in MODES:
             parts = [x[f"modes{n}"] for x in sub]
             med = _finite_median
@@ -190,8 +195,7 @@ def along_table(rows: list[dict]) -> str:
     step count says how many did."""
     lines = ["| steps | rope's change along the predicted one / predicted (median) | cosine (median) | best length "
              "along the step, 1 = as taken: median (quartiles) |", "|---|---|---|---|"]
-    for label, keep in STAGES:
-        sub = [x for x in rows if keep(x["best"]) and np.isfinite(x["cosine"])]
+    for label, sub in by_stage(rows, lambda x: np.isfinite(x["cosine"])):
         if not sub:
             lines.append(f"| {label}: 0 | | | |")
             continue
@@ -204,8 +208,7 @@ def along_table(rows: list[dict]) -> str:
 def table(rows: list[dict]) -> str:
     lines = ["| steps | block | correlation, predicted vs actual change | median predicted change | median actual "
              "change |", "|---|---|---|---|---|"]
-    for label, keep in STAGES:
-        sub = [x for x in rows if keep(x["best"])]
+    for label, sub in by_stage(rows):
         for k in TERMS:
             a = np.array([x[f"{k}_actual"] for x in sub])
             p = np.array([x[f"{k}_predicted"] for x in sub])
@@ -221,8 +224,7 @@ def floor_table(rows: list[dict]) -> str:
     trial and at the floor: the part of the error the model sees no command remove."""
     lines = ["| steps | floor / best error | step's prediction / best | actual / best | floor above the tolerance "
              "| shape, velocity, time, place at the best | ... at the floor |", "|---|---|---|---|---|---|---|"]
-    for label, keep in STAGES:
-        sub = [x for x in rows if keep(x["best"]) and x["floor"] is not None]
+    for label, sub in by_stage(rows, lambda x: x["floor"] is not None):
         if not sub:
             lines.append(f"| {label}: 0 | | | | | | |")
             continue

@@ -377,14 +377,9 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
                        f"weighs Gauss-Newton steps; the {method} loop (steps {steps}) has none")
     _check_loop_number(secant_locality, "--secant-locality", "secant_locality", True, gn_steps,
                        f"weighs the Gauss-Newton steps' secant pairs; the {method} loop (steps {steps}) has none")
-    if velocity_modes is not None:
-        if not gn_steps:
-            raise InputError("--velocity-modes", "velocity_modes",
-                             f"shapes Gauss-Newton steps; the {method} loop (steps {steps}) has none")
-        if isinstance(velocity_modes, bool) or not isinstance(velocity_modes, (int, np.integer)) or not (
-                1 <= velocity_modes <= crit.SAMPLES):
-            raise InputError("--velocity-modes", "velocity_modes",
-                             f"{velocity_modes!r} is not a whole number of modes in 1-{crit.SAMPLES}")
+    _check_loop_number(velocity_modes, "--velocity-modes", "velocity_modes", True, gn_steps,
+                       f"shapes Gauss-Newton steps; the {method} loop (steps {steps}) has none",
+                       whole_up_to=crit.SAMPLES)
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
@@ -532,13 +527,18 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     }
 
 
-def _check_loop_number(value, flag: str, key: str, positive: bool, applies: bool, why_not: str) -> None:
+def _check_loop_number(value, flag: str, key: str, positive: bool, applies: bool, why_not: str,
+                       whole_up_to: int | None = None) -> None:
     """A number option of the loop: only where it `applies` (e.g. the loop takes Gauss-Newton steps), finite
-    and >= 0 (> 0 when `positive`); None (left out) passes."""
+    and >= 0 (> 0 when `positive`); with `whole_up_to`, a whole number in 1..whole_up_to. None (left out) passes."""
     if value is None:
         return
     if not applies:
         raise InputError(flag, key, why_not)
+    if whole_up_to is not None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= whole_up_to:
+            raise InputError(flag, key, f"{value!r} is not a whole number in 1-{whole_up_to}")
+        return
     if not (isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
             and (value > 0 if positive else value >= 0)):
         raise InputError(flag, key, f"{value!r} is not a finite number {'> 0' if positive else '>= 0'}")

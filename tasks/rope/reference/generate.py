@@ -46,6 +46,11 @@ DENSITY_RANGE = (50.0, 20000.0)
 MIN_RADIUS = 1e-6  # m
 GRAVITY_MIN_RESULTANT = 0.3  # the rope's mean direction must be at least this consistent to be judged
 HELD_END_OFFSET = 0.01  # m: marker 0 farther than this (and two radii) from the hand is not at the held end
+
+
+def held_end_reach(radius: float) -> float:
+    """How far (m) from the hand a marker at the held end may sit: two radii, and never less than HELD_END_OFFSET."""
+    return max(2.0 * radius, HELD_END_OFFSET)
 GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
 GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
 
@@ -137,7 +142,7 @@ def _check_gravity_axis(src: str, markers: np.ndarray, hand: np.ndarray, s: np.n
 def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, radius: float) -> None:
     """Markers stored free end first (another lab's order): the last marker at the hand, marker 0 away from it
     (median over the frames that see them). Refused before anything else reads the markers as held end first."""
-    near = max(2.0 * radius, HELD_END_OFFSET)
+    near = held_end_reach(radius)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a marker never seen: no median, nothing to say
         first, last = (float(np.nanmedian(np.linalg.norm(markers[:, m] - hand, axis=1))) for m in (0, -1))
@@ -302,13 +307,13 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
     # confident contact 20-240 ms early at another place.
     steady = float(np.median(offset)) if offset.size else 0.0
-    if not has_arclength and steady > max(2.0 * radius, HELD_END_OFFSET):
+    if not has_arclength and steady > held_end_reach(radius):
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
                          "do the markers sit? give marker_arclength (0 for a marker at the held end)")
     # the file's own word for it: a hand recorded as a wrist body 15-36 mm off the held end drove the chain from there
     # (measured loss 0.27 -> 1.9, a bend stiffness 100x off with a tight std; a probe of stop 47)
-    if has_arclength and s[0] == 0.0 and steady > max(2.0 * radius, HELD_END_OFFSET):
+    if has_arclength and s[0] == 0.0 and steady > held_end_reach(radius):
         raise InputError(src, "hand", "marker_arclength puts marker 0 at the held end, but it lies "
                          f"{1000 * steady:.0f} mm from the hand (median over the frames): is `hand` another body "
                          "(a wrist, a gripper)? give the held end's position")
