@@ -27,6 +27,18 @@ def test_registry_lists_the_three_systems():
     assert {"pd", "rope", "swimmer"} <= set(SYSTEMS)
 
 
+def test_the_parameter_names_said_without_a_problem_are_the_built_problems(built):
+    """A sweep and `fit` check --free/--freeze names with System.parameter_names before building anything."""
+    s, problems = built
+    args = build_parser(["fit", s.name]).parse_args(["fit", s.name])
+    assert registry.parameter_names(s, args) == problems[0].space.names
+    if s.name == "pd":
+        from wrenorm.tasks.pd.arm import ArmProblem
+
+        arm = build_parser(["fit", "pd"]).parse_args(["fit", "pd", "--arm"])
+        assert registry.parameter_names(s, arm) == ArmProblem(400.0).space.names != problems[0].space.names
+
+
 def test_errors_are_one_per_candidate_and_condition(built):
     _, problems = built
     p = problems[0]

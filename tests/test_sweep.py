@@ -132,6 +132,11 @@ def _end(pids) -> None:
     ('task = "fit pd"\nseeds = [1, 1]', "seeds"),
     ('task = "fit pd"\n[axis]\nf-sim = [100]', "axis"),
     ('task = fit pd', "toml"),
+    ('task = "fit pd"\n[options]\nfree = ["nope"]', "options.free: --free nope: unknown parameter of pd"),
+    ('task = "fit rope"\n[axes]\nfreeze = [["radius"], ["bend_stifness"]]',
+     "axes.freeze: combination freeze=['bend_stifness']: --freeze bend_stifness: unknown parameter of rope"),
+    ('task = "fit pd"\n[options]\narm = true\n[axes]\nfree = [["KD12"], ["J"]]', "--free J: unknown parameter of pd"),
+    ('task = "flow pd"\n[options]\nfree = ["K_P"]\n[axes]\nfreeze = [["J"], ["K_P"]]', "named both free and frozen"),
 ])
 def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys, text, key):
     spec = _write(tmp_path, text)
@@ -150,9 +155,12 @@ def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys
     ('[options]\nf_sim = 100\nf-sim = 200', "options.f-sim: is the same option as options.f_sim (--f-sim)"),
     ('[axes]\nf-sim = [100, 200, 100.0]', "axes.f-sim: repeated value 100.0 (the same as 100)"),
     ('[axes]\nf-sim = [[100, 200], [100.0, 200]]', "axes.f-sim: repeated value [100.0, 200] (the same as [100, 200])"),
+    ('[axes]\nfree = [["K_P", "K_FF"], ["K_FF", "K_P"]]',
+     "axes.free: repeated value ['K_FF', 'K_P'] (the same as ['K_P', 'K_FF'])"),
 ])
 def test_one_option_or_value_written_two_ways_is_refused(tmp_path, text, message):
-    """`K_D` and `K-D` are one option (the cell's command would keep only the last), 100 and 100.0 one value."""
+    """`K_D` and `K-D` are one option (the cell's command would keep only the last), 100 and 100.0 one value, and so
+    are two orders of one set of free parameters."""
     from wrenorm.sweep.spec import load
 
     with pytest.raises(InputError) as e:

@@ -146,13 +146,26 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return p
 
 
-def _apply_parameter_set(problems, args) -> None:
-    """--free / --freeze: the paper's procedure starts from the smallest set and grows it when
-    held-out conditions say the omitted physics was not absorbed."""
-    free, freeze = list(args.free), list(args.freeze)
+def check_parameter_set(system, args) -> None:
+    """--free / --freeze name no parameter twice and, where the system says its names without building a problem
+    (System.parameter_names), only its parameters: refused before any reference is loaded."""
+    from .system import parameter_names
+
+    free, freeze = list(getattr(args, "free", [])), list(getattr(args, "freeze", []))
     both = sorted(set(free) & set(freeze))
     if both:
         raise InputError("--free/--freeze", ",".join(both), "named both free and frozen")
+    names = parameter_names(system, args) if free or freeze else None
+    for flag, given in (("--free", free), ("--freeze", freeze)):
+        unknown = [n for n in given if names is not None and n not in names]
+        if unknown:
+            raise InputError(flag, ",".join(unknown), f"unknown parameter of {system.name}; known: {', '.join(names)}")
+
+
+def _apply_parameter_set(problems, args) -> None:
+    """--free / --freeze: the paper's procedure starts from the smallest set and grows it when
+    held-out conditions say the omitted physics was not absorbed (names checked by check_parameter_set)."""
+    free, freeze = list(args.free), list(args.freeze)
     if not (free or freeze):
         return
     changes = {n: {"frozen": False} for n in free} | {n: {"frozen": True} for n in freeze}
@@ -270,6 +283,7 @@ def cmd_fit(args) -> int:
     system = systems()[args.system]
     if args.restarts == 1:
         raise InputError("--restarts", "restarts", "needs 0 (none) or at least 2 searches for a spread")
+    check_parameter_set(system, args)
     device = _device(args.device)
     problems = resolve(system.build)(args, device)
     _apply_parameter_set(problems, args)
@@ -359,6 +373,7 @@ def cmd_flow(args) -> int:
     if axis and getattr(args, axis, None) is not None:
         raise InputError(f"--{axis}", axis, f"--axis {axis} varies it over --resolutions; give the values there (or "
                                             "vary the other axis)")
+    check_parameter_set(system, args)
     device = _device(args.device)
     problems = resolve(system.flow.build)(args, device)
     _apply_parameter_set(problems, args)

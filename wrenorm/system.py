@@ -80,6 +80,24 @@ class System:
     report: Ref | None = None  # (result dict) -> [(title, html)], the system's own sections of report.html
     observable: str = ""  # what behaviour the fit must reproduce, one sentence (the report's first question)
     omitted: str = ""  # the physics the coarse model leaves out, one sentence
+    # (args) -> the names --free and --freeze may give, without building a problem (cheap: a sweep checks every
+    # cell's names with it before any cell runs, and fit and flow before loading references); a Ref whose module
+    # lacks it, or None: not checked before the problems are built
+    parameter_names: Ref | None = None
+
+
+def parameter_names(system: System, args) -> list[str] | None:
+    """The names --free and --freeze may give for these options (System.parameter_names), None where the system does
+    not say them without building its problems."""
+    ref = system.parameter_names
+    if ref is None:
+        return None
+    if not callable(ref):
+        module, _, name = str(ref).partition(":")
+        ref = getattr(importlib.import_module(module), name, None)
+        if ref is None:
+            return None
+    return list(ref(args))
 
 
 def resolve(ref: Ref) -> Callable:
@@ -92,7 +110,8 @@ def resolve(ref: Ref) -> Callable:
 
 def from_package(package: str, help: str, search: SearchDefaults = SearchDefaults(), flow: Flow | None = None,
                  commands: tuple = (), bench: bool | None = None, observable: str = "", omitted: str = "") -> System:
-    """A system laid out by convention in tasks/<name>/: options.py `add_arguments`, problem.py `build_problems`,
+    """A system laid out by convention in tasks/<name>/: options.py `add_arguments`, problem.py `build_problems`
+    (and `parameter_names`, where it has one),
     bench.py `bench`, `parity` and `kernel_modules` and report.py `sections` where they exist (bench=False: no
     benchmark even with a bench.py; True: one is required)."""
     import importlib.util
@@ -108,7 +127,8 @@ def from_package(package: str, help: str, search: SearchDefaults = SearchDefault
     return System(name=package.rsplit(".", 1)[-1], help=help, add_arguments=options.add_arguments,
                   build=f"{package}.problem:build_problems", search=search, flow=flow, commands=tuple(commands),
                   bench=ref("bench", "bench"), kernel_modules=ref("bench", "kernel_modules"),
-                  parity=ref("bench", "parity"), report=report, observable=observable, omitted=omitted)
+                  parity=ref("bench", "parity"), report=report, observable=observable, omitted=omitted,
+                  parameter_names=f"{package}.problem:parameter_names")
 
 
 _REGISTRY: dict[str, System] = {}

@@ -40,6 +40,20 @@ def _rel(fit, pred, scale):
     return float(np.linalg.norm(fit - pred) / np.linalg.norm(scale))
 
 
+def arm_parameter_space(m22: float) -> ParameterSpace:
+    """The arm's joint-space inertia correction (within 30 % of the distal joint's inertia m22) and gain matrices."""
+    ps = [Parameter(n, 0.0, -0.3 * m22, 0.3 * m22, unit="kg m^2", doc="joint-space inertia correction")
+          for n in ("A11", "A12", "A22")]
+    for (i, j) in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        kd, span = K_D[i, j], max(abs(K_D[i, j]), 0.2 * K_D[j, j])
+        ps.append(Parameter(f"KD{i+1}{j+1}", kd, kd - 2 * span, kd + 2 * span, unit="N m s/rad"))
+    for (i, j) in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        kp = K_P[i, j]
+        ps.append(Parameter(f"KP{i+1}{j+1}", kp, kp - abs(kp) - 1, kp + abs(kp) + 1, frozen=True, unit="N m/rad",
+                            doc="frozen: fixes the gauge"))
+    return ParameterSpace(ps)
+
+
 class ArmProblem(Problem):
     task = "pd"
     least_squares = True  # the trajectory residuals are the observable: fit their sum of squares
@@ -56,17 +70,7 @@ class ArmProblem(Problem):
         self.device = device
         self.tolerance = tolerance
         self.resolution = {"f_sim": self.f_sim, "dt": self.dt, "integrator": "semi-implicit", "joints": 2}
-        m22 = float(arm.mass_matrix(self.geo, np.array([0.0]))[0, 1, 1])
-        ps = [Parameter(n, 0.0, -0.3 * m22, 0.3 * m22, unit="kg m^2", doc="joint-space inertia correction")
-              for n in ("A11", "A12", "A22")]
-        for (i, j) in ((0, 0), (0, 1), (1, 0), (1, 1)):
-            kd, span = K_D[i, j], max(abs(K_D[i, j]), 0.2 * K_D[j, j])
-            ps.append(Parameter(f"KD{i+1}{j+1}", kd, kd - 2 * span, kd + 2 * span, unit="N m s/rad"))
-        for (i, j) in ((0, 0), (0, 1), (1, 0), (1, 1)):
-            kp = K_P[i, j]
-            ps.append(Parameter(f"KP{i+1}{j+1}", kp, kp - abs(kp) - 1, kp + abs(kp) + 1, frozen=True, unit="N m/rad",
-                                doc="frozen: fixes the gauge"))
-        self.space = ParameterSpace(ps)
+        self.space = arm_parameter_space(float(arm.mass_matrix(self.geo, np.array([0.0]))[0, 1, 1]))
         self.train = [self._condition(p) for p in TRAIN]
         self.held_out = [self._condition(p) for p in HELD_OUT]
 

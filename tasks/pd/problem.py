@@ -691,3 +691,12 @@ def flow_problems(args, device: str) -> list[PDProblem]:
 
 def flow_analytic(problem: PDProblem, fitted: dict) -> dict:
     return problem.analytic(fitted)
+
+
+def parameter_names(args) -> list[str]:
+    """The names --free and --freeze may give: the joint's, or the two-link arm's with --arm."""
+    if getattr(args, "arm", False):
+        from wrenorm.tasks.pd.arm import arm_parameter_space
+
+        return arm_parameter_space(1.0).names
+    return parameter_space(1.0, 1.0, 1.0).names

@@ -54,6 +54,47 @@ STRETCH_EA = 1e6 * 1.1 / 64
 HAND_SPLINE_ABOVE = 0.0051  # s between frames: coarser than 200 Hz (a 200 Hz clock's rounding stays below)
 
 
+def parameter_space(segments: int, length: float, mass: float, radius: float,
+                    bend_stiffness: float | None) -> ParameterSpace:
+    """The chain's parameters, measured from the rope (EI 3e-3 N m^2 where the reference does not give it)."""
+    S, L, M = segments, length, mass
+    link = L / S
+    ei = bend_stiffness if bend_stiffness is not None else 3e-3
+    k = ei / link
+    lead = 1.0 / (2 * S)
+    drag = 0.5 * RHO_AIR * CD_CYLINDER * 2.0 * radius
+    return ParameterSpace([
+        Parameter("mass", M, 0.5 * M, 2.0 * M, "log", frozen=True, unit="kg",
+                  doc="total rope mass (frozen: only ratios to it are identifiable)"),
+        # Bounds: every fit of the built-in references ran lead_fraction, bend_damping and
+        # drag_quad into the original bounds (lead/4, 1e-2, 1e-3 of measured); they were widened
+        # until the optimum sat inside or the loss stopped changing (README, "Rope fit").
+        Parameter("lead_fraction", lead, lead / 25.0, 0.5, "log", unit="",
+                  doc="share of the mass in the free-end (lead) node; the rest is spread evenly"),
+        Parameter("bend_stiffness", k, k / 300, k * 30, "log", unit="N m/rad",
+                  doc="bending stiffness per joint, energy 0.5 k theta^2 (measured EI / link)"),
+        Parameter("bend_damping", k * BEND_DAMPING_TIME, k * BEND_DAMPING_TIME * 1e-4,
+                  k * BEND_DAMPING_TIME * 1e3, "log", unit="N m s/rad",
+                  doc="bending damping per joint, dissipation 0.5 b theta_dot^2"),
+        Parameter("drag_quad", drag, drag * 1e-5, drag * 30, "log", unit="N s^2/m^3",
+                  doc="quadratic air drag per unit length (0.5 rho C_d diameter; the newton reference has none)"),
+        Parameter("drag_lin", 0.0, 0.0, 2.0 * M / L, "linear", unit="N s/m^2",
+                  doc="linear drag per unit length (absorbs the reference's numerical damping)"),
+        Parameter("stretch", link / STRETCH_EA, 1e-8, 1e-2, "log", frozen=True, unit="m/N",
+                  doc="link compliance (XPBD): stretch of one link per newton of tension (measured l / EA)"),
+        Parameter("mass_slope", 0.0, -0.9, 0.9, "linear", frozen=True, unit="",
+                  doc="interior mass profile, node mass x (1 + slope (1 - 2u)), u = 0 at the hand, 1 at the "
+                      "lead; frozen: it did not lower the built-in fit's loss (README, \"Rope fit\")"),
+        Parameter("radius", radius, 0.25 * radius, 4.0 * radius, "log", unit="m",
+                  doc="collision radius of the straight coarse links"),
+    ])
+
+
+def parameter_names(args) -> list[str]:
+    """The names --free and --freeze may give (the same for every rope and resolution)."""
+    return parameter_space(SEGMENTS_DEFAULT, 1.0, 1.0, 0.01, None).names
+
+
 @dataclass
 class RopeCase:
     """One condition prepared for the coarse chain at a given resolution."""
@@ -154,44 +195,13 @@ class RopeProblem(Problem):
         self.margin = 0.5 * self.link
         self.sim = RopeSim(self.n, self.link, self.dt, device, iterations=iterations, margin=self.margin,
                            min_sep=self.min_sep)
-        self.space = self._space(ref)
+        self.space = parameter_space(self.segments, self.length, self.mass, self.radius, ref.bend_stiffness)
         self.tolerance = 0.15
         self.resolution = {"segments": self.segments, "masses": self.n, "dt": self.dt, "iterations": int(iterations)}
         self.error_doc = ("weighted sum of shape (/length), velocity (/reference speed), time (/critical time) and "
                           "contact-place errors of the rope at its first self-collision, per hand path")
         self.screening = [dict(r) for r in screening]  # every reference file offered, used or left out
 
-    def _space(self, ref) -> ParameterSpace:
-        S, L, M = self.segments, self.length, self.mass
-        ei = ref.bend_stiffness if ref.bend_stiffness is not None else 3e-3
-        k = ei / self.link
-        lead = 1.0 / (2 * S)
-        drag = 0.5 * RHO_AIR * CD_CYLINDER * 2.0 * self.radius
-        return ParameterSpace([
-            Parameter("mass", M, 0.5 * M, 2.0 * M, "log", frozen=True, unit="kg",
-                      doc="total rope mass (frozen: only ratios to it are identifiable)"),
-            # Bounds: every fit of the built-in references ran lead_fraction, bend_damping and
-            # drag_quad into the original bounds (lead/4, 1e-2, 1e-3 of measured); they were widened
-            # until the optimum sat inside or the loss stopped changing (README, "Rope fit").
-            Parameter("lead_fraction", lead, lead / 25.0, 0.5, "log", unit="",
-                      doc="share of the mass in the free-end (lead) node; the rest is spread evenly"),
-            Parameter("bend_stiffness", k, k / 300, k * 30, "log", unit="N m/rad",
-                      doc="bending stiffness per joint, energy 0.5 k theta^2 (measured EI / link)"),
-            Parameter("bend_damping", k * BEND_DAMPING_TIME, k * BEND_DAMPING_TIME * 1e-4,
-                      k * BEND_DAMPING_TIME * 1e3, "log", unit="N m s/rad",
-                      doc="bending damping per joint, dissipation 0.5 b theta_dot^2"),
-            Parameter("drag_quad", drag, drag * 1e-5, drag * 30, "log", unit="N s^2/m^3",
-                      doc="quadratic air drag per unit length (0.5 rho C_d diameter; the newton reference has none)"),
-            Parameter("drag_lin", 0.0, 0.0, 2.0 * M / L, "linear", unit="N s/m^2",
-                      doc="linear drag per unit length (absorbs the reference's numerical damping)"),
-            Parameter("stretch", self.link / STRETCH_EA, 1e-8, 1e-2, "log", frozen=True, unit="m/N",
-                      doc="link compliance (XPBD): stretch of one link per newton of tension (measured l / EA)"),
-            Parameter("mass_slope", 0.0, -0.9, 0.9, "linear", frozen=True, unit="",
-                      doc="interior mass profile, node mass x (1 + slope (1 - 2u)), u = 0 at the hand, 1 at the "
-                          "lead; frozen: it did not lower the built-in fit's loss (README, \"Rope fit\")"),
-            Parameter("radius", self.radius, 0.25 * self.radius, 4.0 * self.radius, "log", unit="m",
-                      doc="collision radius of the straight coarse links"),
-        ])
 
     # ------------------------------------------------------------------ simulation
     def chain_params(self, values: np.ndarray) -> ChainParams:

@@ -64,6 +64,11 @@ def parameter_space(prior_scale: float | None = None, free_viscosity: bool = FRE
                       "viscosity that gives the drag a part linear in the speed")])
 
 
+def parameter_names(args) -> list[str]:
+    """The names --free and --freeze may give: the five coefficients and the viscosity."""
+    return parameter_space().names
+
+
 def parse_features(text) -> tuple:
     """A FEATURE_SETS name or a comma-separated list of features.FEATURES; the speed is always first."""
     if isinstance(text, (tuple, list)):

@@ -15,7 +15,8 @@
 Option names may use "-" or "_" (`f-sim`, `f_sim`); an option that takes several values takes a list (and an axis
 of it a list of lists). `--out`, `--seed`, `--device`, `--resume`, `--force` and `--quiet` belong to the sweep.
 Every cell's command line is checked with the task's own parser before anything runs: an unknown task or option,
-a value out of range, an axis with repeated values (as the task reads them: 100 and 100.0 are one), an option given
+a value out of range, an axis with repeated values (as the task reads them: 100 and 100.0 are one, and so are two
+orders of one set of --free or --freeze names), a parameter name the system does not have, an option given
 twice (`K_D` and `K-D` are one, fixed or varied) is one line naming the key and the problem (exit 2); so is a file
 or folder a cell is given (an option whose metavar says FILE or DIR) that does not exist or cannot be read. The spec
 is UTF-8 (a byte-order mark is fine).
@@ -40,6 +41,8 @@ TOP_LEVEL = ("task", "seeds", "options", "axes", "description")
 RESERVED = {"out": "each cell's run folder is DIR/cells/<cell>", "seed": "use `seeds = [...]` at the top level",
             "device": "pass --device to the sweep command", "resume": "pass --resume to the sweep command",
             "force": "pass --force to the sweep command", "quiet": "cells always run quietly"}
+
+UNORDERED = ("free", "freeze")  # list options that name a set: ["J", "K_D"] and ["K_D", "J"] are one value
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,8 @@ def load(path: str | Path) -> Spec:
         read = []  # each value as the cell's command reads it: 100 and 100.0 are one value
         for i, w in enumerate(words):
             value = getattr(_parse(parser, head, [*fixed, *w], where, path, f"value {values[i]!r}: "), action.dest)
+            if action.dest in UNORDERED:
+                value = sorted(value)
             if value in read:
                 same = values[read.index(value)]
                 raise InputError(path, where, f"repeated value {values[i]!r}"
@@ -238,16 +243,20 @@ def load(path: str | Path) -> Spec:
                 description=str(raw.get("description", "")))
     keys = list(axes)
     combos = list(itertools.product(*[range(len(axes[k])) for k in keys]))
+    names_given = [(t, k) for t, entries in (("options", options), ("axes", axes)) for k in entries
+                   if _action(parser, k).dest in ("free", "freeze")]
     n = len(combos) * len(seeds)
     width = max(3, len(str(n - 1)))
     index = 0
     for combo in combos:
         words = [w for k, i in zip(keys, combo) for w in axis_words[k][i]]
         values = {k: axes[k][i] for k, i in zip(keys, combo)}
-        if len(keys) > 1:  # options that are fine alone may clash together
-            where = "axes." + "+".join(keys)
-            _parse(parser, head, [*fixed, *words], where, path,
-                   "combination " + ", ".join(f"{k}={v!r}" for k, v in values.items()) + ": ")
+        if len(keys) > 1 or names_given:  # options that are fine alone may clash together
+            where = "axes." + "+".join(keys) if keys else "options"
+            what = "combination " + ", ".join(f"{k}={v!r}" for k, v in values.items()) + ": " if keys else ""
+            parsed = _parse(parser, head, [*fixed, *words], where, path, what)
+            if names_given:
+                _check_names(parsed, parser, system, names_given, path, what)
         for seed in seeds:
             cid = f"{index:0{width}d}" + "".join(f"_{_slug(k)}-{_slug(v)}" for k, v in values.items()) + f"_seed-{seed}"
             spec.cells.append(Cell(index=index, id=cid, axes=values, seed=seed,
@@ -255,6 +264,20 @@ def load(path: str | Path) -> Spec:
             index += 1
     _check_paths(spec, parser)
     return spec
+
+
+def _check_names(parsed, parser, system: str, given: list, path: Path, what: str) -> None:
+    """The parameters a cell frees or freezes are its system's (wrenorm.cli.check_parameter_set), before any cell
+    runs: a misspelt name would otherwise fail every cell, each in its own log."""
+    from wrenorm.cli import check_parameter_set
+    from wrenorm.system import systems
+
+    try:
+        check_parameter_set(systems()[system], parsed)
+    except InputError as e:
+        dests = {"--free": ("free",), "--freeze": ("freeze",)}.get(e.source, ("free", "freeze"))
+        table, key = next((t, k) for t, k in given if _action(parser, k).dest in dests)
+        raise InputError(path, f"{table}.{key}", f"{what}{e.source} {e.field}: {e.problem}") from None
 
 
 def _path_problem(p: Path, kind: str) -> str | None:
