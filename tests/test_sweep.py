@@ -734,6 +734,7 @@ def test_a_correction_sweep_tabulates_each_arms_outcome_as_its_run_wrote_it(tmp_
         assert float(r["best_error"]) == run["best_error"]
         assert float(r["first_trial_error"]) == run["trials"][0]["error"]
         assert r["resolution"] == "segments=10;dt=0.005" and r["status"] == "done"
+    assert (out / "sweep.png").read_bytes()[:4] == b"\x89PNG" and f"plot: {out / 'sweep.png'}" in proc.stdout
     summary = json.loads((out / "sweep.json").read_text())["summary"]
     for arm in ("measured", "fitted"):
         mine = [r for r in rows if r["arm"] == arm]
@@ -748,6 +749,46 @@ def test_a_correction_sweep_tabulates_each_arms_outcome_as_its_run_wrote_it(tmp_
     for arm in ("measured", "fitted"):
         assert [t["command_u"] for t in mine[arm]["trials"]] == [t["command_u"] for t in theirs[arm]["trials"]]
         assert [t["error"] for t in mine[arm]["trials"]] == [t["error"] for t in theirs[arm]["trials"]]
+
+
+@pytest.mark.filterwarnings("ignore:No artists with labels")  # errorbar is replaced by a recorder of its lines
+def test_a_correction_sweeps_plot_and_recording_draw_each_arms_trials_against_the_axes(tmp_path, monkeypatch):
+    """A correction sweep drew no sweep.png (the plot knew only fitted parameters): each arm is now a line of trials
+    and best error against the swept axes, and a series of its own in the recording."""
+    import matplotlib
+
+    from wrenorm.sweep import table
+    from wrenorm.sweep.spec import load
+    from wrenorm.viz import sweep_plot
+
+    spec = load(_write(tmp_path, 'task = "correct rope"\nseeds = [0, 1]\n[options]\nno-record = true\n'
+                                 '[axes]\nvariant = ["stiff", "soft"]\n'))
+    records = {c.id: {"status": "done"} for c in spec.cells}
+    trials = {"measured": [4, 11, 6, 7], "fitted": [3, 5, 11, 2]}
+    results = {c.id: {"tolerance": 0.05, "max_trials": 10, "runs": {
+        arm: {"success": n[c.index] <= 10, "trials_to_tolerance": n[c.index] if n[c.index] <= 10 else None,
+              "best_error": 0.01 * n[c.index], "trials": [{"error": 0.3}]} for arm, n in trials.items()}}
+        for c in spec.cells}
+    names, part = table.plotted(spec, results)
+    assert (names, part) == (["trials", "best_error"], "arm")
+    rows = table.build(spec, records, results)
+    drawn = []
+    monkeypatch.setattr(matplotlib.axes.Axes, "errorbar",
+                        lambda ax, x, y, **kw: drawn.append((ax.get_xlabel() or None, kw.get("label"), list(y))))
+    assert sweep_plot.plot_sweep(tmp_path / "sweep.png", spec, rows, names, part)
+    assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+    # first panel: trials against the variant, one line per arm, each point the mean over the two seeds
+    assert drawn[0][1:] == ("arm=measured", [(4 + 11) / 2, (6 + 7) / 2])
+    assert drawn[1][1:] == ("arm=fitted", [(3 + 5) / 2, (11 + 2) / 2])
+    logged = []
+    from wrenorm.viz import record
+
+    if record.rerun_available():
+        monkeypatch.setattr(record.Recorder, "log_scalar",
+                            lambda self, path, k, v, timeline=None: logged.append((path, k, v)))
+        assert sweep_plot.record_sweep(tmp_path / "recording.rrd", spec, rows, names, part)
+        assert ("sweep/parameters/trials/fitted", 3, 2.0) in logged  # the fourth cell (soft, seed 1), its arm fitted
+        assert ("sweep/parameters/best_error/measured", 0, 0.04) in logged
 
 
 def test_a_commands_own_columns_keep_off_the_axes_and_other_commands_keep_their_numbers():

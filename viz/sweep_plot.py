@@ -18,19 +18,23 @@ def _number(v):
         return None
 
 
-def _axes(spec, rows) -> list[str]:
+def _axes(spec, rows, part: str | None = None) -> list[str]:
     axes = [k for k in spec.axes if len(spec.axes[k]) > 1]
-    if len(rows) > len({r["cell"] for r in rows}):
+    if part is not None:
+        if len({r.get(part) for r in rows}) > 1:
+            axes.append(part)  # e.g. a correction's arms: each its own line against the axes, and an axis itself
+    elif len(rows) > len({r["cell"] for r in rows}):
         axes.append("resolution")  # cells that fit several resolutions each: every resolution is a point
     return axes or ["seed"]
 
 
-def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
-    """names: the fitted (free) parameters, one row of panels each."""
+def plot_sweep(path: Path, spec, rows: list[dict], names: list[str], part: str | None = None) -> bool:
+    """names: the columns drawn, one row of panels each (a fit's or flow's fitted parameters, or a command's
+    ExtraCommand.sweep_plot); part: the column that splits one cell into rows (ExtraCommand.sweep_part)."""
     done = [r for r in rows if r.get("status") == "done"]
     if not done or not names:
         return False
-    axes = _axes(spec, done)
+    axes = _axes(spec, done, part)
     plt = _figure()
     fig, grid = plt.subplots(len(names), len(axes), figsize=(4.4 * len(axes), 3.0 * len(names)), squeeze=False)
     for j, axis in enumerate(axes):
@@ -70,7 +74,8 @@ def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
             if i == 0 and others and len(groups) > 1:
                 ax.legend(fontsize=6)
     seeds = len(spec.seeds)
-    fig.suptitle(f"{spec.task}: fitted parameters against the swept axes"
+    what = "fitted parameters" if spec.verb in ("fit", "flow") else ", ".join(names)
+    fig.suptitle(f"{spec.task}: {what} against the swept axes"
                  + (f" (error bars: min-max over {seeds} seeds)" if seeds > 1 else ""), fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (3.0 * len(names))))
     save_figure(fig, path)
@@ -78,8 +83,14 @@ def plot_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
     return True
 
 
-def _markdown(spec, rows: list[dict], names: list[str]) -> str:
-    cols = ["cell", "status", *names, "loss_fitted", "verdict"]
+def _path_part(value) -> str:
+    """A value as one part of an entity path."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(value)) or "_"
+
+
+def _markdown(spec, rows: list[dict], names: list[str], part: str | None = None) -> str:
+    cols = ["cell", "status", *([part] if part else []), *names,
+            *(("loss_fitted", "verdict") if spec.verb in ("fit", "flow") else ())]
     lines = [f"# sweep: {spec.task}", "", f"{len(rows)} rows; axes: "
              + (", ".join(f"{k} = {v}" for k, v in spec.axes.items()) or "none") + f"; seeds {spec.seeds}", "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -92,23 +103,28 @@ def _markdown(spec, rows: list[dict], names: list[str]) -> str:
     return "\n".join(lines)
 
 
-def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
-    """A Rerun recording: the table as text, and per fitted parameter its value on a `cell` timeline (one series
-    per other-axes combination is left to the table; the timeline follows the cell order)."""
+def record_sweep(path: Path, spec, rows: list[dict], names: list[str], part: str | None = None) -> bool:
+    """A Rerun recording: the table as text, and per plotted column (plot_sweep's names) its value on a `cell`
+    timeline, one series per value of `part` where a cell has several rows (one series per other-axes combination
+    is left to the table; the timeline follows the cell order)."""
     from wrenorm.viz.record import Recorder, rerun_available
 
     if not rerun_available() or not rows:
         return False
     rec = Recorder(path, recording_id=f"sweep-{spec.task.replace(' ', '-')}")
     try:
-        rec.log_text("sweep/table", _markdown(spec, rows, names))
+        rec.log_text("sweep/table", _markdown(spec, rows, names, part))
         numeric_axes = [a for a in spec.axes if all(_number(v) is not None for v in spec.axes[a])]
+        cells = list(dict.fromkeys(r["cell"] for r in rows))
         for k, r in enumerate(rows):
             if r.get("status") != "done":
                 continue
+            if part is not None:
+                k = cells.index(r["cell"])  # a cell's rows (its arms) share its place on the timeline
             for name in names:
-                if r.get(name) is not None:
-                    rec.log_scalar(f"sweep/parameters/{name}", k, float(r[name]), timeline="cell")
+                if _number(r.get(name)) is not None:
+                    series = f"{name}/{_path_part(r.get(part))}" if part is not None else name
+                    rec.log_scalar(f"sweep/parameters/{series}", k, _number(r[name]), timeline="cell")
             for key in ("loss_fitted", "heldout_mean_fitted"):
                 if r.get(key) is not None:
                     rec.log_scalar(f"sweep/{key}", k, float(r[key]), timeline="cell")
@@ -116,7 +132,7 @@ def record_sweep(path: Path, spec, rows: list[dict], names: list[str]) -> bool:
                 if _number(r.get(a)) is not None:
                     rec.log_scalar(f"sweep/axes/{a}", k, _number(r.get(a)), timeline="cell")
         for name in names:
-            rec.add_view(f"{name} per cell", [f"/sweep/parameters/{name}"])
+            rec.add_view(f"{name} per cell", [f"/sweep/parameters/{name}" + ("/**" if part is not None else "")])
         rec.add_view("losses per cell", ["/sweep/loss_fitted", "/sweep/heldout_mean_fitted"])
         rec.add_view("axes per cell", ["/sweep/axes/**"])
         rec.add_view("table", ["/sweep/table"], kind="text")

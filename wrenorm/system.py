@@ -63,6 +63,8 @@ class ExtraCommand:
     # row per part, e.g. per arm of a correction); None: the result's top-level numbers and strings
     table_rows: Ref | None = None
     sweep_summary: Ref | None = None  # (the done cells' rows) -> [line]: what the sweep says of them all at its end
+    sweep_plot: tuple[str, ...] = ()  # the table_rows columns sweep.png draws against the swept axes
+    sweep_part: str | None = None  # the table_rows column that splits one cell into rows (a correction's arm)
 
 
 @dataclass(frozen=True)

@@ -508,19 +508,19 @@ def _write_tables(sweep: dict) -> None:
 def _finish(sweep: dict) -> None:
     out, spec, records, timing, args = sweep["out"], sweep["spec"], sweep["records"], sweep["timing"], sweep["args"]
     rows = table.build(spec, records, sweep["results"])
-    names = table.free_names(spec.verb, {k: v for k, v in sweep["results"].items()
-                                         if records.get(k, {}).get("status") == "done"}, spec.axes)
+    names, part = table.plotted(spec, {k: v for k, v in sweep["results"].items()
+                                       if records.get(k, {}).get("status") == "done"})
     plotted = False
     try:
         from wrenorm.viz.sweep_plot import plot_sweep
 
-        plotted = plot_sweep(out / "sweep.png", spec, rows, names)
+        plotted = plot_sweep(out / "sweep.png", spec, rows, names, part)
     except ImportError:  # matplotlib missing: the plot is a convenience, never fatal
         pass
     if not args.no_record:
         from wrenorm.viz.sweep_plot import record_sweep
 
-        record_sweep(out / "recording.rrd", spec, rows, names)
+        record_sweep(out / "recording.rrd", spec, rows, names, part)
     failed = [c for c in spec.cells if records.get(c.id, {}).get("status") == "failed"]
     done = sum(1 for c in spec.cells if records.get(c.id, {}).get("status") == "done")
     print(f"\nsweep {spec.task}: {done}/{len(spec.cells)} cells done, {len(failed)} failed")

@@ -171,6 +171,15 @@ def write_csv(path, spec, rows: list[dict]) -> None:
     write_atomic(path, buf.getvalue())
 
 
+def plotted(spec, results: dict) -> tuple[list[str], str | None]:
+    """What sweep.png draws against the axes, and the column that splits a cell into several rows (None: a fit's or
+    a flow's resolutions): the fitted parameters (free_names), or a command's ExtraCommand.sweep_plot columns."""
+    command = _command(spec.verb, spec.system)
+    if command is not None:
+        return list(command.sweep_plot), command.sweep_part
+    return free_names(spec.verb, results, spec.axes), None
+
+
 def free_names(verb: str, results: dict, axes=()) -> list[str]:
     """The columns of the parameters fitted (not frozen) in any finished cell, in the order the results list them
     (parameter_column: not an axis's)."""
