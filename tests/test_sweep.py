@@ -129,6 +129,7 @@ def _end(pids) -> None:
     ('task = "fit pd"\n[options]\nf_sim = [400]\n[axes]\nf-sim = [100, 200]', "options.f_sim"),
     ('task = "fit pd"\n[axes]\nf-sim = [100, 100.0]', "axes.f-sim"),
     ('task = "fit swimmer"\n[axes]\ntrain = [[1, 1.75], [1.0, 1.75]]', "axes.train"),
+    ('task = "fit swimmer"\n[axes]\ntrain = [[1, 1.75], [1.75, 1]]', "axes.train: repeated value [1.75, 1]"),
     ('task = "fit pd"\nseeds = [1, 1]', "seeds"),
     ('task = "fit pd"\n[axis]\nf-sim = [100]', "axis"),
     ('task = fit pd', "toml"),

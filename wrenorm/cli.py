@@ -48,9 +48,10 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
-    add_list(p, "--free", default=[], metavar="NAME",
+    add_list(p, "--free", default=[], metavar="NAME", unordered=True,
              help="also fit these parameters (expand the set when the held-out verdict says 'expand')")
-    add_list(p, "--freeze", default=[], metavar="NAME", help="hold these parameters at their measured values")
+    add_list(p, "--freeze", default=[], metavar="NAME", unordered=True,
+             help="hold these parameters at their measured values")
 
 
 def _fit_arguments(p: argparse.ArgumentParser, system) -> None:

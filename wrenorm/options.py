@@ -64,8 +64,9 @@ class ListAction(argparse.Action):
     """nargs='+' whose items may also be comma-separated; every item parsed by `item`; no repeats. Given twice
     (`--reference a.npz --reference b.npz`) the lists join: argparse's plain nargs would keep only the last."""
 
-    def __init__(self, *args, item=str, unique=True, **kw):
+    def __init__(self, *args, item=str, unique=True, unordered=False, **kw):
         self.item, self.unique = item, unique
+        self.unordered = unordered  # the list names a set (parameters, training rates): order means nothing
         super().__init__(*args, **kw)
 
     def __call__(self, parser, namespace, values, option_string=None):
@@ -101,9 +102,10 @@ def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=No
 
 
 def add_list(p: argparse.ArgumentParser, flag: str, *, default, item=str, help: str = "", unique: bool = True,
-             **kw) -> None:
-    """--flag A B or --flag A,B: a list (repeats refused unless unique=False)."""
-    p.add_argument(flag, nargs="+", action=ListAction, item=item, unique=unique, default=default,
+             unordered: bool = False, **kw) -> None:
+    """--flag A B or --flag A,B: a list (repeats refused unless unique=False; unordered: a set, whose orders a sweep
+    counts as one value)."""
+    p.add_argument(flag, nargs="+", action=ListAction, item=item, unique=unique, unordered=unordered, default=default,
                    help=f"{help} (spaces or commas)".strip(), **kw)
 
 

@@ -41,7 +41,7 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of fishsim markers_f*.csv (rate label from the file name); default: built-in data")
     add_number(p, "--fps", default=FPS, lo=0.0, lo_open=True, hi=100000.0, unit="frames/s",
                help="frame rate of the --data clips (60: the fishsim format; the built-in data carry theirs)")
-    add_list(p, "--train", default=list(DEFAULT_TRAIN), item=_label, metavar="HZ",
+    add_list(p, "--train", default=list(DEFAULT_TRAIN), item=_label, metavar="HZ", unordered=True,
              help="training motor-rate labels (every other rate validates)")
     p.add_argument("--virtual-mass", action="store_true",
                    help="add the acceleration-dependent added mass (default: MuJoCo's model, velocity terms only)")

@@ -16,9 +16,10 @@ Option names may use "-" or "_" (`f-sim`, `f_sim`); an option that takes several
 of it a list of lists). `--out`, `--seed`, `--device`, `--resume`, `--force` and `--quiet` belong to the sweep.
 Every cell's command line is checked with the task's own parser before anything runs: an unknown task or option,
 a value out of range, an axis with repeated values (as the task reads them: 100 and 100.0 are one, and so are two
-orders of one set of --free or --freeze names), a parameter name the system does not have, an option given
-twice (`K_D` and `K-D` are one, fixed or varied) is one line naming the key and the problem (exit 2); so is a file
-or folder a cell is given (an option whose metavar says FILE or DIR) that does not exist or cannot be read. The spec
+orders of a list that names a set, ListAction's unordered: --free, --freeze, --train), a parameter name the system
+does not have, an option given twice (`K_D` and `K-D` are one, fixed or varied) is one line naming the key and the
+problem (exit 2); so is a file or folder a cell is given (an option whose metavar says FILE or DIR) that does not
+exist or cannot be read. The spec
 is UTF-8 (a byte-order mark is fine).
 """
 from __future__ import annotations
@@ -41,8 +42,6 @@ TOP_LEVEL = ("task", "seeds", "options", "axes", "description")
 RESERVED = {"out": "each cell's run folder is DIR/cells/<cell>", "seed": "use `seeds = [...]` at the top level",
             "device": "pass --device to the sweep command", "resume": "pass --resume to the sweep command",
             "force": "pass --force to the sweep command", "quiet": "cells always run quietly"}
-
-UNORDERED = ("free", "freeze")  # list options that name a set: ["J", "K_D"] and ["K_D", "J"] are one value
 
 
 @dataclass(frozen=True)
@@ -230,8 +229,8 @@ def load(path: str | Path) -> Spec:
         read = []  # each value as the cell's command reads it: 100 and 100.0 are one value
         for i, w in enumerate(words):
             value = getattr(_parse(parser, head, [*fixed, *w], where, path, f"value {values[i]!r}: "), action.dest)
-            if action.dest in UNORDERED:
-                value = sorted(value)
+            if getattr(action, "unordered", False):
+                value = sorted(value, key=repr)
             if value in read:
                 same = values[read.index(value)]
                 raise InputError(path, where, f"repeated value {values[i]!r}"
