@@ -1706,3 +1706,40 @@ def test_the_report_names_its_start_seed_and_budget_and_does_not_blame_the_model
                             {"segments": 10}, "tolerance": 0.05, "error_meaning": "e", "runs": {"fitted": run}})
     assert "from flick_wide" in text and "seed 73" in text and "at most 3 trials" in text
     assert "when its last trial was planned" in text and "stopped it" not in text
+
+
+def test_a_run_saved_when_by_arm_kept_three_velocity_modes_resumes_with_three(tmp_path):
+    """By arm, the renormalised arms' steps kept 3 velocity modes in stop 49 and keep secant.VELOCITY_MODES (2) since
+    stop 50. A run saved then resumes as it ran (3 modes in its renormalised arms, every row in its fixed ones), and
+    the line that repeats it says so where one number can; a run saved today keeps today's by-arm number."""
+    import argparse
+
+    from wrenorm.tasks.rope.control import correct_cli
+    from wrenorm.tasks.rope.control.secant import VELOCITY_MODES
+
+    assert VELOCITY_MODES == 2
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    stop49 = {k: v for k, v in vars(parser.parse_args([])).items() if k not in correct_cli._NOT_SAVED}
+    assert stop49["velocity_modes"] == "by-arm" and correct_cli.BY_ARM_MODES_KEY not in stop49
+    for params, arms in ((["renormalised-from-fitted"], {"renormalised-from-fitted": 3}),
+                         (["renormalised-from-fitted", "measured"], {"renormalised-from-fitted": 3, "measured": None})):
+        (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(stop49 | {"params": params}))
+        args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+        correct_cli._restore_settings(args)
+        assert {label: correct_cli._step_options(args, label)["velocity_modes"] for label in params} == arms
+        line = shlex.split(correct_cli.reproduce_command(args))
+        # one number says it where every arm that steps renormalises; beside a fixed arm (every row) none can
+        assert ("--velocity-modes" in line) == (len(params) == 1)
+        if len(params) == 1:
+            assert line[line.index("--velocity-modes") + 1] == "3"
+            again = parser.parse_args(line[5:])
+            assert correct_cli._step_options(again, params[0])["velocity_modes"] == 3
+    today = stop49 | {correct_cli.BY_ARM_MODES_KEY: VELOCITY_MODES}
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(today))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert correct_cli._step_options(args, "renormalised-from-fitted")["velocity_modes"] == VELOCITY_MODES
+    assert "--velocity-modes" not in correct_cli.reproduce_command(args)
+    fresh = parser.parse_args([])  # not a resume: by arm is left to correct(), which gives VELOCITY_MODES
+    assert correct_cli._step_options(fresh, "renormalised-from-fitted")["velocity_modes"] is None

@@ -118,7 +118,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="(gn steps) keep the velocity rows of each Gauss-Newton step's least-squares problem to the "
                         "velocity profile's first N Legendre modes in arc length on each axis, N in 1-21 (the step "
                         "only: trials are accepted and reported on the observable's error); all: every row; by-arm "
-                        "(default): secant.VELOCITY_MODES (3) for renormalised parameters, all for fixed ones")
+                        "(default): secant.VELOCITY_MODES (2) for renormalised parameters, all for fixed ones")
     p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
@@ -375,6 +375,9 @@ def run(args) -> int:
                       resume=args.resume, force=args.force, state=SETTINGS_FILE)
     if not args.resume:
         saved = {k: v for k, v in vars(args).items() if k not in _NOT_SAVED}
+        from wrenorm.tasks.rope.control.secant import VELOCITY_MODES
+
+        saved[BY_ARM_MODES_KEY] = VELOCITY_MODES  # what by-arm means for the renormalised arms today
         write_json(out / SETTINGS_FILE, saved | {DIGEST_KEY: _settings_digest(saved)})
     t_all = time.perf_counter()
 
@@ -657,6 +660,7 @@ def report_markdown(result: dict) -> str:
 
 RUN_LABELS = ("renormalised", "renormalised-from-fitted", "measured", "fitted")
 SETTINGS_FILE = "settings.json"
+BY_ARM_MODES_KEY = "by_arm_velocity_modes"  # settings.json: what --velocity-modes by-arm gave the renormalised arms
 DIGEST_KEY = "_digest"
 
 
@@ -764,8 +768,24 @@ def _restore_settings(args) -> None:
                 raise InputError(f"--{key.replace('_', '-')}", key, f"the interrupted correction {how}, this run asks "
                                                                     f"for {given!r}; leave it out")
             setattr(args, key, as_run)
+    # by-arm's number of velocity modes for the renormalised arms when the run was saved: 3 before it was saved with
+    # it (stops 49 and before; a run saved before --velocity-modes has "all" from above and never reads it)
+    if args.velocity_modes == "by-arm":
+        args.by_arm_velocity_modes = saved.get(BY_ARM_MODES_KEY, 3)
     if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
+
+
+def _by_arm_modes_changed(args) -> bool:
+    """A resumed run whose by-arm velocity modes are not today's, and whose stepping arms all renormalise (a fixed arm
+    keeps every mode by arm, which one --velocity-modes number cannot say beside the renormalised arms')."""
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+    from wrenorm.tasks.rope.control.secant import VELOCITY_MODES
+
+    modes = getattr(args, "by_arm_velocity_modes", None)
+    stepping = [label for label in args.params if takes_gn_steps(*_arm_method(args, label))]
+    return (modes not in (None, VELOCITY_MODES) and bool(stepping)
+            and all(_arm_method(args, label)[0] == "renormalise" for label in stepping))
 
 
 def reproduce_command(args) -> str:
@@ -786,6 +806,8 @@ def reproduce_command(args) -> str:
             value = "cuda" if str(value).startswith("cuda") else value  # the run's "cuda:0"
         if action.dest == "builtin_throws" and value == builtin_is_the_real_rope(vars(args)):
             continue  # what a fresh run derives from --engine and --fine-segments
+        if action.dest == "velocity_modes" and value == "by-arm" and _by_arm_modes_changed(args):
+            value = str(args.by_arm_velocity_modes)  # every arm that steps renormalises: one number says it
         if value == action.default or value is None:
             continue
         flag = next(o for o in action.option_strings if o.startswith("--"))
@@ -957,9 +979,13 @@ def _step_options(args, label: str) -> dict:
     """correct()'s Gauss-Newton step options for the run with parameters `label`: none where it plans instead."""
     from wrenorm.tasks.rope.control.correct import takes_gn_steps
 
-    if not takes_gn_steps(*_arm_method(args, label)):
+    method = _arm_method(args, label)
+    if not takes_gn_steps(*method):
         return {}
-    return {"velocity_weight": _velocity_weight(args), "velocity_modes": _velocity_modes(args),
+    modes = _velocity_modes(args)
+    if modes is None and method[0] == "renormalise":  # by-arm, as it was when a resumed run was saved
+        modes = getattr(args, "by_arm_velocity_modes", None)
+    return {"velocity_weight": _velocity_weight(args), "velocity_modes": modes,
             "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 

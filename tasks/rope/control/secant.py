@@ -59,9 +59,9 @@ MATCH_GENERATIONS = 40  # population of the match (40 x 48 chains, about 0.2 s h
 MATCH_POPSIZE = 48
 VELOCITY_WEIGHT = 0.5  # the fixed-parameter steps' weight on the velocity rows: the block they predict worst (README,
 # "Which part of the critical state the steps can predict"); renormalised steps keep 1
-VELOCITY_MODES = 3  # the renormalised steps' velocity rows: the velocity profile's first Legendre modes in arc length
-# per axis, the part of its change the corrected sensitivity predicts (README, "The velocity profile's smooth part");
-# fixed-parameter steps keep every row
+VELOCITY_MODES = 2  # the renormalised steps' velocity rows: the velocity profile's first Legendre modes in arc length
+# per axis, the part of its change the corrected sensitivity predicts (README, "The velocity profile's smooth part";
+# 3 in stop 49); fixed-parameter steps keep every row
 FIRST_PLAN_REG = 3e-3  # trial 1's plan, per squared unit of u from the start, where Gauss-Newton steps follow: the
 # chain reproduces the goal about as well over a long stretch of commands, and steps from the nearer end reach more
 # often (README, "Trial 1 nearer the start")
