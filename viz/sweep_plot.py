@@ -115,12 +115,12 @@ def record_sweep(path: Path, spec, rows: list[dict], names: list[str], part: str
     try:
         rec.log_text("sweep/table", _markdown(spec, rows, names, part))
         numeric_axes = [a for a in spec.axes if all(_number(v) is not None for v in spec.axes[a])]
-        cells = list(dict.fromkeys(r["cell"] for r in rows))
+        cells = {c: i for i, c in enumerate(dict.fromkeys(r["cell"] for r in rows))}
         for k, r in enumerate(rows):
             if r.get("status") != "done":
                 continue
             if part is not None:
-                k = cells.index(r["cell"])  # a cell's rows (its arms) share its place on the timeline
+                k = cells[r["cell"]]  # a cell's rows (its arms) share its place on the timeline
             for name in names:
                 if _number(r.get(name)) is not None:
                     series = f"{name}/{_path_part(r.get(part))}" if part is not None else name

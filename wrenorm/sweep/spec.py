@@ -19,8 +19,7 @@ a value out of range, an axis with repeated values (as the task reads them: 100 
 orders of a list that names a set, ListAction's unordered: --free, --freeze, --train), a parameter name the system
 does not have, an option given twice (`K_D` and `K-D` are one, fixed or varied) is one line naming the key and the
 problem (exit 2); so is a file or folder a cell is given (an option whose metavar says FILE or DIR) that does not
-exist or cannot be read. The spec
-is UTF-8 (a byte-order mark is fine).
+exist or cannot be read. The spec is UTF-8 (a byte-order mark is fine).
 """
 from __future__ import annotations
 
