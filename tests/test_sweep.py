@@ -453,8 +453,13 @@ def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path, sig, code):
     try:
         while time.time() < deadline and proc.poll() is None and not running:
             below = sorted(set(below) | set(_descendants(proc.pid)))
-            running = any(_cmdline(p).startswith("ray::run_cell") for p in below)
-            time.sleep(0.1)
+            state = out / "sweep-state.json"
+            done = state.is_file() and sum(r.get("status") == "done"
+                                           for r in json.loads(state.read_text()).get("records", {}).values())
+            running = done >= 2 and any(_cmdline(p).startswith("ray::run_cell") for p in below)
+            time.sleep(0.05)
+        # two cells done (they ran side by side and ended within the table's 2 s) and the third running: the
+        # interrupt lands before the table's next write
         assert running
         proc.send_signal(sig)
         _, stderr = proc.communicate(timeout=120)
@@ -466,6 +471,10 @@ def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path, sig, code):
         _end(p for p in below if "ray" in _cmdline(p))
     assert proc.returncode == code, stderr
     assert f"wrenorm: interrupted; continue with --resume --out {out}" in stderr, stderr
+    # the table says what the saved state says: written before Ray's shut-down, which outlasts the one-second grace
+    state = json.loads((out / "sweep-state.json").read_text())["records"]
+    assert {r["cell"]: r["status"] for r in _rows(out)} == {c: state.get(c, {}).get("status", "pending")
+                                                            for c in (r["cell"] for r in _rows(out))}
 
 
 def test_resume_refuses_an_input_whose_content_changed_naming_it(tmp_path, capsys, monkeypatch):

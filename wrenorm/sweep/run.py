@@ -427,7 +427,11 @@ def _run(ray, args, spec, out: Path, todo: list, token: str, sweep: dict, say, t
                 _write_tables(sweep)
                 last_table = time.perf_counter()
         progress.close()
-    except BaseException:
+    except BaseException as e:
+        if isinstance(e, KeyboardInterrupt):
+            # the table first: cancelling and Ray's shut-down can outlast the interrupt's one-second grace, and the
+            # table was written at most every 2 s, so the cells done since would be missing from it until --resume
+            _write_tables(sweep)
         for ref in pending:
             ray.cancel(ref, force=True)
         raise
