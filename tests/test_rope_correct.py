@@ -1099,7 +1099,7 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     assert len(along) == 2 and all(row[2].strip() == row[3].strip() == "1.00" for row in along), r.stdout
     # every prediction came true: each part of the velocity change, in the first modes and the rest, at cosine 1
     split = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| best error")][10:]
-    assert [int(row[2]) for row in split] == [1, 2, 3, 5] * 2, r.stdout
+    assert [int(row[2]) for row in split] == [1, 2, 3, 5] * 4, r.stdout  # velocity, then position
     assert all(row[4].strip() == "1.00 / 1.00" and row[5].strip() == "0.00 / 0.00" for row in split), r.stdout
     # each step's floor, recorded with the trial before it, set to 0.6 of the best error then: the table says 0.60
     with_floor, best = [], np.inf
@@ -1161,6 +1161,14 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     split = diag.velocity_modes(goal, smooth - rough, smooth + rough)["modes2"]
     assert split["share"] == pytest.approx(smooth @ smooth / (smooth @ smooth + rough @ rough))
     assert split["kept"] == pytest.approx((1.0, 0.0), abs=1e-12) and split["rest"] == pytest.approx((-1.0, 2.0))
+    # the same split of the position block, the velocity block then untouched by its projection
+    x = goal.blocks["position"]
+    moved = np.zeros(goal.dim)
+    moved[x] = smooth[v]
+    assert np.allclose(secant.mode_projection(goal, "position", 2) @ moved, moved)
+    assert np.allclose(secant.mode_projection(goal, "position", 2) @ rough, rough)  # velocity rows kept whole
+    shape = diag.block_modes(goal, "position", moved, moved, "p")["p2"]
+    assert shape["share"] == pytest.approx(1.0) and shape["kept"] == pytest.approx((1.0, 0.0), abs=1e-12)
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),
                                ("coarse", {"settings": {"engine": "newton", "real": "coarse"}}, "coarse stand-in"),

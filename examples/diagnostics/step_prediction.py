@@ -11,9 +11,10 @@ A second table, printed before the floors' and pooled over every run named, sets
 residual against the predicted change as vectors: how much of the predicted change it made along it, at what angle,
 and the multiple of the step that would have left the least squared weighted residual had the rope answered in
 proportion along it (1: the step as taken; README, "More changes to the default arm").
-A last table splits the velocity block's change into the velocity profile's first N Legendre modes in arc length per
-axis and the rest (secant.velocity_projection, N = 1, 2, 3, 5): the rope's share in the first N, and how well the
-step predicted each part (README, "The velocity profile's smooth part").
+A further table splits the velocity block's change into the velocity profile's first N Legendre modes in arc length
+per axis and the rest (secant.velocity_projection, N = 1, 2, 3, 5): the rope's share in the first N, and how well the
+step predicted each part (README, "The velocity profile's smooth part"); the next does the same for the position
+block (secant.mode_projection).
 
     python examples/diagnostics/step_prediction.py RUN_OR_CAMPAIGN [...] [--arm fitted]
 
@@ -144,9 +145,16 @@ def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray
 
 
 def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray) -> dict:
-    """Per number of modes N in MODES, of the weighted residual's velocity rows: the share of the rope's change in the
-    profile's first N Legendre modes (squared norm), and for that part and the rest the cosine between the predicted
-    and the actual change and the relative error |actual - predicted| / |actual| (NaN where a part has no length)."""
+    """block_modes of the velocity rows (keys modesN) and of the position rows (keys position_modesN)."""
+    return block_modes(goal, "velocity", predicted, actual, "modes") | block_modes(goal, "position", predicted, actual,
+                                                                                   "position_modes")
+
+
+def block_modes(goal: crit.Target, block: str, predicted: np.ndarray, actual: np.ndarray, key: str) -> dict:
+    """Per number of modes N in MODES, of the weighted residual's rows of `block`: the share of the rope's change in
+    the profile's first N Legendre modes (squared norm), and for that part and the rest the cosine between the
+    predicted and the actual change and the relative error |actual - predicted| / |actual| (NaN where a part has no
+    length)."""
     def compare(p, a):
         pn, an = np.linalg.norm(p), np.linalg.norm(a)
         if pn < 1e-15 or an < 1e-15:
@@ -155,12 +163,12 @@ def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray)
 
     out = {}
     for n in MODES:
-        Q = secant.velocity_projection(goal, n)
+        Q = secant.mode_projection(goal, block, n)
         keep_p, keep_a = Q @ predicted, Q @ actual
         rest_p, rest_a = predicted - keep_p, actual - keep_a
-        v = goal.blocks["velocity"]
+        v = goal.blocks[block]
         total = float(actual[v] @ actual[v])
-        out[f"modes{n}"] = {"share": float(keep_a[v] @ keep_a[v]) / total if total > 0 else np.nan,
+        out[f"{key}{n}"] = {"share": float(keep_a[v] @ keep_a[v]) / total if total > 0 else np.nan,
                             "kept": compare(keep_p[v], keep_a[v]), "rest": compare(rest_p[v], rest_a[v])}
     return out
 
@@ -176,13 +184,13 @@ def _finite_median(values) -> float:
     return float(np.median(values)) if values else np.nan
 
 
-def modes_table(rows: list[dict]) -> str:
-    """Per stage and number of modes, the medians of velocity_modes over the steps."""
-    lines = ["| steps | modes per axis | rope's velocity change in them (share) | cosine, predicted vs actual: in "
+def modes_table(rows: list[dict], key: str = "modes", block: str = "velocity") -> str:
+    """Per stage and number of modes, the medians of block_modes over the steps."""
+    lines = [f"| steps | modes per axis | rope's {block} change in them (share) | cosine, predicted vs actual: in "
              "them / the rest | relative error: in them / the rest |", "|---|---|---|---|---|"]
     for label, sub in by_stage(rows):
         for n in MODES:
-            parts = [x[f"modes{n}"] for x in sub]
+            parts = [x[f"{key}{n}"] for x in sub]
             med = _finite_median
             lines.append(f"| {label}: {len(sub)} | {n} | {med([p['share'] for p in parts]):.2f} | "
                          f"{med([p['kept'][0] for p in parts]):.2f} / {med([p['rest'][0] for p in parts]):.2f} | "
@@ -252,6 +260,8 @@ def main(argv=None) -> int:
     print(along_table(rows))
     print("\nThe velocity block's change split into the velocity profile's first modes in arc length and the rest:\n")
     print(modes_table(rows))
+    print("\nThe same for the position block (the shape at the contact):\n")
+    print(modes_table(rows, "position_modes", "position"))
     if any(x["floor"] is not None for x in rows):
         print("\nWhat the corrected model said any command in the box could still reach (its floor), per step:\n")
         print(floor_table(rows))

@@ -227,16 +227,23 @@ def velocity_projection(goal: crit.Target, modes: int) -> np.ndarray | None:
     or above the profile's samples). The steps' velocity rows: near the goal the corrected sensitivity predicts the
     profile's smooth change (cosine 0.8-0.9 to the rope's) and not the rest (no better than zero), so a step that
     chases the rest aims at what it cannot predict (README, "The velocity profile's smooth part")."""
+    return mode_projection(goal, "velocity", modes)
+
+
+def mode_projection(goal: crit.Target, block: str, modes: int) -> np.ndarray | None:
+    """(m, m) the orthogonal projection that keeps, of the residual's rows of `block` (position or velocity, in
+    state_vector's layout), the profile's first `modes` Legendre modes in arc length on each axis, and every other
+    row; None where it keeps everything (modes at or above the profile's samples)."""
     from numpy.polynomial import legendre
 
-    block = np.arange(goal.dim)[goal.blocks["velocity"]]
-    samples = len(block) // 3
+    rows = np.arange(goal.dim)[goal.blocks[block]]
+    samples = len(rows) // 3
     if modes >= samples:
         return None
     basis = legendre.legvander(np.linspace(-1.0, 1.0, samples), modes - 1)  # (samples, modes)
     keep = basis @ np.linalg.pinv(basis)
     Q = np.eye(goal.dim)
-    Q[np.ix_(block, block)] = np.kron(keep, np.eye(3))  # rows are sample-major: (x, y, z) of sample 0, then 1, ...
+    Q[np.ix_(rows, rows)] = np.kron(keep, np.eye(3))  # rows are sample-major: (x, y, z) of sample 0, then 1, ...
     return Q
 
 
