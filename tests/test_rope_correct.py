@@ -1158,7 +1158,7 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     smooth[v] = np.stack([1 + arc, 2 * arc, -arc], axis=1).ravel()
     rough[v] = rng.normal(size=3 * crit.SAMPLES)
     rough -= secant.velocity_projection(goal, 2) @ rough
-    split = diag.velocity_modes(goal, smooth - rough, smooth + rough)["modes2"]
+    split = diag.block_modes(goal, "velocity", smooth - rough, smooth + rough)["velocity_modes2"]
     assert split["share"] == pytest.approx(smooth @ smooth / (smooth @ smooth + rough @ rough))
     assert split["kept"] == pytest.approx((1.0, 0.0), abs=1e-12) and split["rest"] == pytest.approx((-1.0, 2.0))
     # the same split of the position block, the velocity block then untouched by its projection
@@ -1167,7 +1167,7 @@ def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_
     moved[x] = smooth[v]
     assert np.allclose(secant.mode_projection(goal, "position", 2) @ moved, moved)
     assert np.allclose(secant.mode_projection(goal, "position", 2) @ rough, rough)  # velocity rows kept whole
-    shape = diag.block_modes(goal, "position", moved, moved, "p")["p2"]
+    shape = diag.block_modes(goal, "position", moved, moved)["position_modes2"]
     assert shape["share"] == pytest.approx(1.0) and shape["kept"] == pytest.approx((1.0, 0.0), abs=1e-12)
     wrong_goal = [t | {"error": t["error"] + 0.01} for t in trials]
     for name, kw, expected in (("plan", {"run": {"method": "plan"}}, "does not step by Gauss-Newton"),

@@ -91,23 +91,20 @@ class System:
 def parameter_names(system: System, args) -> list[str] | None:
     """The names --free and --freeze may give for these options (System.parameter_names), None where the system does
     not say them without building its problems."""
-    ref = system.parameter_names
-    if ref is None:
-        return None
-    if not callable(ref):
-        module, _, name = str(ref).partition(":")
-        ref = getattr(importlib.import_module(module), name, None)
-        if ref is None:
-            return None
-    return list(ref(args))
+    names = resolve(system.parameter_names, optional=True) if system.parameter_names is not None else None
+    return None if names is None else list(names(args))
 
 
-def resolve(ref: Ref) -> Callable:
-    """A callable from a Ref; "pkg.module:name" is imported now (heavy modules load only when used)."""
+def resolve(ref: Ref, optional: bool = False) -> Callable | None:
+    """A callable from a Ref; "pkg.module:name" is imported now (heavy modules load only when used). optional: None
+    where the module has no such name (a convention a system may leave out)."""
     if callable(ref):
         return ref
     module, _, name = str(ref).partition(":")
-    return getattr(importlib.import_module(module), name)
+    found = getattr(importlib.import_module(module), name, None)
+    if found is None and not optional:
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+    return found
 
 
 def from_package(package: str, help: str, search: SearchDefaults = SearchDefaults(), flow: Flow | None = None,

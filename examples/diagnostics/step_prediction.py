@@ -120,7 +120,8 @@ def step_rows(folder: Path, arm: str) -> list[dict]:
                                                                     for k in TERMS},
                          "best_terms": {k: goal.weights[k] * best["terms"][k] for k in TERMS}}
                         | along_the_step(r_best, r_predicted - r_best, r_actual - r_best)
-                        | velocity_modes(goal, r_predicted - r_best, r_actual - r_best)
+                        | block_modes(goal, "velocity", r_predicted - r_best, r_actual - r_best)
+                        | block_modes(goal, "position", r_predicted - r_best, r_actual - r_best)
                         | {f"{k}_actual": goal.weights[k] * (t["terms"][k] - best["terms"][k]) for k in TERMS}
                         | {f"{k}_predicted": goal.weights[k] * (float(predicted[k][0]) - best["terms"][k])
                            for k in TERMS})
@@ -144,14 +145,9 @@ def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray
             "best_length": -float(r_best @ actual) / aa}
 
 
-def velocity_modes(goal: crit.Target, predicted: np.ndarray, actual: np.ndarray) -> dict:
-    """block_modes of the velocity rows (keys modesN) and of the position rows (keys position_modesN)."""
-    return block_modes(goal, "velocity", predicted, actual, "modes") | block_modes(goal, "position", predicted, actual,
-                                                                                   "position_modes")
-
-
-def block_modes(goal: crit.Target, block: str, predicted: np.ndarray, actual: np.ndarray, key: str) -> dict:
-    """Per number of modes N in MODES, of the weighted residual's rows of `block`: the share of the rope's change in
+def block_modes(goal: crit.Target, block: str, predicted: np.ndarray, actual: np.ndarray) -> dict:
+    """Per number of modes N in MODES (keys `<block>_modesN`), of the weighted residual's rows of `block` (velocity or
+    position): the share of the rope's change in
     the profile's first N Legendre modes (squared norm), and for that part and the rest the cosine between the
     predicted and the actual change and the relative error |actual - predicted| / |actual| (NaN where a part has no
     length)."""
@@ -168,8 +164,8 @@ def block_modes(goal: crit.Target, block: str, predicted: np.ndarray, actual: np
         rest_p, rest_a = predicted - keep_p, actual - keep_a
         v = goal.blocks[block]
         total = float(actual[v] @ actual[v])
-        out[f"{key}{n}"] = {"share": float(keep_a[v] @ keep_a[v]) / total if total > 0 else np.nan,
-                            "kept": compare(keep_p[v], keep_a[v]), "rest": compare(rest_p[v], rest_a[v])}
+        out[f"{block}_modes{n}"] = {"share": float(keep_a[v] @ keep_a[v]) / total if total > 0 else np.nan,
+                                    "kept": compare(keep_p[v], keep_a[v]), "rest": compare(rest_p[v], rest_a[v])}
     return out
 
 
@@ -184,13 +180,13 @@ def _finite_median(values) -> float:
     return float(np.median(values)) if values else np.nan
 
 
-def modes_table(rows: list[dict], key: str = "modes", block: str = "velocity") -> str:
+def modes_table(rows: list[dict], block: str) -> str:
     """Per stage and number of modes, the medians of block_modes over the steps."""
     lines = [f"| steps | modes per axis | rope's {block} change in them (share) | cosine, predicted vs actual: in "
              "them / the rest | relative error: in them / the rest |", "|---|---|---|---|---|"]
     for label, sub in by_stage(rows):
         for n in MODES:
-            parts = [x[f"{key}{n}"] for x in sub]
+            parts = [x[f"{block}_modes{n}"] for x in sub]
             med = _finite_median
             lines.append(f"| {label}: {len(sub)} | {n} | {med([p['share'] for p in parts]):.2f} | "
                          f"{med([p['kept'][0] for p in parts]):.2f} / {med([p['rest'][0] for p in parts]):.2f} | "
@@ -259,9 +255,9 @@ def main(argv=None) -> int:
     print("\nThe rope's change of the weighted residual against the step's prediction, as vectors:\n")
     print(along_table(rows))
     print("\nThe velocity block's change split into the velocity profile's first modes in arc length and the rest:\n")
-    print(modes_table(rows))
+    print(modes_table(rows, "velocity"))
     print("\nThe same for the position block (the shape at the contact):\n")
-    print(modes_table(rows, "position_modes", "position"))
+    print(modes_table(rows, "position"))
     if any(x["floor"] is not None for x in rows):
         print("\nWhat the corrected model said any command in the box could still reach (its floor), per step:\n")
         print(floor_table(rows))

@@ -46,13 +46,13 @@ DENSITY_RANGE = (50.0, 20000.0)
 MIN_RADIUS = 1e-6  # m
 GRAVITY_MIN_RESULTANT = 0.3  # the rope's mean direction must be at least this consistent to be judged
 HELD_END_OFFSET = 0.01  # m: marker 0 farther than this (and two radii) from the hand is not at the held end
+GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
+GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
 
 
 def held_end_reach(radius: float) -> float:
     """How far (m) from the hand a marker at the held end may sit: two radii, and never less than HELD_END_OFFSET."""
     return max(2.0 * radius, HELD_END_OFFSET)
-GRAVITY_MIN_DOMINANT = 0.5  # a non-downward axis must carry this much of the mean direction ...
-GRAVITY_DOMINANCE = 1.5  # ... and this many times its downward part, for a file to be refused
 
 
 @dataclass
