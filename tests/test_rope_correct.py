@@ -65,6 +65,53 @@ def test_qp_step_respects_trust_region_and_solves_linear_case():
     assert np.abs(du).max() <= 0.5 + 1e-9
 
 
+def test_ball_step_is_the_least_squares_step_on_the_balls_surface():
+    """secant.ball_step against the trust-region subproblem solved independently: without active box bounds its step
+    is -(F^T F + (lam + mu) I)^-1 F^T e with mu >= 0 the root of |du(mu)|_2 = ball (More and Sorensen), found here on
+    F's eigenbasis by brentq; inside the ball it is qp_step's; with the command box active it stays inside both and
+    is no worse than any feasible point of the ball tried at random."""
+    from scipy.optimize import brentq
+
+    space = CommandSpace(PATHS["flick"])
+    rng = np.random.default_rng(5)
+    F = rng.normal(size=(30, space.dim)) * np.geomspace(3.0, 0.03, space.dim)  # ill-conditioned, as the chain's
+    e = rng.normal(size=30)
+    u = np.zeros(space.dim)
+    reg = secant.GN_REG
+    lam = reg * np.mean(np.sum(F * F, axis=0))
+    evals, evecs = np.linalg.eigh(F.T @ F)
+    g = evecs.T @ (F.T @ e)
+
+    def step(mu):
+        return -evecs @ (g / (evals + lam + mu))
+
+    full = step(0.0)
+    assert np.abs(full).max() < space.bound  # the box is not what binds below
+    for ball in (0.05, 0.3, 0.8 * np.linalg.norm(full)):
+        mu = brentq(lambda m, r=ball: np.linalg.norm(step(m)) - r, 0.0, 1e12)
+        du = secant.ball_step(F, e, u, space, ball, reg)
+        assert np.isclose(np.linalg.norm(du), ball, rtol=1e-8)
+        assert np.allclose(du, step(mu), atol=1e-7 * ball)
+    inside = secant.ball_step(F, e, u, space, 2.0 * np.linalg.norm(full), reg)
+    assert np.array_equal(inside, secant.qp_step(F, e, u, space, 2.0 * np.linalg.norm(full), reg))
+    # the box active: from a command near its upper bound the ball reaches past it
+    near = space.upper - 0.05
+    du = secant.ball_step(F, 10 * e, near, space, 1.0, reg)
+    assert np.all(near + du <= space.upper + 1e-12) and np.linalg.norm(du) <= 1.0 + 1e-9
+
+    def cost(d):
+        return np.sum((F @ d + 10 * e) ** 2) + lam * np.sum(d * d)
+
+    tries = rng.normal(size=(2000, space.dim))
+    tries *= rng.uniform(0, 1, (2000, 1)) / np.linalg.norm(tries, axis=1, keepdims=True)
+    tries = tries[np.all(near + tries <= space.upper, axis=1)]
+    assert len(tries) > 100 and cost(du) <= min(cost(d) for d in tries) + 1e-9
+    # the step's length in trust-radius units, as the trust region reads it
+    d = np.array([0.3, -0.4] + [0.0] * (space.dim - 2))
+    assert secant.step_length(d, "box") == 0.4
+    assert np.isclose(secant.step_length(d, "ball"), 0.5 / secant.BALL_PER_RADIUS)
+
+
 def test_gn_step_row_weights_scale_the_least_squares_rows():
     """A velocity weight of 0 is the step on the other rows alone (the velocity rows deleted from the problem), and
     a weight w the step on those rows scaled by w; the weights touch the velocity block only."""
@@ -1417,7 +1464,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path)])
     correct_cli._restore_settings(args)
     assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 1.0, "velocity_modes": SAMPLES,
-                                                         "secant_locality": None}
+                                                         "trust_norm": "box", "secant_locality": None}
     args.resume, args.out = True, tmp_path / "x"  # the line that repeats it names what the old run did
     line = shlex.split(correct_cli.reproduce_command(args))
     for flag, value in (("--velocity-weight", "1.0"), ("--trust-region", "adaptive"), ("--start-pair", "none"),
@@ -1435,7 +1482,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight", "1.0"])  # what it ran
     correct_cli._restore_settings(args)
     assert correct_cli._step_options(args, "renormalised") == {"velocity_weight": 1.0, "velocity_modes": SAMPLES,
-                                                               "secant_locality": None}
+                                                               "trust_norm": "box", "secant_locality": None}
     # and before --velocity-modes: its steps kept every velocity row; another number on its resume is refused
     args = parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-modes", "3"])
     with pytest.raises(InputError, match="kept every velocity row"):
@@ -1449,6 +1496,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         correct_cli._restore_settings(args)
         assert args.trust_region == "by-arm" and args.method == "plan" and args.min_radius == kept
         assert args.velocity_weight == "by-arm" and correct_cli._step_options(args, "measured") == {}
+        correct_cli._check_step_options(args)  # what it ran with is no step option it lacks a step for
     # a run saved today resumes with its own, and is refused another
     today = vars(parser.parse_args(["--trust-region", "adaptive", "--max-radius", "2"]))
     (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(
@@ -1467,7 +1515,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
         args = parser.parse_args(["--resume", "--out", str(tmp_path)] + given)
         correct_cli._restore_settings(args)
         assert correct_cli._step_options(args, "fitted") == {"velocity_weight": 0.5, "velocity_modes": None,
-                                                             "secant_locality": None}
+                                                             "trust_norm": "box", "secant_locality": None}
     with pytest.raises(InputError, match="ran with 0.5"):
         correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--velocity-weight",
                                                          "1"]))
@@ -1483,7 +1531,7 @@ def test_start_pair_default_follows_the_method_and_old_runs_resume_without_it(tm
     assert new.params == ["renormalised-from-fitted"] and correct_cli._trust_rule(new, new.params[0]) == "adaptive"
     assert correct_cli._trust_rule(new, "renormalised") == "adaptive"
     assert correct_cli._step_options(new, "fitted") == {"velocity_weight": None, "velocity_modes": None,
-                                                        "secant_locality": None}  # by arm; every velocity mode
+                                                        "trust_norm": "box", "secant_locality": None}  # by arm
     # trial 1's weight: by method (correct() gives Gauss-Newton arms FIRST_PLAN_REG); as-plans is each loop's own
     assert new.first_plan_reg == "by-method" and correct_cli._first_plan_reg(new, "fitted") is None
     as_plans = parser.parse_args(["--first-plan-reg", "as-plans", "--method", "plan"])
@@ -1751,3 +1799,33 @@ def test_a_run_saved_when_by_arm_kept_three_velocity_modes_resumes_with_three(tm
     assert "--velocity-modes" not in correct_cli.reproduce_command(args)
     fresh = parser.parse_args([])  # not a resume: by arm is left to correct(), which gives VELOCITY_MODES
     assert correct_cli._step_options(fresh, "renormalised-from-fitted")["velocity_modes"] is None
+
+
+def test_the_trust_norm_resumes_as_it_ran_and_needs_a_gauss_newton_step(tmp_path):
+    """--trust-norm: a run saved before the option stepped in a box and resumes so, refusing a ball; a run saved with
+    the ball resumes with it and its reproduce line says so; only an arm that steps by Gauss-Newton takes it."""
+    import argparse
+
+    from wrenorm.tasks.rope.control import correct_cli
+
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    fresh = {k: v for k, v in vars(parser.parse_args([])).items() if k not in correct_cli._NOT_SAVED}
+    assert fresh["trust_norm"] == "box"
+    stop50 = {k: v for k, v in fresh.items() if k != "trust_norm"}
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(stop50))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert correct_cli._step_options(args, "renormalised-from-fitted")["trust_norm"] == "box"
+    with pytest.raises(InputError, match="stepped inside a box"):
+        correct_cli._restore_settings(parser.parse_args(["--resume", "--out", str(tmp_path), "--trust-norm", "ball"]))
+    ball = fresh | {"trust_norm": "ball"}
+    (tmp_path / correct_cli.SETTINGS_FILE).write_text(json.dumps(ball))
+    args = parser.parse_args(["--resume", "--out", str(tmp_path)])
+    correct_cli._restore_settings(args)
+    assert correct_cli._step_options(args, "measured")["trust_norm"] == "ball"
+    line = shlex.split(correct_cli.reproduce_command(args))
+    assert line[line.index("--trust-norm") + 1] == "ball"
+    correct_cli._check_step_options(parser.parse_args(["--trust-norm", "ball"]))
+    with pytest.raises(InputError, match="trust_norm"):
+        correct_cli._check_step_options(parser.parse_args(["--method", "plan", "--trust-norm", "ball"]))

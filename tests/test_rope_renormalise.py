@@ -5,6 +5,7 @@ import pytest
 
 from wrenorm.tasks.rope import observable as crit
 from wrenorm.tasks.rope.control import renormalise as rn
+from wrenorm.tasks.rope.control import secant
 from wrenorm.tasks.rope.control.command import CommandSpace
 from wrenorm.tasks.rope.control.correct import CoarseModel, CoarseRope, correct
 from wrenorm.tasks.rope.problem import RopeProblem
@@ -134,8 +135,8 @@ def test_trust_region_rule(case):
 FAST = {"popsize": 16, "generations": 15}
 
 
-@pytest.mark.parametrize("steps", ["gn", "plan"])
-def test_renormalising_correction_converges_on_a_system_with_known_answer(problem, steps):
+@pytest.mark.parametrize("steps,norm", [("gn", "box"), ("gn", "ball"), ("plan", "box")])
+def test_renormalising_correction_converges_on_a_system_with_known_answer(problem, steps, norm):
     """The chain with hidden parameters is the real rope and the goal its own critical state under another
     throw: the renormalising loop reaches it, records its refits and trust radii, and never walks on from a
     worse command."""
@@ -144,7 +145,8 @@ def test_renormalising_correction_converges_on_a_system_with_known_answer(proble
     goal = crit.Target.from_reference(real(PATHS["flick_fast"]))
     seen = []
     res = correct(real, CoarseModel(problem, problem.space.measured, space), goal, np.zeros(space.dim),
-                  max_trials=10, method="renormalise", prior_scale=2.0, on_trial=seen.append, steps=steps, **FAST)
+                  max_trials=10, method="renormalise", prior_scale=2.0, on_trial=seen.append, steps=steps,
+                  trust_norm=norm if steps == "gn" else None, **FAST)
     assert res["success"], [t.total for t in res["trials"]]
     assert [t.index for t in seen] == [t.index for t in res["trials"]]
     tr = res["trials"]
@@ -157,3 +159,12 @@ def test_renormalising_correction_converges_on_a_system_with_known_answer(proble
         assert space.feasible(t.u)
     if steps == "gn":  # the renormalised steps weigh the velocity rows as the others, and keep their smooth part
         assert res["gauss_newton"]["velocity_weight"] == 1.0 and res["gauss_newton"]["velocity_modes"] == 2
+    # the trust region's rule reads the step's length in the region's own norm, and no step leaves the region
+    assert (res["gauss_newton"] if steps == "gn" else res["renormalise"])["trust_region"]["norm"] == norm
+    best = tr[0]
+    for t in tr[1:]:
+        du = t.u - best.u
+        length = np.linalg.norm(du) / secant.BALL_PER_RADIUS if norm == "ball" else np.abs(du).max()
+        assert np.isclose(t.trust["step"], length) and length <= t.trust["radius_before"] * (1 + 1e-9)
+        if t.accepted:
+            best = t

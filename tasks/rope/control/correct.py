@@ -285,7 +285,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             linearise_at: str = "matched", first_step: str = "gn", recorded: list | None = None,
             recorded_until: str = "first", velocity_weight: float | None = None,
             secant_locality: float | None = None, first_plan_reg: float | None = None,
-            first_plan_offset: tuple | None = None, velocity_modes: int | None = None) -> dict:
+            first_plan_offset: tuple | None = None, velocity_modes: int | None = None,
+            trust_norm: str | None = None) -> dict:
     """Run trials until the real critical state is within `tolerance` of the goal or trials run out.
 
     method "gn" (default): trial 1 is the model's own plan (as "plan"); every next command a trust-region
@@ -301,6 +302,8 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
       velocity_modes: the steps keep the velocity rows' first this many Legendre modes in arc length per axis
       (secant.velocity_projection; the step only), at most observable.SAMPLES (every mode); left out,
       secant.VELOCITY_MODES for renormalise and every mode for gn.
+      trust_norm: "box" (left out), the trust radius bounds each coordinate of the step; "ball", the step's
+      Euclidean length over secant.BALL_PER_RADIUS (secant.ball_step). The plan loops' regions are boxes.
       secant_locality: None, every secant pair weighs alike in the ridge fit; a length L (units of u), pairs
       farther than L from the best command fade as (L / distance)^2 (secant.pair_weight).
     first_plan_reg: the weight of |u - u0|^2 in the plan of trial 1 (per unit of u squared); left out,
@@ -380,6 +383,13 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
     _check_loop_number(velocity_modes, "--velocity-modes", "velocity_modes", True, gn_steps,
                        f"shapes Gauss-Newton steps; the {method} loop (steps {steps}) has none",
                        whole_up_to=crit.SAMPLES)
+    if trust_norm is not None:
+        if trust_norm not in gauss_newton.TRUST_NORMS:
+            raise InputError("--trust-norm", "trust_norm", f"{trust_norm!r} is not one of "
+                                                           f"{', '.join(gauss_newton.TRUST_NORMS)}")
+        if not gn_steps:
+            raise InputError("--trust-norm", "trust_norm", f"shapes Gauss-Newton steps' trust region; the {method} "
+                                                           f"loop (steps {steps}) has none")
     if secant_locality is not None and secant is False:
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if gn_steps:
@@ -389,6 +399,7 @@ def correct(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray, max_tri
             velocity_weight = gauss_newton.VELOCITY_WEIGHT if method == "gn" else 1.0
         if velocity_modes is None:
             velocity_modes = crit.SAMPLES if method == "gn" else gauss_newton.VELOCITY_MODES
+        trust.norm = trust_norm or "box"
         renorm = None
         if method == "renormalise":
             renorm = _refit_settings(model, prior_centre, prior_scale, decay, refit_generations)
@@ -704,7 +715,7 @@ def _correct_renormalising(real, model: CoarseModel, goal: crit.Target, u0: np.n
                         "refit_offset": bool(refit_offset), "anchored": bool(anchored), "trust_region": {
                             "good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW, "shrink": trust.SHRINK,
                             "min_radius": trust.min_radius, "max_radius": trust.max_radius,
-                            "rule": trust.rule}},
+                            "rule": trust.rule, "norm": trust.norm}},
         "trials": trials,
     }
 
@@ -719,7 +730,7 @@ def _real_trial(real, model: CoarseModel, goal: crit.Target, k: int, u: np.ndarr
     trial = Trial(k, u.copy(), terms, bool(st.hit[0]), accepted, plan_radius, st, time.perf_counter() - t,
                   predicted, scale_used, model_total, predicted_state=pred_state, model_values=model.values.copy())
     if best is not None:
-        trial.trust = trust.update(best.total, predicted, trial.total, float(np.abs(u - best.u).max()))
+        trial.trust = trust.update(best.total, predicted, trial.total, trust.length(u - best.u))
     return trial
 
 
@@ -865,7 +876,7 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                     progress(f"    space mapping's step from trial 1: {np.abs(u - best.u).max():.2f} units of u")
             else:
                 u, scale_used = gauss_newton.gn_step(sens.S, w, e_best, best.u, space, trust.radius, reg, rows,
-                                                     projection)
+                                                     projection, trust.norm)
             pred_state = gauss_newton.predicted_state(best.state, sens.S, u - best.u)
             floor = gauss_newton.floor_record(goal, best.state, sens.S, best.u,
                                               gauss_newton.model_floor(goal, best.state, sens.S, w, e_best, best.u,
@@ -904,7 +915,8 @@ def _correct_secant(real, model: CoarseModel, goal: crit.Target, u0: np.ndarray,
                          "correction": "ridge over all trials" if secant else "none",
                          "trust_region": {"good": trust.GOOD, "bad": trust.BAD, "grow": trust.GROW,
                                           "shrink": trust.SHRINK, "min_radius": trust.min_radius,
-                                          "max_radius": trust.max_radius, "rule": trust.rule}},
+                                          "max_radius": trust.max_radius, "rule": trust.rule,
+                                          "norm": trust.norm}},
         "trials": trials,
     }
     if renorm is not None:

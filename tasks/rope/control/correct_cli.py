@@ -119,6 +119,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "velocity profile's first N Legendre modes in arc length on each axis, N in 1-21 (the step "
                         "only: trials are accepted and reported on the observable's error); all: every row; by-arm "
                         "(default): secant.VELOCITY_MODES (2) for renormalised parameters, all for fixed ones")
+    p.add_argument("--trust-norm", choices=("box", "ball"), default="box",
+                   help="(gn steps) the trust region's shape: box (default), the radius bounds each coordinate of the "
+                        "step; ball, the step's Euclidean length is at most secant.BALL_PER_RADIUS (2.5) x the radius")
     p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
                    help="(gn steps) weigh each secant pair in the ridge fit of the sensitivity by its distance from "
                         "the best command: pairs within L units of u count fully, farther ones as (L / distance)^2; "
@@ -503,7 +506,7 @@ def run(args) -> int:
                      "decay": args.decay, "refit_generations": args.refit_generations,
                      "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
                      "velocity_weight": args.velocity_weight, "velocity_modes": args.velocity_modes,
-                     "secant_locality": args.secant_locality,
+                     "trust_norm": args.trust_norm, "secant_locality": args.secant_locality,
                      "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
                      "fit_throws": args.fit_throws,
                      "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
@@ -636,7 +639,9 @@ def run_method(r: dict) -> str:
               else f"{region['min_radius']:g}-{region['max_radius']:g}")
     weight = (r.get("gauss_newton") or {}).get("velocity_weight", 1.0)
     modes = (r.get("gauss_newton") or {}).get("velocity_modes")
-    return (f"{r['method']}, trust radius {radius}" + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
+    norm = "" if region.get("norm", "box") == "box" else f" ({region['norm']})"
+    return (f"{r['method']}, trust radius {radius}{norm}"
+            + ("" if weight == 1.0 else f", velocity rows weighted {weight:g}")
             + ("" if modes is None or modes >= SAMPLES else f", velocity rows' first {modes} modes"))
 
 
@@ -696,11 +701,22 @@ _AS_RUN_BEFORE_THE_OPTION = {"start_pair": ("none", "ran without a start pair"),
                              "velocity_weight": (lambda saved: 1.0 if saved.get("method", "gn") == "gn" else "by-arm",
                                                  "weighed the velocity rows of its steps as the others"),
                              "secant_locality": ("none", "weighed every secant pair alike"),
-                             "velocity_modes": ("all", "kept every velocity row of its steps"),
+                             "velocity_modes": (lambda saved: "all" if _saved_steps(saved) else "by-arm",
+                                                "kept every velocity row of its steps"),
+                             "trust_norm": ("box", "stepped inside a box of the trust radius"),
                              "first_plan_reg": ("as-plans", "planned trial 1 with the other plans' weight"),
                              "first_plan_offset": ("none", "planned trial 1 on the chain alone"),
                              "builtin_throws": (builtin_throws_of,
                                                 "took its goal and throws from newton's built-in references")}
+
+
+def _saved_steps(saved: dict) -> bool:
+    """Whether a saved run had an arm that steps by Gauss-Newton (a plan loop, or qp with fixed parameters, has none
+    to shape: a step option's old value would be refused there)."""
+    from wrenorm.tasks.rope.control.correct import takes_gn_steps
+
+    args = argparse.Namespace(method=saved.get("method", "gn"))
+    return any(takes_gn_steps(*_arm_method(args, label)) for label in saved.get("params", ()))
 
 
 def _typed_options(args) -> set[str]:
@@ -961,17 +977,18 @@ def _first_plan_offset(args, label: str) -> bool:
 
 
 def _check_step_options(args) -> None:
-    """--velocity-weight and --secant-locality are given only where an arm steps by Gauss-Newton, the locality only
-    with secant pairs (checked before any real run)."""
+    """--velocity-weight, --velocity-modes, --trust-norm and --secant-locality are given only where an arm steps by
+    Gauss-Newton, the locality only with secant pairs (checked before any real run)."""
     if args.secant is False and args.secant_locality != "none":
         raise InputError("--secant-locality", "secant_locality", "weighs the secant pairs, and --no-secant uses none")
     if any(_step_options(args, label) for label in args.params):
         return
     for flag, key, given in (("--velocity-weight", "velocity_weight", args.velocity_weight != "by-arm"),
                              ("--velocity-modes", "velocity_modes", args.velocity_modes != "by-arm"),
+                             ("--trust-norm", "trust_norm", args.trust_norm != "box"),
                              ("--secant-locality", "secant_locality", args.secant_locality != "none")):
         if given:
-            raise InputError(flag, key, f"weighs Gauss-Newton steps, and no run here takes one (--method "
+            raise InputError(flag, key, f"shapes Gauss-Newton steps, and no run here takes one (--method "
                                         f"{args.method})")
 
 
@@ -985,7 +1002,7 @@ def _step_options(args, label: str) -> dict:
     modes = _velocity_modes(args)
     if modes is None and method[0] == "renormalise":  # by-arm, as it was when a resumed run was saved
         modes = getattr(args, "by_arm_velocity_modes", None)
-    return {"velocity_weight": _velocity_weight(args), "velocity_modes": modes,
+    return {"velocity_weight": _velocity_weight(args), "velocity_modes": modes, "trust_norm": args.trust_norm,
             "secant_locality": None if args.secant_locality == "none" else float(args.secant_locality)}
 
 

@@ -55,6 +55,7 @@ import numpy as np
 from wrenorm.params import ParameterSpace
 from wrenorm.problem import Condition, Problem
 from wrenorm.tasks.rope import observable as crit
+from wrenorm.tasks.rope.control.secant import step_length
 
 DECAY = 0.5
 PRIOR_SCALE = 0.5
@@ -198,7 +199,9 @@ def refit(model, measured: list[tuple[int, np.ndarray, crit.CriticalStates]], go
 # ------------------------------------------------------------------------------ trust region
 @dataclass
 class TrustRegion:
-    """Radius (inf-norm, units of u) of the next plan, from how well the model predicted the last trial.
+    """Radius (units of u) of the next plan, from how well the model predicted the last trial. norm "box": the radius
+    bounds each coordinate of the step (the plans and the fixed-parameter steps); "ball": the Gauss-Newton step's
+    Euclidean length over secant.BALL_PER_RADIUS (secant.step_length).
 
     rho = (best error before the trial - measured error) / (best error before - predicted error):
     rho < BAD: the model was wrong at this distance, the radius becomes SHRINK x the step just taken;
@@ -211,6 +214,7 @@ class TrustRegion:
     max_radius: float
     min_radius: float = MIN_RADIUS
     rule: str = "adaptive"
+    norm: str = "box"
     GOOD = 0.75
     BAD = 0.25
     GROW = 2.0
@@ -222,6 +226,10 @@ class TrustRegion:
         region keeps that radius, a fixed one does not."""
         if self.rule != "fixed":
             self.radius = radius
+
+    def length(self, du: np.ndarray) -> float:
+        """A step's length in this region's units (secant.step_length)."""
+        return step_length(du, self.norm)
 
     def update(self, best_before: float, predicted: float, measured: float, step: float) -> dict:
         before = self.radius

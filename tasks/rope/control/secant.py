@@ -7,14 +7,17 @@ real critical state between each trial and the best one), all pairs together by 
 prior, each pair one directional derivative, the prior weighing RIDGE of one. The next command is the
 trust-region Gauss-Newton step from the best trial on the real residual,
 
-    du = argmin |R (W (S du) + e_best)|^2 + lam |du|^2,   |du|_inf <= radius, inside the box and the hand limits,
+    du = argmin |R (W (S du) + e_best)|^2 + lam |du|^2,   |du| <= radius, inside the box and the hand limits,
 
 with the radius fixed (fixed parameters, by default: README, "A fixed step instead of the adaptive trust region")
 or following how well the linear model predicted the last trial (renormalise.TrustRegion, rho on the correction's
 own error; the renormalised runs). R weighs the velocity rows VELOCITY_WEIGHT in the fixed-parameter steps (1 in the
 renormalised ones): the trials showed the velocity at the contact to be the block the corrected sensitivity predicts
 worst, while its residual is as large as the positions', so a step that weighs it fully aims much of its length at
-changes it cannot predict. lam follows the weighted rows (qp_step).
+changes it cannot predict. lam follows the weighted rows (qp_step). The norm |du| of the trust region is the
+inf-norm (a box, qp_step) by default; `--trust-norm ball` takes the Euclidean norm over BALL_PER_RADIUS (ball_step),
+where the box's corners would make the step longer than its radius in a direction no row asked for; measured on
+held-out seeds, it reached as many runs as the box (README, "Steps in a ball").
 
 Why linear, and why the chain's sensitivity is measured once: at 10 links the chain's critical state as a
 function of the command is rough (the first contact jumps between segment pairs), so a plan on the chain's own
@@ -62,6 +65,9 @@ VELOCITY_WEIGHT = 0.5  # the fixed-parameter steps' weight on the velocity rows:
 VELOCITY_MODES = 2  # the renormalised steps' velocity rows: the velocity profile's first Legendre modes in arc length
 # per axis, the part of its change the corrected sensitivity predicts (README, "The velocity profile's smooth part";
 # 3 in stop 49); fixed-parameter steps keep every row
+TRUST_NORMS = ("box", "ball")
+BALL_PER_RADIUS = 2.5  # the ball's radius per unit of trust radius: the Euclidean length of the box's steps at its edge
+# (median 2.3-2.55 on stop 50's runs), so a ball changes the step's direction, not its length
 FIRST_PLAN_REG = 3e-3  # trial 1's plan, per squared unit of u from the start, where Gauss-Newton steps follow: the
 # chain reproduces the goal about as well over a long stretch of commands, and steps from the nearer end reach more
 # often (README, "Trial 1 nearer the start")
@@ -198,19 +204,50 @@ def space_mapping_step(match: Match, space) -> tuple[np.ndarray, float]:
     return space.limit_step(match.trial_u, match.trial_u - match.u)
 
 
-def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG) -> np.ndarray:
-    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius, lam = reg mean diag(F^T F)."""
+def qp_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, radius: float, reg: float = GN_REG,
+            damping: float = 0.0) -> np.ndarray:
+    """du minimising |F du + e|^2 + lam |du|^2 inside the box and the trust radius, lam = reg mean diag(F^T F)
+    + damping."""
     from scipy.optimize import lsq_linear
 
     n = u.shape[0]
     scale = float(np.mean(np.sum(F * F, axis=0)))
-    lam = reg * (scale if scale > 0 else 1.0)
+    lam = reg * (scale if scale > 0 else 1.0) + damping
     A = np.concatenate([F, np.sqrt(lam) * np.eye(n)])
     b = np.concatenate([-e, np.zeros(n)])
     lo = np.maximum(space.lower - u, -radius)
     hi = np.minimum(space.upper - u, radius)
     hi = np.maximum(hi, lo + 1e-12)  # lsq_linear needs lo < hi
     return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
+
+
+def ball_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, ball: float, reg: float = GN_REG) -> np.ndarray:
+    """qp_step's du inside the command box and the Euclidean ball |du|_2 <= ball instead of a box of the radius: where
+    the least-squares step is longer, Levenberg-Marquardt's path, the extra damping mu of |F du + e|^2 + (lam + mu)
+    |du|^2 found by bisection so that the step just reaches the ball (its length falls as mu grows)."""
+    du = qp_step(F, e, u, space, ball, reg)  # the box of side 2 ball holds the ball
+    if np.linalg.norm(du) <= ball:
+        return du
+    scale = float(np.mean(np.sum(F * F, axis=0))) or 1.0
+
+    def length(log_mu: float) -> float:
+        return float(np.linalg.norm(qp_step(F, e, u, space, ball, reg, scale * 10.0 ** log_mu)))
+
+    low, high = -12.0, 8.0  # log10 of mu over mean diag(F^T F); the bisection keeps high's step inside the ball
+    while length(high) > ball:
+        high += 4.0
+    for _ in range(BALL_BISECTIONS):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if length(mid) > ball else (low, mid)
+    return qp_step(F, e, u, space, ball, reg, scale * 10.0 ** high)
+
+
+BALL_BISECTIONS = 50  # in log10 of the damping over 20 decades: the step's length to about 1e-13 of its range
+
+
+def step_length(du: np.ndarray, norm: str) -> float:
+    """The step's length in units of trust radius: the inf-norm for the box, |du|_2 / BALL_PER_RADIUS for the ball."""
+    return float(np.abs(du).max()) if norm == "box" else float(np.linalg.norm(du)) / BALL_PER_RADIUS
 
 
 def step_row_weights(goal: crit.Target, velocity_weight: float) -> np.ndarray:
@@ -249,16 +286,20 @@ def mode_projection(goal: crit.Target, block: str, modes: int) -> np.ndarray | N
 
 def gn_step(S: np.ndarray, w: np.ndarray, e_best: np.ndarray, u_best: np.ndarray, space, radius: float,
             reg: float = GN_REG, rows: np.ndarray | None = None,
-            projection: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+            projection: np.ndarray | None = None, norm: str = "box") -> tuple[np.ndarray, float]:
     """The feasible command of the trust-region Gauss-Newton step from the best trial, and its step scale; `rows`
     (step_row_weights) scales each row of the least-squares problem, `projection` (velocity_projection) then keeps
-    its part of the weighted residual."""
+    its part of the weighted residual; `norm` "box" bounds each coordinate of the step by the radius, "ball" its
+    Euclidean length by BALL_PER_RADIUS x the radius."""
     if rows is not None:
         w, e_best = rows * w, rows * e_best
     F = w[:, None] * S
     if projection is not None:
         F, e_best = projection @ F, projection @ e_best
-    du = qp_step(F, e_best, u_best, space, radius, reg)
+    if norm == "ball":
+        du = ball_step(F, e_best, u_best, space, BALL_PER_RADIUS * radius, reg)
+    else:
+        du = qp_step(F, e_best, u_best, space, radius, reg)
     return space.limit_step(u_best, du)
 
 
