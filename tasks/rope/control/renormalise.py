@@ -199,9 +199,9 @@ def refit(model, measured: list[tuple[int, np.ndarray, crit.CriticalStates]], go
 # ------------------------------------------------------------------------------ trust region
 @dataclass
 class TrustRegion:
-    """Radius (units of u) of the next plan, from how well the model predicted the last trial. norm "box": the radius
-    bounds each coordinate of the step (the plans and the fixed-parameter steps); "ball": the Gauss-Newton step's
-    Euclidean length over secant.BALL_PER_RADIUS (secant.step_length).
+    """Radius (units of u) of the next plan, from how well the model predicted the last trial. norm "box" (the default,
+    and every plan's): the radius bounds each coordinate of the step; "ball" (`--trust-norm ball`): the Gauss-Newton
+    step's Euclidean length over secant.BALL_PER_RADIUS (secant.step_length).
 
     rho = (best error before the trial - measured error) / (best error before - predicted error):
     rho < BAD: the model was wrong at this distance, the radius becomes SHRINK x the step just taken;

@@ -68,6 +68,7 @@ VELOCITY_MODES = 2  # the renormalised steps' velocity rows: the velocity profil
 TRUST_NORMS = ("box", "ball")
 BALL_PER_RADIUS = 2.5  # the ball's radius per unit of trust radius: the Euclidean length of the box's steps at its edge
 # (median 2.3-2.55 on stop 50's runs), so a ball changes the step's direction, not its length
+BALL_BISECTIONS = 50  # halvings of ball_step's bracket on the damping, 20 decades wide in log10: far below any step
 FIRST_PLAN_REG = 3e-3  # trial 1's plan, per squared unit of u from the start, where Gauss-Newton steps follow: the
 # chain reproduces the goal about as well over a long stretch of commands, and steps from the nearer end reach more
 # often (README, "Trial 1 nearer the start")
@@ -240,9 +241,6 @@ def ball_step(F: np.ndarray, e: np.ndarray, u: np.ndarray, space, ball: float, r
         mid = 0.5 * (low + high)
         low, high = (mid, high) if length(mid) > ball else (low, mid)
     return qp_step(F, e, u, space, ball, reg, scale * 10.0 ** high)
-
-
-BALL_BISECTIONS = 50  # in log10 of the damping over 20 decades: the step's length to about 1e-13 of its range
 
 
 def step_length(du: np.ndarray, norm: str) -> float:
