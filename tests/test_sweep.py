@@ -319,6 +319,47 @@ def test_a_cell_on_a_worker_that_does_not_see_the_sweep_folder_sends_its_files_b
     assert bad["rc"] == 2 and "--restarts" in bad["error"] and bad["result"] is None
 
 
+def test_a_killed_cells_run_is_resumed_not_run_again(tmp_path):
+    """A cell killed before it finished left its run folder: its command continues it with --resume (a fit from its
+    search log, torn mid-line as a kill leaves it; a correction from its stored trials) and gives the uninterrupted
+    result; where its command cannot resume (killed before it saved a state), the cell runs afresh and says so."""
+    from wrenorm.fit import STATE_FILE
+    from wrenorm.sweep.cell import RESUME_REFUSED, run_cell
+
+    sweep = tmp_path / "sweep"
+    fit = ["fit", "rope", "--no-record", "--generations", "6", "--popsize", "8", "--seed", "0"]
+    whole = run_cell(fit, str(sweep), "000_fit", token="t", ship=False)
+    assert whole["rc"] == 0 and not whole["resumed"]
+    folder = sweep / "cells" / "000_fit"
+    log = (folder / STATE_FILE).read_text().splitlines(keepends=True)
+    assert len(log) > 4
+    (folder / STATE_FILE).write_text("".join(log[:3]) + log[3][: len(log[3]) // 2])  # killed mid-generation
+    (folder / "result.json").unlink()
+    again = run_cell(fit, str(sweep), "000_fit", token="t", ship=False)
+    assert again["rc"] == 0 and again["resumed"] and RESUME_REFUSED not in again["log"]
+    assert again["result"]["parameters"] == whole["result"]["parameters"]
+    assert again["result"]["loss"] == whole["result"]["loss"]
+    (folder / STATE_FILE).unlink()  # killed before its first state: nothing to continue
+    (folder / "result.json").unlink()
+    fresh = run_cell(fit, str(sweep), "000_fit", token="t", ship=False)
+    assert fresh["rc"] == 0 and not fresh["resumed"] and RESUME_REFUSED in fresh["log"]
+    assert fresh["result"]["parameters"] == whole["result"]["parameters"] and fresh["error"] is None
+
+    correct = ["correct", "rope", "--real", "coarse", "--max-trials", "3", "--no-record", "--seed", "0"]
+    first = run_cell(correct, str(sweep), "001_correct", token="t", ship=False)
+    assert first["rc"] == 0, first["log"][-2000:]
+    folder = sweep / "cells" / "001_correct"
+    (folder / "correct.json").unlink()  # killed after its trials were stored, before its result
+    resumed = run_cell(correct, str(sweep), "001_correct", token="t", ship=False)
+    assert resumed["rc"] == 0 and resumed["resumed"]
+    errors = [[t["error"] for t in r["runs"]["renormalised-from-fitted"]["trials"]]
+              for r in (first["result"], resumed["result"])]
+    assert errors[0] == errors[1] and len(errors[0]) == 3
+    # its trials were read back, not run again (the stand-in's goal and start throws are not stored trials)
+    assert resumed["result"]["real_trials_read_back"] == 3 and first["result"]["real_trials_read_back"] == 0
+    assert resumed["result"]["real_runs"] <= first["result"]["real_runs"] - 3
+
+
 # --- on a local Ray with 2 CPUs --------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,10 @@
 """What one Ray task does: run the task's own command (wrenorm.cli.main, the code path of `fit`, `flow`, ...) into
 the cell's run folder, and say how it went. Never raises: a failing cell is a result like any other.
 
+A cell killed before it finished (a killed driver, a lost worker) left its run folder behind: its command continues
+it with `--resume` (a fit's search log, a correction's stored real trials), which repeats the uninterrupted run, and
+runs it afresh only where it cannot (killed before it saved a state, or a state it refuses).
+
 The cell's folder is DIR/cells/<cell> when the worker sees DIR (same machine or a shared file system, recognised by
 the token the driver wrote in DIR/.wrenorm-sweep); otherwise the cell runs in a local temporary folder and its files
 travel back with the result, for the driver to write into DIR/cells/<cell>.
@@ -19,8 +23,10 @@ import traceback
 from pathlib import Path
 
 from wrenorm.errors import WARNING_PREFIX
+from wrenorm.runfolder import MARKER as RUN_MARKER
 
 TOKEN_FILE = ".wrenorm-sweep"
+RESUME_REFUSED = "wrenorm sweep: the killed cell's run could not be resumed; it ran afresh"
 RESULT_FILES = {"fit": "result.json", "flow": "flow.json"}  # any other command: <verb>.json (correct.json)
 WARNINGS_KEPT = 5  # a failed cell's last warnings that its recorded error carries
 
@@ -74,22 +80,19 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
     ship = (not _shared(sweep_dir, token)) if ship is None else ship
     tmp = tempfile.mkdtemp(prefix=f"wrenorm-cell-{cell_id}-") if ship else None
     out = Path(tmp) / cell_id if ship else Path(sweep_dir) / "cells" / cell_id
-    if out.exists():  # a cell killed before it finished: start it afresh (the folder is the sweep's own)
-        shutil.rmtree(out)
     words = [*argv, "--out", str(out), "--quiet"] + (["--device", device] if device != "cpu" else [])
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        try:
-            from wrenorm.cli import main
-
-            rc = int(main(words))
-        except BaseException as e:  # a bug, not bad input: keep the traceback in the cell's log
-            traceback.print_exc()
-            rc = 130 if isinstance(e, KeyboardInterrupt) else 1
-    log = buf.getvalue()
+    resumed = (out / RUN_MARKER).is_file()  # a cell killed before it finished (the folder is the sweep's own)
+    rc, log = _command(words + ["--resume"]) if resumed else (None, "")
+    if rc not in (0, 130):
+        if resumed:  # no state to continue from, or one its command refuses: the cell starts afresh
+            log, resumed = f"{RESUME_REFUSED} ({_error_line(log, rc)})\n", False
+        if out.exists():
+            shutil.rmtree(out)
+        rc, fresh = _command(words)
+        log += fresh
     verb = argv[0]
     try:  # the command checks its options and builds its problem before it makes its run folder
-        setup = (out / ".wrenorm-run").stat().st_mtime - unix0
+        setup = None if resumed else (out / RUN_MARKER).stat().st_mtime - unix0
     except OSError:
         setup = None
     result = None
@@ -103,7 +106,21 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
     return {"cell": cell_id, "rc": rc, "error": None if rc == 0 else _error_line(log, rc), "result": result,
             "log": log, "files": files, "host": socket.gethostname(), "pid": os.getpid(), "started": started,
             "finished": _now(), "cell_seconds": time.perf_counter() - t0, "setup_seconds": setup,
-            "unix": [unix0, time.time()]}
+            "unix": [unix0, time.time()], "resumed": resumed}
+
+
+def _command(words: list) -> tuple[int, str]:
+    """wrenorm.cli.main(words) in this process: its exit code and all it printed."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        try:
+            from wrenorm.cli import main
+
+            rc = int(main(words))
+        except BaseException as e:  # a bug, not bad input: keep the traceback in the cell's log
+            traceback.print_exc()
+            rc = 130 if isinstance(e, KeyboardInterrupt) else 1
+    return rc, buf.getvalue()
 
 
 def warm(argv: list, cpus: int = 1, device: str = "cpu", capture: bool = True) -> dict:

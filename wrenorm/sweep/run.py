@@ -449,7 +449,8 @@ def _record(out: Path, spec, c, res: dict, records: dict, results: dict) -> None
     records[c.id] = {"status": "done" if res["rc"] == 0 else "failed", "error": res.get("error"), "rc": res["rc"],
                      "host": res.get("host"), "started": res.get("started"), "finished": res.get("finished"),
                      "cell_seconds": res.get("cell_seconds"), "wall_seconds": wall,
-                     "setup_seconds": res.get("setup_seconds"), "pid": res.get("pid"), "unix": res.get("unix")}
+                     "setup_seconds": res.get("setup_seconds"), "pid": res.get("pid"), "unix": res.get("unix"),
+                     "resumed": bool(res.get("resumed"))}
     if res["rc"] == 0:
         results[c.id] = res.get("result")
     else:
@@ -460,7 +461,8 @@ def _record(out: Path, spec, c, res: dict, records: dict, results: dict) -> None
 def _overhead(records: dict) -> dict | None:
     """What a cell costs beyond its command's own wall_seconds, and how much of that is the command's own set-up
     (options, problem building: what `fit` does too before its clock starts) rather than the sweep's or Ray's."""
-    rs = [r for r in records.values() if r.get("cell_seconds") is not None and r.get("wall_seconds") is not None]
+    rs = [r for r in records.values() if r.get("cell_seconds") is not None and r.get("wall_seconds") is not None
+          and not r.get("resumed")]  # a resumed cell's command timed part of its run
     if not rs:
         return None
     beyond = [r["cell_seconds"] - r["wall_seconds"] for r in rs]
