@@ -3,7 +3,8 @@ the cell's run folder, and say how it went. Never raises: a failing cell is a re
 
 A cell killed before it finished (a killed driver, a lost worker) left its run folder behind: its command continues
 it with `--resume` (a fit's search log, a correction's stored real trials), which repeats the uninterrupted run, and
-runs it afresh only where it cannot (killed before it saved a state, or a state it refuses).
+runs it afresh only where the resume is refused (killed before it saved a state, or a state it refuses: exit 2, before
+any work). A resumed run that fails otherwise is the cell's result, as the same run afresh would be.
 
 The cell's folder is DIR/cells/<cell> when the worker sees DIR (same machine or a shared file system, recognised by
 the token the driver wrote in DIR/.wrenorm-sweep); otherwise the cell runs in a local temporary folder and its files
@@ -83,8 +84,8 @@ def run_cell(argv: list, sweep_dir: str, cell_id: str, token: str, cpus: int = 1
     words = [*argv, "--out", str(out), "--quiet"] + (["--device", device] if device != "cpu" else [])
     resumed = (out / RUN_MARKER).is_file()  # a cell killed before it finished (the folder is the sweep's own)
     rc, log = _command(words + ["--resume"]) if resumed else (None, "")
-    if rc not in (0, 130):
-        if resumed:  # no state to continue from, or one its command refuses: the cell starts afresh
+    if rc is None or rc == 2:  # a resume refused (exit 2, before any work): no state to continue, or one it refuses
+        if resumed:
             log, resumed = f"{RESUME_REFUSED} ({_error_line(log, rc)})\n", False
         if out.exists():
             shutil.rmtree(out)
