@@ -147,10 +147,9 @@ def along_the_step(r_best: np.ndarray, predicted: np.ndarray, actual: np.ndarray
 
 def block_modes(goal: crit.Target, block: str, predicted: np.ndarray, actual: np.ndarray) -> dict:
     """Per number of modes N in MODES (keys `<block>_modesN`), of the weighted residual's rows of `block` (velocity or
-    position): the share of the rope's change in
-    the profile's first N Legendre modes (squared norm), and for that part and the rest the cosine between the
-    predicted and the actual change and the relative error |actual - predicted| / |actual| (NaN where a part has no
-    length)."""
+    position): the share of the rope's change in the profile's first N Legendre modes (squared norm), and for that part
+    and the rest the cosine between the predicted and the actual change and the relative error |actual - predicted| /
+    |actual| (NaN where a part has no length)."""
     def compare(p, a):
         pn, an = np.linalg.norm(p), np.linalg.norm(a)
         if pn < 1e-15 or an < 1e-15:
