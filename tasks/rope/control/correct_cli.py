@@ -260,39 +260,15 @@ def _start_recording(args, real, start_path, out, progress, fit_recorded=None):
     return StoredTrials(real.real, out / "start")(start_path), source
 
 
-def run(args) -> int:
-    from wrenorm.cli import command_line
-    from wrenorm.fit import write_report_or_warn
-    from wrenorm.progress import Progress
-    from wrenorm.results import versions, write_atomic, write_json
-    from wrenorm.runfolder import prepare_out
-    from wrenorm.tasks.rope import observable as crit
-    from wrenorm.tasks.rope.control.command import DEFAULT_BOUND, CommandSpace
-    from wrenorm.tasks.rope.control.correct import (
-        CoarseModel,
-        CoarseRope,
-        StoredTrials,
-        check_first_step,
-        correct,
-        fit_parameters,
-        parameters_from_file,
-        real_rope_class,
-        trial_row,
-        trial_rows,
-        trust_region_for,
-    )
-    from wrenorm.tasks.rope.problem import RopeProblem
-    from wrenorm.tasks.rope.reference.materials import get_variant
-    from wrenorm.tasks.rope.reference.paths import get_hand_path
-
-    def progress(msg):
-        if not args.quiet:
-            print(msg, file=sys.stderr, flush=True)
-
+def _check_arguments(args) -> None:
+    """Every option checked before a folder is made or a rope thrown (a bad one exits 2 naming it), and the ones
+    left to the run's kind filled in: --start-pair by method, --real newton as fine, --fit-throws by real rope,
+    --builtin-throws by rope and engine."""
     from wrenorm.cli import _device
+    from wrenorm.tasks.rope.control.command import DEFAULT_BOUND
+    from wrenorm.tasks.rope.control.correct import check_first_step, real_rope_class, trust_region_for
+    from wrenorm.tasks.rope.reference.materials import get_variant
 
-    if args.resume:
-        _restore_settings(args)
     get_variant(args.variant)
     args.device = _device(args.device)
     if not 1 <= args.max_trials <= 100:
@@ -357,7 +333,6 @@ def run(args) -> int:
     args.fit_throws = args.fit_throws or ("real" if args.real == "fine" else "newton")
     real_rope_class(args.engine)
     if args.engine == "mujoco" and args.real == "fine":  # before any folder or throw: MuJoCo's rod has a finest mesh
-        from wrenorm.tasks.rope.reference.materials import get_variant
         from wrenorm.tasks.rope.reference.mujoco import check_resolution
 
         try:
@@ -368,6 +343,37 @@ def run(args) -> int:
         args.builtin_throws = builtin_is_the_real_rope(vars(args))
     elif args.builtin_throws and args.engine != "newton":
         raise InputError("--builtin-throws", "builtin_throws", f"the built-in throws are newton's, not {args.engine}'s")
+
+
+def run(args) -> int:
+    from wrenorm.cli import command_line
+    from wrenorm.fit import write_report_or_warn
+    from wrenorm.progress import Progress
+    from wrenorm.results import versions, write_atomic, write_json
+    from wrenorm.runfolder import prepare_out
+    from wrenorm.tasks.rope import observable as crit
+    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.control.correct import (
+        CoarseModel,
+        CoarseRope,
+        StoredTrials,
+        correct,
+        fit_parameters,
+        parameters_from_file,
+        real_rope_class,
+        trial_row,
+        trial_rows,
+    )
+    from wrenorm.tasks.rope.problem import RopeProblem
+    from wrenorm.tasks.rope.reference.paths import get_hand_path
+
+    def progress(msg):
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    if args.resume:
+        _restore_settings(args)
+    _check_arguments(args)
     start_path, goal_path = get_hand_path(args.start, "--start"), get_hand_path(args.goal, "--goal")
     if args.start == args.goal and args.perturb == 0:
         raise InputError("--start", "start", f"is the goal's own throw ({args.goal}): its command already reaches the "
