@@ -21,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from wrenorm.options import add_list
     from wrenorm.tasks.rope.control.correct import DEFAULT_TOLERANCE, FD_STEP
     from wrenorm.tasks.rope.control.plan import DEFAULT_GENERATIONS, DEFAULT_POPSIZE
+    from wrenorm.tasks.rope.control.secant import TRUST_NORMS
 
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/correct-rope-<time>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter fit and of --perturb")
@@ -119,7 +120,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "velocity profile's first N Legendre modes in arc length on each axis, N in 1-21 (the step "
                         "only: trials are accepted and reported on the observable's error); all: every row; by-arm "
                         "(default): secant.VELOCITY_MODES (2) for renormalised parameters, all for fixed ones")
-    p.add_argument("--trust-norm", choices=("box", "ball"), default="box",
+    p.add_argument("--trust-norm", choices=TRUST_NORMS, default="box",
                    help="(gn steps) the trust region's shape: box (default), the radius bounds each coordinate of the "
                         "step; ball, the step's Euclidean length is at most secant.BALL_PER_RADIUS (2.5) x the radius")
     p.add_argument("--secant-locality", type=secant_locality_arg, default="none",
