@@ -349,20 +349,15 @@ def _check_arguments(args) -> None:
 def run(args) -> int:
     from wrenorm.cli import command_line
     from wrenorm.fit import write_report_or_warn
-    from wrenorm.progress import Progress
     from wrenorm.results import versions, write_atomic, write_json
     from wrenorm.runfolder import prepare_out
     from wrenorm.tasks.rope import observable as crit
     from wrenorm.tasks.rope.control.command import CommandSpace
     from wrenorm.tasks.rope.control.correct import (
-        CoarseModel,
         CoarseRope,
         StoredTrials,
-        correct,
         fit_parameters,
-        parameters_from_file,
         real_rope_class,
-        trial_row,
         trial_rows,
     )
     from wrenorm.tasks.rope.problem import RopeProblem
@@ -448,45 +443,8 @@ def run(args) -> int:
     except InputError:
         u_goal = None
 
-    runs = {}
-    for label in args.params:
-        method, steps = _arm_method(args, label)
-        name = label if label in RUN_LABELS else Path(label).stem
-
-        bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
-        best = [np.inf]
-
-        def on_trial(trial, name=name, bar=bar, best=best):
-            # what this trial did and why, as soon as its record is complete (atomic; a resumed run rewrites it)
-            write_json(real.folder / f"{name}-trial-{trial.index + 1:02d}.json",
-                       {"run": name, "variant": args.variant} | trial_row(trial, space, problem.space))
-            best[0] = min(best[0], trial.total)
-            bar.update(1, force=True, error=f"{trial.total:.3f}", best=f"{best[0]:.3f}")
-
-        if label in ("measured", "renormalised"):
-            values = problem.space.measured
-        elif label in ("fitted", "renormalised-from-fitted"):
-            values = fitted
-        else:
-            values = parameters_from_file(label, problem)
-        model = CoarseModel(problem, values, space, label)
-        progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
-                 f"{args.variant} rope)")
-        res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
-                      radius=args.radius, reg=args.reg, fd_step=args.fd_step, secant=args.secant,
-                      method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
-                      generations=args.generations, freeze_place=not args.model_place, progress=progress,
-                      on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
-                      refit_generations=args.refit_generations, **_trust_options(args, label),
-                      prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
-                      linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
-                      recorded_until="every" if args.start_pair == "every" else "first",
-                      first_plan_reg=_first_plan_reg(args, label),
-                      first_plan_offset=((np.zeros(space.dim), start_state) if _first_plan_offset(args, label)
-                                         else None), **_step_options(args, label))
-        bar.close()
-        runs[label] = res
-        runs[label]["parameters"] = problem.space.as_dict(values)
+    runs = {label: _correct_arm(args, label, real, problem, fitted, space, goal, u0, recorded, start_state, progress)
+            for label in args.params}
 
     result = {
         "schema": "wrenorm.correct/1", "system": SYSTEM, "variant": args.variant, "real_system": real_doc,
@@ -501,24 +459,7 @@ def run(args) -> int:
         "error_meaning": "rope.py's weighted critical-state error to the goal: shape/length + 0.1 velocity/speed + "
                          "time/t_goal + 0.5 contact place; a trial without self-collision costs >= 5",
         "model": {"segments": args.segments, "dt": args.dt, "fit": fit_info},
-        "settings": {"method": args.method, "plan_first": not args.no_plan_first, "linearise_at": args.linearise_at,
-                     "first_step": args.first_step, "start_pair": args.start_pair,
-                     "radius": args.radius if args.radius is not None else _default("radius", args.method),
-                     "reg": args.reg if args.reg is not None else _default("reg", args.method),
-                     "fd_step": args.fd_step, "seed": args.seed,
-                     "secant": args.secant if args.secant is not None else args.method in ("plan", "gn"),
-                     "popsize": args.popsize, "generations": args.generations,
-                     "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
-                     "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
-                     "decay": args.decay, "refit_generations": args.refit_generations,
-                     "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
-                     "velocity_weight": args.velocity_weight, "velocity_modes": args.velocity_modes,
-                     "trust_norm": args.trust_norm, "secant_locality": args.secant_locality,
-                     "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
-                     "fit_throws": args.fit_throws,
-                     "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
-                     "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
-                             "run refits and plans in a trust region"},
+        "settings": _settings_record(args),
         "runs": {label: {k: v for k, v in r.items() if k != "trials"}
                  | {"trials": trial_rows(r["trials"], space, problem.space)} for label, r in runs.items()},
         "real_runs": real.runs, "real_trials_read_back": real.reused, "real_trials_blown_up": real.unstored,
@@ -539,6 +480,74 @@ def run(args) -> int:
         print(f"{label:>9}: {verdict}; errors {errs}")
     print(f"\nresult: {out / 'correct.json'}  plot: {out / 'correct.png'}")
     return 0
+
+
+def _correct_arm(args, label: str, real, problem, fitted, space, goal, u0, recorded, start_state, progress) -> dict:
+    """One arm of the run (its parameters: measured, fitted, renormalised, ... or a file): correct() on the real rope
+    with this arm's method and step options, each trial written to real-trials/ as soon as it is complete."""
+    from wrenorm.progress import Progress
+    from wrenorm.results import write_json
+    from wrenorm.tasks.rope.control.correct import CoarseModel, correct, parameters_from_file, trial_row
+
+    method, steps = _arm_method(args, label)
+    name = label if label in RUN_LABELS else Path(label).stem
+
+    bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
+    best = [np.inf]
+
+    def on_trial(trial):
+        # what this trial did and why, as soon as its record is complete (atomic; a resumed run rewrites it)
+        write_json(real.folder / f"{name}-trial-{trial.index + 1:02d}.json",
+                   {"run": name, "variant": args.variant} | trial_row(trial, space, problem.space))
+        best[0] = min(best[0], trial.total)
+        bar.update(1, force=True, error=f"{trial.total:.3f}", best=f"{best[0]:.3f}")
+
+    if label in ("measured", "renormalised"):
+        values = problem.space.measured
+    elif label in ("fitted", "renormalised-from-fitted"):
+        values = fitted
+    else:
+        values = parameters_from_file(label, problem)
+    model = CoarseModel(problem, values, space, label)
+    progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
+             f"{args.variant} rope)")
+    res = correct(real, model, goal, u0, max_trials=args.max_trials, tolerance=args.tolerance,
+                  radius=args.radius, reg=args.reg, fd_step=args.fd_step, secant=args.secant,
+                  method=method, plan_first=not args.no_plan_first, seed=args.seed, popsize=args.popsize,
+                  generations=args.generations, freeze_place=not args.model_place, progress=progress,
+                  on_trial=on_trial, prior_scale=args.prior_scale, decay=args.decay,
+                  refit_generations=args.refit_generations, **_trust_options(args, label),
+                  prior_centre=problem.space.measured if method == "renormalise" else None, steps=steps,
+                  linearise_at=args.linearise_at, first_step=args.first_step, recorded=recorded,
+                  recorded_until="every" if args.start_pair == "every" else "first",
+                  first_plan_reg=_first_plan_reg(args, label),
+                  first_plan_offset=((np.zeros(space.dim), start_state) if _first_plan_offset(args, label)
+                                     else None), **_step_options(args, label))
+    bar.close()
+    res["parameters"] = problem.space.as_dict(values)
+    return res
+
+
+def _settings_record(args) -> dict:
+    """correct.json's "settings": the options the run was made with, as given (by-arm and unset ones as such)."""
+    return {"method": args.method, "plan_first": not args.no_plan_first, "linearise_at": args.linearise_at,
+            "first_step": args.first_step, "start_pair": args.start_pair,
+            "radius": args.radius if args.radius is not None else _default("radius", args.method),
+            "reg": args.reg if args.reg is not None else _default("reg", args.method),
+            "fd_step": args.fd_step, "seed": args.seed,
+            "secant": args.secant if args.secant is not None else args.method in ("plan", "gn"),
+            "popsize": args.popsize, "generations": args.generations,
+            "place_from": "coarse model" if args.model_place else "trials", "engine": args.engine,
+            "real": args.real, "segments": args.segments, "prior_scale": args.prior_scale,
+            "decay": args.decay, "refit_generations": args.refit_generations,
+            "trust_region": args.trust_region, "min_radius": args.min_radius, "max_radius": args.max_radius,
+            "velocity_weight": args.velocity_weight, "velocity_modes": args.velocity_modes,
+            "trust_norm": args.trust_norm, "secant_locality": args.secant_locality,
+            "first_plan_reg": args.first_plan_reg, "first_plan_offset": args.first_plan_offset,
+            "fit_throws": args.fit_throws,
+            "fine_segments": args.fine_segments, "builtin_throws": args.builtin_throws,
+            "note": "method applies to the fixed-parameter runs (measured, fitted, FILE); the renormalised "
+                    "run refits and plans in a trust region"}
 
 
 TRIAL_COLUMNS = ["trial", "error", "predicted", "model floor", "model alone", "accepted", "contact t / place",
