@@ -1076,6 +1076,8 @@ def test_the_campaign_and_stall_scripts_refuse_bad_input_in_one_line(tmp_path):
            "chain 64: give the chain's links first, 3-63": [diagnostics / "rope_sensitivity_prior.py", "chain", "64",
                                                             "--out", tmp_path / "o"],
            "chain needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "chain", "20", "--variant", "heavy"],
+           "every-best needs --out OUT": [diagnostics / "rope_sensitivity_prior.py", "every-best", "--variant",
+                                          "heavy", "--fine-segments", "32", "--out", tmp_path / "o"],
            "fitted to other throws than newton's": [diagnostics / "rope_sensitivity_prior.py", "compare", own_throws,
                                                      "--segments", "20"],
            "own 32-segment newton rope": [diagnostics / "rope_sensitivity_prior.py", "compare", fine32],

@@ -5,6 +5,8 @@ costs 26 extra fine runs (real trials on a robot).
 
     python examples/diagnostics/rope_sensitivity_prior.py run --variant heavy --seed 4 --params fitted \\
         --linearise-at trial --no-record --out runs/oracle-heavy-s4
+    python examples/diagnostics/rope_sensitivity_prior.py every-best --variant stiff --seed 0 \\
+        --params renormalised-from-fitted --no-record --out runs/oracle-every-best-stiff-s0
     python examples/diagnostics/rope_sensitivity_prior.py chain 20 --variant heavy --seed 4 --params fitted \\
         --no-record --out runs/chain20-heavy-s4
     python examples/diagnostics/rope_sensitivity_prior.py compare runs/oracle-heavy-s4 [--segments 20]
@@ -13,6 +15,9 @@ costs 26 extra fine runs (real trials on a robot).
 `run` is `correct rope` (its options after `run`; fixed parameters, `--linearise-at trial`) with the chain's
 central difference at trial 1's command replaced by the fine rope's (the same step, 26 fine runs, not counted as
 trials), kept in OUT/rope-sensitivity.npz; the secant pairs then correct it as they correct the chain's.
+`every-best` is `correct rope` (its options after `every-best`; any arm) with every step taken through the rope's own
+central difference at the best trial's command, re-measured at each new best (26 fine runs each) and used as it is
+(README, "The rope's own sensitivity at every best").
 `chain N` is `correct rope` (its options after N; fixed parameters) with the chain's sensitivity and the match it is
 measured at taken on an N-link chain fitted as the run's, trial 1 still planned on the run's own chain.
 `compare` prints, per block of the critical state, how far the chain's sensitivity (fitted parameters, at trial 1's
@@ -77,40 +82,51 @@ def _fixed_parameters_only(argv: list[str], command: str, why: str = "") -> None
         _fail(f"{command} takes fixed parameters only (--params fitted or measured){why}")
 
 
-def run(argv: list[str]) -> int:
-    from wrenorm.cli import main
-    from wrenorm.tasks.rope.control.correct import NewtonRope
+def _on_builtin_rope(argv: list[str]) -> bool:
+    """The run's real rope is newton's at the built-in references' resolution, the one measured here."""
     from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
-    if (_option(argv, "--out") is None or _option(argv, "--linearise-at") != "trial"
-            or _option(argv, "--engine") not in (None, "newton")
-            or _option(argv, "--fine-segments") not in (None, str(DEFAULT_SEGMENTS))):
+    return (_option(argv, "--engine") in (None, "newton")
+            and _option(argv, "--fine-segments") in (None, str(DEFAULT_SEGMENTS)))
+
+
+def _rope_sensitivity(out: Path, ropes: dict, space, u: np.ndarray, step: float = secant.GN_FD_STEP):
+    """The fine rope's central difference at u (2n + 1 fine runs): the loop's own fine rope is not reachable from
+    here, so an equal one (the run's variant and segments, the CLI's horizon)."""
+    from wrenorm.tasks.rope.control.correct import NewtonRope
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS, builtin_reference_path, load_reference
+
+    settings = json.loads((out / "settings.json").read_text())
+    if not (builtin_throws_of(settings) and builtin_is_the_real_rope(settings)):
+        _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' "
+              f"{DEFAULT_SEGMENTS}-segment one")
+    if "rope" not in ropes:
+        goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
+        horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
+        ropes["rope"] = NewtonRope(settings["variant"], settings["fine_segments"], horizon, settings["device"])
+    rope = ropes["rope"]
+
+    def states(U):
+        return np.concatenate([state_vector(crit.from_reference(rope(space.decode(x)))) for x in U])
+
+    return jacobian(states, u, step, space.lower, space.upper)
+
+
+def run(argv: list[str]) -> int:
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
+
+    if _option(argv, "--out") is None or _option(argv, "--linearise-at") != "trial" or not _on_builtin_rope(argv):
         _fail("run needs --out OUT and --linearise-at trial (the rope's sensitivity is measured at trial 1's "
               f"command), on the newton rope of the built-in references ({DEFAULT_SEGMENTS} segments)")
-    _fixed_parameters_only(argv, "run", ": a renormalised arm re-measures its sensitivity after every trial, 26 fine "
-                                        "runs each")
     out = Path(_option(argv, "--out"))
+    _fixed_parameters_only(argv, "run", ": a renormalised arm re-measures its sensitivity after every trial, 26 fine "
+                                        "runs each (every-best measures the rope's at each new best)")
     ropes = {}
 
     def of_rope(cls, model, u, step=secant.GN_FD_STEP):
-        from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
-
-        # the loop's own fine rope is not reachable from here: an equal one (variant, segments, the CLI's horizon)
         t = time.perf_counter()
-        settings = json.loads((out / "settings.json").read_text())
-        if not (builtin_throws_of(settings) and builtin_is_the_real_rope(settings)):
-            _fail(f"{out / 'settings.json'}: the run's fine rope is not the built-in references' "
-                  f"{DEFAULT_SEGMENTS}-segment one")
-        if "rope" not in ropes:
-            goal_ref = load_reference(builtin_reference_path(settings["goal"], settings["variant"]))
-            horizon = min(float(goal_ref.time[-1]), float(crit.from_reference(goal_ref).time[0]) + 0.5)
-            ropes["rope"] = NewtonRope(settings["variant"], settings["fine_segments"], horizon, settings["device"])
-        rope, space = ropes["rope"], model.space
-
-        def states(U):
-            return np.concatenate([state_vector(crit.from_reference(rope(space.decode(x)))) for x in U])
-
-        jac = jacobian(states, u, step, space.lower, space.upper)
+        jac = _rope_sensitivity(out, ropes, model.space, u, step)
         J = np.where(np.isfinite(jac.J), jac.J, 0.0)
         np.savez(out / FILE, J=J, u=u, step=step)
         print(f"rope_sensitivity_prior: the rope's own sensitivity from {jac.evaluations} fine runs "
@@ -119,6 +135,48 @@ def run(argv: list[str]) -> int:
 
     secant.Sensitivity.of_chain = classmethod(of_rope)
     return main(["correct", "rope", *argv])
+
+
+def every_best(argv: list[str]) -> int:
+    """The loop, any arm, with every Gauss-Newton step taken through the rope's own central difference at the best
+    trial's command, re-measured whenever the best changes and not corrected by the secant pairs: a perfect local
+    linear model where each step starts. Everything else (trial 1, the refits, the trust region, the velocity modes)
+    is the arm's own. Each is kept as OUT/rope-sensitivity-at-trial-NN.npz."""
+    from wrenorm.cli import main
+    from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
+
+    if _option(argv, "--out") is None or not _on_builtin_rope(argv):
+        _fail(f"every-best needs --out OUT, on the newton rope of the built-in references ({DEFAULT_SEGMENTS} "
+              "segments)")
+    out = Path(_option(argv, "--out"))
+    ropes, current = {}, {}
+    secant_pairs, ridge = secant.secant_pairs, secant.Sensitivity.ridge
+
+    def pairs_from_best(trials, best, recorded, recorded_until):
+        current["best"] = best  # the loop asks for the pairs from its best just before the step
+        return secant_pairs(trials, best, recorded, recorded_until)
+
+    def rope_in_place(self, dus, dzs, weight=secant.RIDGE, locality=None):
+        ridge(self, dus, dzs, weight, locality)
+        best = current["best"]
+        if ropes.get("at") is not best:
+            t = time.perf_counter()
+            jac = _rope_sensitivity(out, ropes, ropes.setdefault("space", _space(out)), best.u)
+            ropes.update(at=best, J=np.where(np.isfinite(jac.J), jac.J, 0.0))
+            np.savez(out / f"rope-sensitivity-at-trial-{best.index + 1:02d}.npz", J=ropes["J"], u=best.u)
+            print(f"rope_sensitivity_prior: the rope's own sensitivity at trial {best.index + 1} from "
+                  f"{jac.evaluations} fine runs ({time.perf_counter() - t:.0f} s)", file=sys.stderr, flush=True)
+        self.S = ropes["J"].copy()
+
+    secant.secant_pairs, secant.Sensitivity.ridge = pairs_from_best, rope_in_place
+    return main(["correct", "rope", *argv])
+
+
+def _space(out: Path):
+    from wrenorm.tasks.rope.control.command import CommandSpace
+    from wrenorm.tasks.rope.reference.paths import get_hand_path
+
+    return CommandSpace(get_hand_path(json.loads((out / "settings.json").read_text())["start"]))
 
 
 def chain(segments: int, argv: list[str]) -> int:
@@ -280,6 +338,8 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["run"]:
         return run(argv[1:])
+    if argv[:1] == ["every-best"]:
+        return every_best(argv[1:])
     if argv[:1] == ["chain"]:
         if len(argv) < 2 or not argv[1].isdigit() or not 3 <= int(argv[1]) <= 63:
             _fail(f"chain {argv[1] if len(argv) > 1 else ''}: give the chain's links first, 3-63")
@@ -302,7 +362,8 @@ def main(argv=None) -> int:
         if args.also_free and not args.best_parameters:
             _fail("--also-free widens the --best-parameters bound; give both")
         return compare(args.folder, args.segments, args.best_parameters, tuple(args.also_free))
-    _fail("usage: rope_sensitivity_prior.py run [correct rope options] | chain N [correct rope options] | "
+    _fail("usage: rope_sensitivity_prior.py run [correct rope options] | every-best [correct rope options] | "
+          "chain N [correct rope options] | "
           "compare RUN_FOLDER [--segments N] [--best-parameters [--also-free NAME ...]]")
     return 2
 
