@@ -1104,6 +1104,51 @@ def _script_module(name: str):
     return module
 
 
+def test_every_best_steps_through_the_sensitivity_measured_at_each_best(tmp_path, monkeypatch):
+    """rope_sensitivity_prior.py every-best: the sensitivity is measured at the best trial's command, again only when
+    the best changes, and kept per best; every step after it is taken and predicted through exactly that matrix, not
+    the chain's nor the secant-corrected one (the rope's central difference stands in as a known matrix here)."""
+    from wrenorm.jacobian import Jacobian
+
+    module = _script_module("rope_sensitivity_prior")
+    monkeypatch.setattr(secant, "secant_pairs", secant.secant_pairs)  # every_best replaces both: restored after
+    monkeypatch.setattr(secant.Sensitivity, "ridge", secant.Sensitivity.ridge)
+    measured_at = []
+
+    def known(out, ropes, space, u, step=secant.GN_FD_STEP):
+        measured_at.append(np.array(u))
+        rng = np.random.default_rng(len(measured_at))
+        J = rng.normal(0.0, 0.02, (6 * SAMPLES + 3, space.dim))
+        return Jacobian(J, np.zeros(len(J)), ["central"] * space.dim, 2 * space.dim + 1)
+
+    monkeypatch.setattr(module, "_rope_sensitivity", known)
+    out = tmp_path / "every-best"
+    assert module.every_best([*CORRECT_QUICK[2:], "--max-trials", "5", "--out", str(out)]) == 0
+    trials = json.loads((out / "correct.json").read_text())["runs"]["measured"]["trials"]
+    bests, best = [], None
+    for t in trials[:-1]:
+        best = t if t["accepted"] else best
+        bests.append(best)
+    distinct = [b for i, b in enumerate(bests) if b is not None and (i == 0 or b is not bests[i - 1])]
+    assert len(measured_at) == len(distinct) >= 1
+    for u, b in zip(measured_at, distinct):
+        assert np.array_equal(u, b["command_u"])
+        assert np.array_equal(np.load(out / f"rope-sensitivity-at-trial-{b['trial']:02d}.npz")["u"], u)
+    for b, nxt in zip(bests, trials[1:]):
+        J = np.load(out / f"rope-sensitivity-at-trial-{b['trial']:02d}.npz")["J"]
+        z_best = state_vector(_state_of(b["measured_state"]))[0]
+        z_predicted = state_vector(_state_of(nxt["predicted_state"]))[0]
+        du = np.array(nxt["command_u"]) - np.array(b["command_u"])
+        assert np.allclose(z_predicted, z_best + J @ du, atol=1e-9), nxt["trial"]
+
+
+def _state_of(record: dict) -> crit.CriticalStates:
+    return crit.CriticalStates(np.asarray(record["positions"], np.float64)[None],
+                               np.asarray(record["velocities"], np.float64)[None], np.array([record["time"]]),
+                               np.asarray(record["contact_arclength"], np.float64)[None], np.ones(1, bool),
+                               np.zeros(1))
+
+
 def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_path):
     """The step-prediction diagnosis on a run whose every prediction came true scores each block's correlation 1,
     and its table of changes as vectors the share 1 at cosine 1; shuffling the predictions across trials breaks both;
