@@ -1110,7 +1110,7 @@ def test_every_best_steps_through_the_sensitivity_measured_at_each_best(tmp_path
     the chain's nor the secant-corrected one (the rope's central difference stands in as a known matrix here)."""
     from wrenorm.jacobian import Jacobian
 
-    module = _script_module("rope_sensitivity_prior")
+    module, state_of = _script_module("rope_sensitivity_prior"), _script_module("step_prediction")._state
     monkeypatch.setattr(secant, "secant_pairs", secant.secant_pairs)  # every_best replaces both: restored after
     monkeypatch.setattr(secant.Sensitivity, "ridge", secant.Sensitivity.ridge)
     measured_at = []
@@ -1136,17 +1136,10 @@ def test_every_best_steps_through_the_sensitivity_measured_at_each_best(tmp_path
         assert np.array_equal(np.load(out / f"rope-sensitivity-at-trial-{b['trial']:02d}.npz")["u"], u)
     for b, nxt in zip(bests, trials[1:]):
         J = np.load(out / f"rope-sensitivity-at-trial-{b['trial']:02d}.npz")["J"]
-        z_best = state_vector(_state_of(b["measured_state"]))[0]
-        z_predicted = state_vector(_state_of(nxt["predicted_state"]))[0]
+        z_best = state_vector(state_of(b["measured_state"]))[0]
+        z_predicted = state_vector(state_of(nxt["predicted_state"]))[0]
         du = np.array(nxt["command_u"]) - np.array(b["command_u"])
         assert np.allclose(z_predicted, z_best + J @ du, atol=1e-9), nxt["trial"]
-
-
-def _state_of(record: dict) -> crit.CriticalStates:
-    return crit.CriticalStates(np.asarray(record["positions"], np.float64)[None],
-                               np.asarray(record["velocities"], np.float64)[None], np.array([record["time"]]),
-                               np.asarray(record["contact_arclength"], np.float64)[None], np.ones(1, bool),
-                               np.zeros(1))
 
 
 def test_step_prediction_pairs_each_steps_prediction_with_what_the_rope_did(tmp_path):

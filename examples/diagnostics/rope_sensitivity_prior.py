@@ -16,7 +16,7 @@ costs 26 extra fine runs (real trials on a robot).
 central difference at trial 1's command replaced by the fine rope's (the same step, 26 fine runs, not counted as
 trials), kept in OUT/rope-sensitivity.npz; the secant pairs then correct it as they correct the chain's.
 `every-best` is `correct rope` (its options after `every-best`; any arm) with every step taken through the rope's own
-central difference at the best trial's command, re-measured at each new best (26 fine runs each) and used as it is
+central difference at the best trial's command, re-measured at each new best (27 fine runs each) and used as it is
 (README, "The rope's own sensitivity at every best").
 `chain N` is `correct rope` (its options after N; fixed parameters) with the chain's sensitivity and the match it is
 measured at taken on an N-link chain fitted as the run's, trial 1 still planned on the run's own chain.
