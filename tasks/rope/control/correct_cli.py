@@ -490,7 +490,7 @@ def _correct_arm(args, label: str, real, problem, fitted, space, goal, u0, recor
     from wrenorm.tasks.rope.control.correct import CoarseModel, correct, parameters_from_file, trial_row
 
     method, steps = _arm_method(args, label)
-    name = label if label in RUN_LABELS else Path(label).stem
+    name = run_name(label)
 
     bar = Progress(args.max_trials, f"correct rope, {name}", quiet=args.quiet, unit="trials")
     best = [np.inf]
@@ -680,6 +680,13 @@ def report_markdown(result: dict) -> str:
 
 
 RUN_LABELS = ("renormalised", "renormalised-from-fitted", "measured", "fitted")
+
+
+def run_name(label: str) -> str:
+    """An arm's name in files, the report and the recording: the label itself, or a parameter file's stem."""
+    return label if label in RUN_LABELS else Path(label).stem
+
+
 SETTINGS_FILE = "settings.json"
 BY_ARM_MODES_KEY = "by_arm_velocity_modes"  # settings.json: what --velocity-modes by-arm gave the renormalised arms
 DIGEST_KEY = "_digest"
@@ -1103,7 +1110,7 @@ def _record(path: Path, runs: dict, goal, args, goal_ref=None, real=None, space=
                                             radii=0.004), static=True)
         names = []
         for label, r in runs.items():
-            name = label if label in COLORS else Path(label).stem
+            name = run_name(label)
             names.append(name)
             for t in r["trials"]:
                 rec.log_scalar(f"error/{name}", t.index + 1, t.total, timeline="trial")
@@ -1123,7 +1130,7 @@ def _record(path: Path, runs: dict, goal, args, goal_ref=None, real=None, space=
             _log_throw(rec, "goal", goal_ref, COLORS["reference"], "goal")
             around = [goal_ref.markers.reshape(-1, 3)]
             for label, r in runs.items():
-                name = label if label in COLORS else Path(label).stem
+                name = run_name(label)
                 best = min(r["trials"], key=lambda t: t.total)
                 try:
                     ref = real(space.decode(best.u))  # read back from OUT/real-trials, never simulated again
