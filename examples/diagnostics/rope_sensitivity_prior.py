@@ -161,7 +161,9 @@ def every_best(argv: list[str]) -> int:
         best = current["best"]
         if ropes.get("at") is not best:
             t = time.perf_counter()
-            jac = _rope_sensitivity(out, ropes, ropes.setdefault("space", _space(out)), best.u)
+            if "space" not in ropes:
+                ropes["space"] = _space(out)
+            jac = _rope_sensitivity(out, ropes, ropes["space"], best.u)
             ropes.update(at=best, J=np.where(np.isfinite(jac.J), jac.J, 0.0))
             np.savez(out / f"rope-sensitivity-at-trial-{best.index + 1:02d}.npz", J=ropes["J"], u=best.u)
             print(f"rope_sensitivity_prior: the rope's own sensitivity at trial {best.index + 1} from "
