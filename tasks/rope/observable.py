@@ -35,6 +35,10 @@ WEIGHTS = {"shape": 1.0, "velocity": 0.1, "time": 1.0, "place": 0.5}
 NO_HIT = 5.0  # above any colliding candidate's error (each term is O(1) at worst)
 SAMPLES = 21
 MIN_SPEED = 0.1  # m/s
+VELOCITY_WINDOW = 0.005  # s: a recording's velocities are slopes over about this long (the chain's step), however fast
+# it was sampled. A 1 ms frame difference of 1000 Hz markers with 0.5 mm of noise read the critical state's velocity
+# 1.15 m/s RMS off (the rope's own: 2.36 m/s) and the chain's start 1.08 m/s off, in silence (review of stop 54);
+# recordings at 250 Hz or slower keep the one-frame difference (5 ms / the frame step rounds to 1)
 NO_HIT_SCALE = 0.1  # of the rope length: a closest approach this far (or farther) adds 1 to NO_HIT
 
 
@@ -85,6 +89,23 @@ def from_rollout(res, n_nodes: int, t0: float = 0.0) -> CriticalStates:
                           np.where(keep, 0.0, np.where(res.status == 2, np.inf, res.clearance.astype(np.float64))))
 
 
+def velocity_intervals(ref) -> int:
+    """How many frame steps a recording's velocity spans: VELOCITY_WINDOW in frame steps, at least one."""
+    return max(1, int(round(VELOCITY_WINDOW / float(ref.time[1] - ref.time[0]))))
+
+
+def marker_velocity(ref, first: int, intervals: int) -> np.ndarray:
+    """(markers, 3) the markers' least-squares velocity over frames first .. first + intervals (one interval: the frame
+    difference). The slope of a constant acceleration over a window is its velocity at the window's middle, as a frame
+    difference's is at its interval's."""
+    if intervals == 1:  # to the bit as the chain's start and the critical state always read it
+        return (ref.markers[first + 1] - ref.markers[first]) / (ref.time[first + 1] - ref.time[first])
+    t = np.asarray(ref.time[first:first + intervals + 1], np.float64)
+    x = np.asarray(ref.markers[first:first + intervals + 1], np.float64)
+    dt = t - t.mean()
+    return np.einsum("f,fmk->mk", dt / np.sum(dt * dt), x)
+
+
 def reference_critical(ref):
     """Where a reference's critical moment comes from (reference/events.py `critical`): the file's
     `critical_time` annotation when it has one, else the first self-contact detected in its markers, with
@@ -104,7 +125,8 @@ def from_reference(ref, event=None) -> CriticalStates:
     """Critical state of one rope trajectory (a reference, a real trial), batch of one.
 
     At the event time t* inside frame interval (k-1, k]: positions interpolated linearly between the two
-    frames, velocity the frame difference over that interval (the rule the chain kernel uses too)."""
+    frames, velocity the frame difference over that interval (the rule the chain kernel uses too); where frames come
+    faster than VELOCITY_WINDOW, the slope over the frames about that window centred on the interval."""
     ev = reference_event(ref) if event is None else event
     if ev is None:
         from wrenorm.tasks.rope.reference.events import detect_reference
@@ -117,7 +139,8 @@ def from_reference(ref, event=None) -> CriticalStates:
     t, k = ref.time, ev.index
     frac = (ev.time - t[k - 1]) / (t[k] - t[k - 1])
     pos = ref.markers[k - 1] + frac * (ref.markers[k] - ref.markers[k - 1])
-    vel = (ref.markers[k] - ref.markers[k - 1]) / (t[k] - t[k - 1])
+    n = velocity_intervals(ref)
+    vel = marker_velocity(ref, int(np.clip(k - 1 - (n - 1) // 2, 0, max(len(t) - 1 - n, 0))), n)
     s_k = np.linspace(0.0, 1.0, SAMPLES)
     s = ref.marker_arclength
     return CriticalStates(resample(pos, s, s_k)[None], resample(vel, s, s_k)[None],
