@@ -750,3 +750,47 @@ def test_a_frame_tilted_from_gravity_is_said(tmp_path):
     assert said["level"] == said["level_noisy"] == []
     assert len(said["tilted"]) == 1 and "3.0 deg" in said["tilted"][0]
     assert len(said["tilted_noisy"]) == 1 and " 3.0 deg" in said["tilted_noisy"][0]
+
+
+def _turned(z, a: int, b: int, turn: np.ndarray) -> dict:
+    """Frames a..b of a recorded throw, in a frame turned by `turn` (a rotation applied to every point)."""
+    keep = ("length", "mass", "radius", "marker_arclength")
+    return {**{k: z[k] for k in keep}, "time": z["time"][a:b], "markers": z["markers"][a:b] @ turn.T,
+            "hand": z["hand"][a:b] @ turn.T}
+
+
+def _tilt(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_gravity_is_read_from_the_ropes_motion_where_a_clip_cut_from_mid_throw_never_hangs(tmp_path):
+    """A clip cut from mid-throw never hangs: by the direction it hung in, 0.6 s of a throw in a Y-up frame loaded and
+    was fitted with gravity along the rope's side, and 0.24 s in the right frame was refused (review of stop 54).
+    Gravity read from the motion (the centre of mass accelerates as g plus a pull along the held end's link) is the
+    simulator's own on every built-in and test throw, newton and MuJoCo; a Y-up cut is refused by it, a cut tilted 30
+    deg is said, a level one says nothing, and one too short to tell says so."""
+    from wrenorm.tasks.rope.reference.events import GRAVITY, gravity_from_motion
+    from wrenorm.tasks.rope.reference.generate import builtin_reference_path
+
+    shipped = sorted(Path(builtin_reference_path("flick")).parent.glob("rope_*.npz")) + sorted(DATA.glob("*.npz"))
+    for f in shipped:
+        z = np.load(f)
+        g = gravity_from_motion(z["time"], z["markers"], z["hand"], z["marker_arclength"])
+        assert g.determined and g.degrees_off_down < 4.0 and 0.8 < np.linalg.norm(g.vector) / GRAVITY < 1.05, f.name
+
+    z = np.load(DATA / "newton_default_flick_fast.npz")  # 200 Hz, contact at 0.495 s
+    y_up = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # gravity along -y
+    cuts = {"level": _turned(z, 40, 130, np.eye(3)), "y_up": _turned(z, 40, 130, y_up),
+            "tilted": _turned(z, 40, 130, _tilt(30.0)), "short": _turned(z, 70, 120, np.eye(3))}
+    for name, d in cuts.items():
+        np.savez(tmp_path / f"{name}.npz", **d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "y_up.npz")
+    assert e.value.field == "markers" and "points along -y" in e.value.problem
+    assert "gravity must be -z" in e.value.problem
+    said = {n: [w for w in critical(load_reference(tmp_path / f"{n}.npz")).warnings if "gravity" in w]
+            for n in ("level", "tilted", "short")}
+    assert said["level"] == []
+    assert len(said["tilted"]) == 1 and "deg off -z" in said["tilted"][0]
+    assert len(said["short"]) == 1 and "could not be checked" in said["short"][0]

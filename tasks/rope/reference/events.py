@@ -1106,6 +1106,64 @@ START_NOISE_SHARE = 0.1  # a moving start whose velocity noise is more than this
 # (error 5.1 against 0.45 from the clean markers; with the clean velocity 0.48; review of stop 54)
 
 
+GRAVITY = 9.81  # m/s^2
+GRAVITY_WINDOW = 0.01  # s: the centre of mass's acceleration is a second difference over this step
+GRAVITY_MIN_SPREAD = 0.15  # the held end's link must turn enough over the clip (smallest eigenvalue of the mean
+# projector across it) for gravity to be told from the pull along it: the built-in throws 0.23-0.42, 60 frames cut
+# from mid-throw 0.07
+GRAVITY_MAGNITUDE = (0.5, 1.5)  # x GRAVITY: an estimate outside says the motion does not determine it
+GRAVITY_MIN_DURATION = 0.4  # s: shorter clips do not determine it. Over every window of the 64 built-in and test
+# throws (newton and MuJoCo, every variant, level frames), the estimate's angle off -z: whole throws at most 2.8 deg;
+# 0.6 s windows 99th percentile 8.1, at most 10.8; 0.4 s 11.4 and 27.4; 0.2 s 35.8 and 44.2; 0.15 s up to 54
+TILT_WARN_DEG = 15.0  # estimated from the motion, gravity further off -z than this is said (0.4 s windows of level
+# frames: 0.5 % of them); a rope that starts at rest is judged by the direction it hangs in instead (REST_TILT_DEG)
+
+
+@dataclass
+class GravityEstimate:
+    vector: np.ndarray  # (3,) m/s^2 in the file's frame
+    determined: bool  # a clip long enough, the held end's link turned enough, the magnitude a gravity's
+
+    @property
+    def degrees_off_down(self) -> float:
+        n = float(np.linalg.norm(self.vector))
+        return float(np.degrees(np.arccos(np.clip(-self.vector[2] / n, -1.0, 1.0)))) if n > 0 else float("nan")
+
+
+def gravity_from_motion(time, markers, hand, arclength) -> GravityEstimate:
+    """Gravity in the file's frame, from the rope's own motion: its centre of mass accelerates as g plus the hand's
+    pull over its mass, and a rope pulls along its held end's link, so across the frames the part of the acceleration
+    across that link is g's part across it (least squares over the frames, where the link turns enough). Unlike the
+    direction the rope hangs in, this holds for a clip cut from mid-throw: 100-250 frames of a throw in a Y-up frame
+    had been fitted with gravity along the rope's side, and 60 frames in the right frame refused (review of stop 54).
+    Air drag and the bending moment at the hand are left out (the built-in throws: at most 2.8 deg, |g| 8.1-9.5)."""
+    time = np.asarray(time, np.float64)
+    X = np.asarray(markers, np.float64)
+    hand = np.asarray(hand, np.float64)
+    s = np.asarray(arclength, np.float64)
+    weight = np.gradient(s) if len(s) > 2 else np.full(len(s), 0.5)
+    seen = np.isfinite(X).all(-1)
+    w = np.where(seen, weight, 0.0)
+    com = np.einsum("tmk,tm->tk", np.nan_to_num(X), w) / np.maximum(w.sum(1), 1e-12)[:, None]
+    com[w.sum(1) < 0.9 * weight.sum()] = np.nan  # a frame missing a tenth of the rope is no centre of mass
+    h = max(1, int(round(GRAVITY_WINDOW / float(time[1] - time[0])))) if len(time) > 1 else 1
+    if len(time) <= 2 * h or time[-1] - time[0] < GRAVITY_MIN_DURATION:
+        return GravityEstimate(np.full(3, np.nan), False)
+    step = time[2 * h:] - time[:-2 * h]
+    accel = (com[2 * h:] - 2.0 * com[h:-h] + com[:-2 * h]) / (0.5 * step[:, None]) ** 2
+    link = X[h:-h, 1 if s[0] == 0.0 and X.shape[1] > 1 else 0] - hand[h:-h]
+    link /= np.linalg.norm(link, axis=1, keepdims=True)
+    ok = np.isfinite(accel).all(1) & np.isfinite(link).all(1)
+    if ok.sum() < 3:
+        return GravityEstimate(np.full(3, np.nan), False)
+    across = np.eye(3)[None] - link[ok, :, None] * link[ok, None, :]
+    A = across.sum(0)
+    g = np.linalg.solve(A, np.einsum("tij,tj->i", across, accel[ok]))
+    spread = float(np.linalg.eigvalsh(A / ok.sum()).min())
+    lo, hi = GRAVITY_MAGNITUDE
+    return GravityEstimate(g, spread >= GRAVITY_MIN_SPREAD and lo * GRAVITY <= np.linalg.norm(g) <= hi * GRAVITY)
+
+
 def first_velocity_noise(ref) -> float:
     """The noise (m/s, one coordinate) of the markers' first velocity (observable.marker_velocity over n + 1 frames,
     as the chain's start takes it): sqrt(2) sigma / dt for a frame difference."""
@@ -1160,6 +1218,18 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
                         f"{tilt[0]:.1f} deg off -z (hand to rope centre): a frame tilted from gravity? the chain falls "
                         "along -z, and a 3 deg tilt kept it from hitting itself; level the frame, unless the rope was "
                         "held so that it did not hang freely")
+    if tilt is None:
+        g = gravity_from_motion(ref.time, ref.markers, ref.hand, ref.marker_arclength)
+        if not g.determined:
+            warnings.append("gravity's direction could not be checked: the rope does not start at rest, and its "
+                            f"motion over the clip does not determine it (shorter than {GRAVITY_MIN_DURATION:g} s, or "
+                            "the held end's link turns too little); the chain falls along -z of the file's frame")
+        elif g.degrees_off_down > TILT_WARN_DEG:
+            v = g.vector
+            warnings.append(f"the rope's motion puts gravity {g.degrees_off_down:.0f} deg off -z (({v[0]:+.1f}, "
+                            f"{v[1]:+.1f}, {v[2]:+.1f}) m/s^2: its centre of mass's acceleration across the held "
+                            "end's link): a frame tilted from gravity? the chain falls along -z, and a 3 deg tilt "
+                            "kept it from hitting itself; level the frame")
     if tilt is None and len(ref.markers) > velocity_intervals(ref):
         noise = np.sqrt(3.0) * first_velocity_noise(ref)
         speed = float(np.sqrt(np.nanmean(np.sum(marker_velocity(ref, 0, velocity_intervals(ref)) ** 2, -1))))

@@ -28,6 +28,7 @@ from wrenorm.tasks.rope.reference.events import (
     CollisionEvent,
     bridge_missing,
     detect_reference,
+    gravity_from_motion,
     software_filled,
 )
 from wrenorm.tasks.rope.reference.labels import MAX_BROKEN_FRAMES, repair_length
@@ -111,19 +112,40 @@ def _scalar(src: str, name: str, value, lo: float, hi: float, unit: str) -> floa
     return x
 
 
-def _check_gravity_axis(src: str, markers: np.ndarray, hand: np.ndarray, s: np.ndarray) -> None:
-    """Refuse a file whose rope does not hang along -z (a Y-up or z-down frame): the chain falls along -z.
+GRAVITY_MAX_DEG = 45.0  # gravity estimated from the motion further off -z than this: another frame, refused
+HANGING_SPEED = 0.2  # m/s: frames whose markers move slower than this (RMS) hang, for the direction check
 
-    Over the clip, the unit vector from the hand to the rope's centre (markers weighted by the arc length they
-    stand for) points mostly down: a thrown rope spends most of the time below the hand, and the shipped, test and
-    generated references start hanging at rest (mean z component -0.46 .. -0.93, horizontal at most 0.35). A file
-    is refused only when another axis clearly dominates (the mean direction is at least 0.5 along it and 1.5x its
-    downward part); when the direction swings too much to tell (mean resultant below 0.3), nothing is said."""
+
+def _axis_name(v: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(v)))
+    return ("+" if v[k] > 0 else "-") + "xyz"[k]
+
+
+def _check_gravity_axis(src: str, time: np.ndarray, markers: np.ndarray, hand: np.ndarray, s: np.ndarray) -> None:
+    """Refuse a file whose gravity is not along -z (a Y-up or z-down frame): the chain falls along -z.
+
+    Where the rope's motion determines gravity (events.gravity_from_motion: a throw), that estimate decides; a frame
+    tilted less than GRAVITY_MAX_DEG is said, not refused (events.critical). Otherwise (a rope that hangs, nearly
+    still) the unit vector from the hand to the rope's centre, over the frames where it hangs (markers slower than
+    HANGING_SPEED), points down: refused only when another axis clearly dominates (the mean direction at least 0.5
+    along it and 1.5x its downward part); when it swings too much to tell (mean resultant below 0.3), or no frame
+    hangs (60 frames cut from mid-throw pointed along +x and were refused, review of stop 54), nothing is said here."""
+    g = gravity_from_motion(time, markers, hand, s)
+    if g.determined:
+        if g.degrees_off_down > GRAVITY_MAX_DEG:
+            v = g.vector
+            raise InputError(src, "markers", f"gravity, estimated from the rope's motion, points along "
+                             f"{_axis_name(v)} ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) m/s^2, not -z: gravity must be "
+                             "-z (rotate a Y-up or z-down frame)")
+        return
     weight = np.gradient(s) if len(s) > 2 else np.full(len(s), 0.5)
     centre = np.einsum("tmk,m->tk", markers, weight / weight.sum())
     offset = centre - hand
     norm = np.linalg.norm(offset, axis=1)
     keep = norm > 1e-9
+    if len(time) > 1:
+        speed = np.sqrt(np.mean(np.sum(np.diff(markers, axis=0) ** 2, -1), -1)) / np.diff(time)
+        keep &= np.concatenate([[speed[0]], np.minimum(speed[:-1], speed[1:]), [speed[-1]]]) < HANGING_SPEED
     if not keep.any():
         return
     mean = (offset[keep] / norm[keep, None]).mean(axis=0)
@@ -135,8 +157,8 @@ def _check_gravity_axis(src: str, markers: np.ndarray, hand: np.ndarray, s: np.n
     k = int(np.argmax(along))
     if along[k] >= GRAVITY_MIN_DOMINANT and along[k] > GRAVITY_DOMINANCE * down:
         raise InputError(src, "markers", f"the rope hangs along {names[k]}, not -z (hand to rope centre, mean over "
-                                         f"the clip: ({mean[0]:+.2f}, {mean[1]:+.2f}, {mean[2]:+.2f})): gravity must "
-                                         "be -z (rotate a Y-up or z-down frame)")
+                                         f"the frames it hangs in: ({mean[0]:+.2f}, {mean[1]:+.2f}, {mean[2]:+.2f})): "
+                                         "gravity must be -z (rotate a Y-up or z-down frame)")
 
 
 def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, radius: float) -> None:
@@ -322,7 +344,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if reach > allowed:
         raise InputError(src, "markers", f"first marker is up to {reach:.3g} m from the hand, expected within "
                                          f"{allowed:.3g} m (marker 0 is the held end)")
-    _check_gravity_axis(src, markers, hand, s)
+    _check_gravity_axis(src, time, markers, hand, s)
     # The chain has no horizontal origin (gravity along -z, no floor or wall), but it runs in float32: 90 m from
     # the origin a coordinate keeps 8 um, and the fit moved. Horizontal coordinates start at the held end; z keeps
     # its meaning (the fine simulators' floor, the built-in hand paths' height).
