@@ -794,3 +794,24 @@ def test_gravity_is_read_from_the_ropes_motion_where_a_clip_cut_from_mid_throw_n
     assert said["level"] == []
     assert len(said["tilted"]) == 1 and "deg off -z" in said["tilted"][0]
     assert len(said["short"]) == 1 and "could not be checked" in said["short"][0]
+
+
+def test_a_marker_not_yet_seen_at_the_start_leaves_those_frames_out_rather_than_making_up_the_first_shape(tmp_path):
+    """Marker 8 unseen for the first 60 frames was held back to its first sighting: the first frame's shape was made
+    up (a link stretched 3.4x), the rope read as touching itself from the first frame, and a chain started from it
+    (review of stop 54). The clip now starts where every marker has been seen, says so, and finds the clean clip's
+    contact."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    keep = ("time", "length", "mass", "radius", "marker_arclength", "hand")
+    markers = z["markers"].copy()
+    markers[:30, 8] = np.nan
+    np.savez(tmp_path / "late.npz", **{k: z[k] for k in keep}, markers=markers)
+    np.savez(tmp_path / "clean.npz", **{k: z[k] for k in keep}, markers=z["markers"])
+    late, clean = load_reference(tmp_path / "late.npz"), load_reference(tmp_path / "clean.npz")
+    assert late.time[0] == z["time"][30] and len(late.time) == len(z["time"]) - 30
+    # the same frames (the horizontal origin is each clip's first hand position)
+    np.testing.assert_allclose(late.markers - late.hand[:, None], (clean.markers - clean.hand[:, None])[30:], atol=1e-9)
+    assert late.start_unseen[0] == 30 and late.start_unseen[2] == (8,)
+    got, ref = critical(late), critical(clean)
+    assert any("not yet seen" in w and "first 30 frames" in w for w in got.warnings)
+    assert got.event is not None and abs(got.event.time - ref.event.time) < 1e-9

@@ -1250,6 +1250,13 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
                      "cannot)")) if n)
         warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
+    unseen = getattr(ref, "start_unseen", ()) or ()
+    if unseen:
+        frames, seconds, which = unseen
+        warnings.append(f"markers {list(which)} were not yet seen in the recording's first {frames} frames "
+                        f"({seconds:.3f} s): those frames are left out, and the rope starts where every marker has "
+                        "been seen (held back to the first frame, an unseen marker made up the shape the chain starts "
+                        "from)")
     replaced = int(getattr(ref, "hand_replaced", 0) or 0)
     if replaced:
         warnings.append(f"{replaced} samples of marker 0 lay farther from the hand than the rope allows (ghost "

@@ -76,6 +76,7 @@ class RopeReference:
     length_broken: int = 0  # of the missing samples, those that broke the rope's length (labels.repair_length)
     label_swaps: tuple = ()  # (time s, marker i, marker j): label exchanges undone from that frame on
     hand_replaced: int = 0  # samples of marker 0 that broke the rope's length, taken from the hand (marker 0 is there)
+    start_unseen: tuple = ()  # (frames, seconds, markers) left out at the start: markers not yet seen there
 
     @property
     def dt(self) -> float:
@@ -112,6 +113,7 @@ def _scalar(src: str, name: str, value, lo: float, hi: float, unit: str) -> floa
     return x
 
 
+HELD_START_TIME = 0.01  # s: markers unseen for longer than this at the start leave those frames out
 GRAVITY_MAX_DEG = 45.0  # gravity estimated from the motion further off -z than this: another frame, refused
 HANGING_SPEED = 0.2  # m/s: frames whose markers move slower than this (RMS) hang, for the direction check
 
@@ -302,6 +304,24 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         raise InputError(src, "markers", f"mostly missing: marker {worst} is {how} in {100 * frac[worst]:.0f}% of the "
                                          f"frames ({100 * frac.mean():.0f}% of all samples; at most "
                                          f"{100 * MAX_MISSING_FRACTION:.0f}% per marker can be bridged)")
+    # A marker not yet seen would be held back to the first frame at its first sighting: a made-up shape the chain
+    # starts from (marker 8 unseen for 60 frames: put 166 mm off, the rope read as touching itself from the first
+    # frame, measured loss 1.75 against 0.41; review of stop 54). The clip starts where every marker has been seen,
+    # unless that is within HELD_START_TIME (a ghost read as missing in frame 0 holds one frame's motion).
+    time0 = time  # the file's frames, which the label exchanges count
+    unseen = np.array([int(np.argmin(missing[:, m])) if missing[0, m] else 0 for m in range(M)])
+    start_unseen = ()
+    if time[unseen.max()] - time[0] > HELD_START_TIME:
+        lead = int(unseen.max())
+        if lead >= T - 2:
+            raise InputError(src, "markers", f"marker {int(np.argmax(unseen))} is first seen in frame {lead} of {T}: "
+                             "too late to start the rope from")
+        start_unseen = (lead, float(time[lead] - time[0]), tuple(int(m) for m in np.flatnonzero(unseen)))
+        time, markers, hand, missing, filled = (a[lead:] for a in (time, markers, hand, missing, filled))
+        broken = labels.broken[lead:]
+        T = len(time)
+    else:
+        broken = labels.broken
 
     seen = ~(missing[:, 1:] | missing[:, :-1])
     chord = np.linalg.norm(np.diff(markers, axis=1), axis=2)  # (T, M-1)
@@ -376,9 +396,9 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
             raise InputError(src, "sim_contact_s", "must be two arc-length fractions in [0, 1] (or NaN)")
     return RopeReference(time, markers, hand, length, mass, radius, bend, s, source, critical_time, sim_t, sim_s,
                          missing if missing.any() else None, src, int(filled.sum()),
-                         int((labels.broken & missing).sum()),
-                         tuple((float(time[k]), i, j) for k, i, j in labels.swaps),
-                         int((labels.broken & ~missing).sum()))
+                         int((broken & missing).sum()),
+                         tuple((float(time0[k]), i, j) for k, i, j in labels.swaps),
+                         int((broken & ~missing).sum()), start_unseen)
 
 
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
