@@ -815,3 +815,24 @@ def test_a_marker_not_yet_seen_at_the_start_leaves_those_frames_out_rather_than_
     got, ref = critical(late), critical(clean)
     assert any("not yet seen" in w and "first 30 frames" in w for w in got.warnings)
     assert got.event is not None and abs(got.event.time - ref.event.time) < 1e-9
+
+
+@pytest.mark.parametrize("shift, said", [(3, "lags the markers' by 15 ms (3 frames)"),
+                                         (-2, "leads the markers' by 10 ms (2 frames)"), (1, None)])
+def test_a_hand_track_on_another_clock_is_refused_naming_the_lag(tmp_path, shift, said):
+    """A hand 3 frames late left marker 0 (the held end) up to 40 mm off the hand but 2.7 mm in median, under the reach
+    limits, and moved a fit in silence; one frame's lag at 200 Hz was refused as a hand recorded at the wrist (review of
+    stop 54). Two frames or more are refused naming the lag; one (5 ms) is said."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    keep = ("time", "length", "mass", "radius", "marker_arclength", "markers")
+    T = len(z["time"])
+    hand = z["hand"][np.clip(np.arange(T) - shift, 0, T - 1)]
+    np.savez(tmp_path / "shifted.npz", **{k: z[k] for k in keep}, hand=hand)
+    if said is None:
+        ref = load_reference(tmp_path / "shifted.npz")
+        assert ref.hand_lag == pytest.approx(0.005)
+        assert any("lags the markers' by one frame (5 ms" in w for w in critical(ref).warnings)
+        return
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "shifted.npz")
+    assert e.value.field == "hand" and said in e.value.problem

@@ -1250,6 +1250,11 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
                      "cannot)")) if n)
         warnings.append(f"{int(np.sum(missing))} marker samples were missing ({how}) and bridged in time (markers "
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
+    lag = float(getattr(ref, "hand_lag", 0.0) or 0.0)
+    if lag:
+        warnings.append(f"the hand's track {'lags' if lag > 0 else 'leads'} the markers' by one frame "
+                        f"({1000 * abs(lag):.0f} ms; marker 0, the held end, sits on the hand shifted so): the chain "
+                        "is driven that much off the rope's own clock; give the hand on the markers' clock")
     unseen = getattr(ref, "start_unseen", ()) or ()
     if unseen:
         frames, seconds, which = unseen

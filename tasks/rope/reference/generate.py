@@ -77,6 +77,7 @@ class RopeReference:
     label_swaps: tuple = ()  # (time s, marker i, marker j): label exchanges undone from that frame on
     hand_replaced: int = 0  # samples of marker 0 that broke the rope's length, taken from the hand (marker 0 is there)
     start_unseen: tuple = ()  # (frames, seconds, markers) left out at the start: markers not yet seen there
+    hand_lag: float = 0.0  # s, one frame's lag of the hand's track behind the markers' (negative: ahead), said
 
     @property
     def dt(self) -> float:
@@ -116,6 +117,46 @@ def _scalar(src: str, name: str, value, lo: float, hi: float, unit: str) -> floa
 HELD_START_TIME = 0.01  # s: markers unseen for longer than this at the start leave those frames out
 GRAVITY_MAX_DEG = 45.0  # gravity estimated from the motion further off -z than this: another frame, refused
 HANGING_SPEED = 0.2  # m/s: frames whose markers move slower than this (RMS) hang, for the direction check
+
+
+MAX_HAND_SHIFT = 10  # frames searched either way for the shift that puts marker 0 on the hand
+HAND_CLOCK_TOLERANCE = 0.01  # s: a hand track shifted by more than this, or by 2 frames or more, is refused; by one
+# frame within it, said
+HAND_CLOCK_FLOOR = 0.002  # m: marker 0 nearer the hand than this in its fastest frames is on the hand (noise)
+
+
+def _hand_clock_lag(src: str, time: np.ndarray, held_marker: np.ndarray, hand: np.ndarray, missing,
+                    reach: float) -> float:
+    """How much the hand's track lags the markers (s; negative: leads), from marker 0 at the held end, which follows
+    the hand frame for frame: over the frames where the hand moves fastest (its top fifth), the shift of the hand's
+    frames that brings it nearest marker 0, where that puts marker 0 on the hand (within `reach`) and clearly beats none
+    (half the distance or less; a marker down the rope trails the hand at any shift). A hand from
+    another clock (a robot's encoders beside the motion capture) 3 frames (12 ms) late had left marker 0 up to 40 mm
+    off the hand but 2.7 mm in median, under the reach limits, and moved the fit in silence; at 200 Hz one frame's lag
+    was refused as a hand recorded at the wrist (review of stop 54). Refused beyond HAND_CLOCK_TOLERANCE or one frame;
+    one frame within it is returned, and said."""
+    T = len(time)
+    if T < 4 * MAX_HAND_SHIFT:
+        return 0.0
+    speed = np.linalg.norm(np.gradient(hand, axis=0), axis=1)
+    inner = np.arange(MAX_HAND_SHIFT, T - MAX_HAND_SHIFT)
+    inner = inner[~missing[inner]]
+    if inner.size < 10:
+        return 0.0
+    fast = inner[speed[inner] >= np.quantile(speed[inner], 0.8)]
+    shifts = np.arange(-MAX_HAND_SHIFT, MAX_HAND_SHIFT + 1)
+    miss = np.array([np.median(np.linalg.norm(held_marker[fast] - hand[fast + k], axis=1)) for k in shifts])
+    best = int(shifts[np.argmin(miss)])
+    unshifted = miss[MAX_HAND_SHIFT]
+    if best == 0 or unshifted < HAND_CLOCK_FLOOR or miss.min() > min(0.5 * unshifted, reach):
+        return 0.0
+    lag = float(np.median(np.diff(time))) * best
+    if abs(best) >= 2 or abs(lag) > HAND_CLOCK_TOLERANCE:
+        raise InputError(src, "hand", f"the hand's track {'lags' if best > 0 else 'leads'} the markers' by "
+                         f"{abs(lag) * 1000:.0f} ms ({abs(best)} frames): marker 0 (the held end) lies "
+                         f"{1000 * unshifted:.0f} mm from the hand in median over the hand's fastest frames, "
+                         f"{1000 * miss.min():.1f} mm with the hand shifted so; give the hand on the markers' clock")
+    return lag
 
 
 def _axis_name(v: np.ndarray) -> str:
@@ -353,6 +394,8 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
                          "do the markers sit? give marker_arclength (0 for a marker at the held end)")
+    hand_lag = _hand_clock_lag(src, time, markers[:, 0], hand, missing[:, 0], held_end_reach(radius)) \
+        if s[0] == 0.0 else 0.0
     # the file's own word for it: a hand recorded as a wrist body 15-36 mm off the held end drove the chain from there
     # (measured loss 0.27 -> 1.9, a bend stiffness 100x off with a tight std; a probe of stop 47)
     if has_arclength and s[0] == 0.0 and steady > held_end_reach(radius):
@@ -398,7 +441,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                          missing if missing.any() else None, src, int(filled.sum()),
                          int((broken & missing).sum()),
                          tuple((float(time0[k]), i, j) for k, i, j in labels.swaps),
-                         int((broken & ~missing).sum()), start_unseen)
+                         int((broken & ~missing).sum()), start_unseen, hand_lag)
 
 
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
