@@ -627,6 +627,18 @@ def test_evaluate_says_what_it_did_not_score_or_make(tmp_path, capsys):
     assert "b.npz: left out" in out.err and json.loads((tmp_path / "s.json").read_text())["results"]["8"][
         "summary"]["files"] == 1
     assert evaluate.main(["score", str(mixed), "--markers", "8", "--json", str(tmp_path / "s.json")]) == 2  # no --force
+    # a time axis in milliseconds was scored as a detector 1450 ms off, and a folder of files all left out as 0 of 0
+    # with exit 0 (review of stop 54)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    whole = dict(np.load(DATA / "mujoco_default_flick_fast.npz"))
+    np.savez(foreign / "ms.npz", **{**whole, "time": 1000.0 * whole["time"]})
+    np.savez(foreign / "nolength.npz", **{k: v for k, v in whole.items() if k != "length"})
+    capsys.readouterr()
+    assert evaluate.main(["score", str(foreign), "--markers", "8"]) == 2
+    err = capsys.readouterr().err
+    assert "ms.npz: left out: time: frame step 5 s" in err and "nolength.npz: left out: length: missing" in err
+    assert "none of the 2 files could be scored" in err
     gen = ["generate", "--engine", "newton", "--out", str(tmp_path / "g"), "--paths", "flick", "--duration", "0.05",
            "--segments", "16"]
     assert evaluate.main(gen) == 0
@@ -836,3 +848,23 @@ def test_a_hand_track_on_another_clock_is_refused_naming_the_lag(tmp_path, shift
     with pytest.raises(InputError) as e:
         load_reference(tmp_path / "shifted.npz")
     assert e.value.field == "hand" and said in e.value.problem
+
+
+def test_samples_exported_as_exact_zeros_are_read_as_missing(tmp_path):
+    """Motion-capture exports (Vicon's) write a lost marker as (0, 0, 0): read as samples at the origin they broke the
+    rope's length and the file was refused as "wrong units, wrong length" (review of stop 54). Read as missing, they
+    are bridged and said, and the contact is the clean file's."""
+    z = np.load(DATA / "newton_default_flick_fast.npz")
+    keep = ("time", "length", "mass", "radius", "marker_arclength", "hand")
+    markers = z["markers"].copy()
+    rng = np.random.default_rng(5)
+    lost = [(int(k), int(m)) for k, m in zip(rng.integers(5, 60, 25), rng.integers(1, 12, 25))]  # before the contact
+    for k, m in lost:
+        markers[k, m] = 0.0
+    np.savez(tmp_path / "zeros.npz", **{k: z[k] for k in keep}, markers=markers)
+    np.savez(tmp_path / "clean.npz", **{k: z[k] for k in keep}, markers=z["markers"])
+    got, clean = load_reference(tmp_path / "zeros.npz"), load_reference(tmp_path / "clean.npz")
+    assert got.zeros_missing == len(set(lost)) and all(got.missing[k, m] for k, m in lost)
+    said = critical(got)
+    assert any("exactly (0, 0, 0)" in w for w in said.warnings)
+    assert abs(said.event.time - critical(clean).event.time) < 0.005

@@ -37,22 +37,47 @@ TOL = 0.02  # s
 KISS = 5e-4  # m
 
 
+def _field(z, path: Path, name: str) -> np.ndarray:
+    if name not in z.files:
+        raise InputError(str(path), name, "missing")
+    a = z[name]
+    if a.dtype.kind not in "iuf":
+        raise InputError(str(path), name, f"must be numbers, got dtype {a.dtype}")
+    return a.astype(np.float64)
+
+
 def _truth_and_nodes(path: Path):
+    """The file's frames, dense nodes, hand, length, radius and known first contact, checked as the loader checks
+    them: a time axis in milliseconds had been scored as a detector 1450 ms off (review of stop 54)."""
     z = np.load(path, allow_pickle=False)
-    time = z["time"].astype(np.float64)
+    time = _field(z, path, "time")
+    steps = np.diff(time)
+    if time.ndim != 1 or len(time) < 3 or not np.all(steps > 0):
+        raise InputError(str(path), "time", "must be a strictly increasing axis of at least 3 frames")
+    if not 1e-5 <= float(np.mean(steps)) <= 0.1:
+        raise InputError(str(path), "time", f"frame step {float(np.mean(steps)):g} s is outside [1e-5, 0.1] s "
+                         "(seconds expected)")
     if "dense_nodes" in z.files:
-        nodes = z["dense_nodes"].astype(np.float64)
-    elif z["markers"].shape[1] >= 33:  # a file that kept every node as its markers
-        nodes = z["markers"].astype(np.float64)
+        nodes = _field(z, path, "dense_nodes")
+    elif "markers" in z.files and z["markers"].ndim == 3 and z["markers"].shape[1] >= 33:
+        nodes = _field(z, path, "markers")  # a file that kept every node as its markers
     else:
         raise InputError(str(path), "dense_nodes", "missing: generate with --dense (or keep every node as markers)")
-    length, radius = float(z["length"]), float(z["radius"])
-    t_sim = float(z["sim_contact_time"]) if "sim_contact_time" in z.files else None
+    if nodes.ndim != 3 or nodes.shape[0] != len(time) or nodes.shape[2] != 3:
+        raise InputError(str(path), "dense_nodes", f"must have shape ({len(time)}, N, 3), got {nodes.shape}")
+    hand = _field(z, path, "hand")
+    if hand.shape != (len(time), 3):
+        raise InputError(str(path), "hand", f"must have shape ({len(time)}, 3), got {hand.shape}")
+    length, radius = float(_field(z, path, "length")), float(_field(z, path, "radius"))
+    t_sim = float(_field(z, path, "sim_contact_time")) if "sim_contact_time" in z.files else None
     if t_sim is None:  # the physics definition on the dense centre line
         from wrenorm.tasks.rope.reference.generate import _dense_first_contact
 
         t_sim = _dense_first_contact(time, nodes, length, radius)[0]
-    return time, nodes, z["hand"].astype(np.float64), length, radius, (t_sim if np.isfinite(t_sim) else None)
+    elif np.isfinite(t_sim) and not time[0] <= t_sim <= time[-1]:
+        raise InputError(str(path), "sim_contact_time", f"{t_sim:g} s is outside the file's time axis ({time[0]:g}, "
+                         f"{time[-1]:g}) s")
+    return time, nodes, hand, length, radius, (t_sim if np.isfinite(t_sim) else None)
 
 
 def classify(status: str, flagged: bool, t_det, t_true) -> str:
@@ -105,7 +130,8 @@ def score(files, markers: int, noise: float = 0.0, occlude: int = 0, seed: int =
         try:
             time, nodes, hand, length, radius, t_true = _truth_and_nodes(f)
         except (InputError, KeyError, ValueError, OSError, zipfile.BadZipFile) as e:  # one foreign file: that file
-            print(f"{f}: left out: {e}", file=sys.stderr, flush=True)
+            why = f"{e.field}: {e.problem}" if isinstance(e, InputError) else e
+            print(f"{f}: left out: {why}", file=sys.stderr, flush=True)
             continue
         mk0, s = resample_nodes(nodes, markers)
         if gaps:
@@ -281,6 +307,9 @@ def main(argv=None) -> int:
     result = {}
     for m in a.markers:
         rows = score(files, m, a.noise, a.occlude, a.seed, a.verbose, a.gaps, a.gaps_at)
+        if not rows and not a.gaps:  # with --gaps, files without a contact are skipped by design
+            print(f"score: none of the {len(files)} files could be scored (each left out above)", file=sys.stderr)
+            return 2
         result[str(m)] = {"summary": summarise(rows), "rows": rows}
         print(f"{m} markers: {json.dumps(result[str(m)]['summary'])}", flush=True)
     if a.json:

@@ -1243,7 +1243,9 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
         cols = np.flatnonzero(np.any(missing, axis=0)).tolist()
         filled = int(getattr(ref, "tracker_filled", 0) or 0)
         broken = int(getattr(ref, "length_broken", 0) or 0)
+        zeros = int(getattr(ref, "zeros_missing", 0) or 0)
         how = "NaN" + "".join(f", or {n} of them {what}, read as missing" for n, what in (
+            (zeros, "exactly (0, 0, 0), a tracker's mark for a lost marker"),
             (filled, "filled by the recording's gap filling"),
             (broken, "farther from their neighbours than the rope between them is long (ghost samples, where two "
                      "markers' labels were exchanged, or a rope that stretches more than 10 %, which the chain "

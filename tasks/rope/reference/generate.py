@@ -78,6 +78,7 @@ class RopeReference:
     hand_replaced: int = 0  # samples of marker 0 that broke the rope's length, taken from the hand (marker 0 is there)
     start_unseen: tuple = ()  # (frames, seconds, markers) left out at the start: markers not yet seen there
     hand_lag: float = 0.0  # s, one frame's lag of the hand's track behind the markers' (negative: ahead), said
+    zeros_missing: int = 0  # of the missing samples, those the file held as exact zeros (a tracker's lost marker)
 
     @property
     def dt(self) -> float:
@@ -307,6 +308,10 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # the event detector when they touch the event), a marker missing in most frames cannot be.
     partial = np.isnan(markers).any(-1) & ~np.isnan(markers).all(-1)
     markers[partial] = np.nan
+    # a tracker's mark for a lost marker (Vicon's exports write 0, 0, 0): read as missing, not as a sample at the
+    # origin, which broke the rope's length and was refused as "wrong units, wrong length" (review of stop 54)
+    zeros = np.all(markers == 0.0, axis=-1)
+    markers[zeros] = np.nan
     # Units and length first, then a tracker's label exchanges and ghost samples: a sample farther from its
     # neighbours than the rope between them is long (README, "Reference format")
     box = 100.0
@@ -441,7 +446,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                          missing if missing.any() else None, src, int(filled.sum()),
                          int((broken & missing).sum()),
                          tuple((float(time0[k]), i, j) for k, i, j in labels.swaps),
-                         int((broken & ~missing).sum()), start_unseen, hand_lag)
+                         int((broken & ~missing).sum()), start_unseen, hand_lag, int(zeros[-len(time):].sum()))
 
 
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
