@@ -528,3 +528,15 @@ def test_cli_rejects_unknown_path(tmp_path, capsys):
     assert main(["--out", str(tmp_path / "x.npz"), "--duration", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "--path" in err[0] and "--duration" in err[1]
+
+
+def test_a_time_axis_that_repeats_or_goes_back_names_the_frame(tmp_path):
+    """'must be strictly increasing' did not say where (review of stop 54)."""
+    for how, fix in (("repeats", lambda t: t[10]), ("goes back from", lambda t: t[10] - 0.001)):
+        d = as_dict(hanging_ref())
+        d["time"] = d["time"].copy()
+        d["time"][11] = fix(d["time"])
+        write_npz(tmp_path / "t.npz", d)
+        with pytest.raises(InputError) as e:
+            load_reference(tmp_path / "t.npz")
+        assert e.value.field == "time" and "frame 11 at" in e.value.problem and how in e.value.problem

@@ -274,7 +274,9 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
         raise InputError(src, "time", f"must have shape (T,) with T >= 2, got {time.shape}")
     dt = np.diff(time)
     if not np.all(dt > 0):
-        raise InputError(src, "time", "must be strictly increasing")
+        k = int(np.argmax(~(dt > 0)))
+        raise InputError(src, "time", f"must be strictly increasing: frame {k + 1} at {time[k + 1]:g} s "
+                         f"{'repeats' if dt[k] == 0 else 'goes back from'} frame {k}'s {time[k]:g} s")
     mean_dt = (time[-1] - time[0]) / (len(time) - 1)
     if np.max(np.abs(dt - mean_dt)) > 1e-3 * mean_dt + 1e-9:
         uniform = rounded_uniform_clock(time, np.asarray(data["time"]).dtype)
