@@ -132,6 +132,10 @@ def test_fps_carries_into_the_rates_and_a_wrong_one_is_flagged(tmp_path, rates):
     # 50 fps read as 60: every beat 20 % fast, 0.90 x the label, inside the band of before (0.5-1.0)
     _write_pixels(tmp_path, r, markers=_upsampled(r.markers, 50.0 / 60.0))
     assert len(sd.tail_beat_check(sd.load_dir(tmp_path))["flagged"]) == 1
+    # 55 and 66 fps read as 60 (every speed and beat 9 % off) passed the +-15 % band of before (review of stop 54)
+    for fps in (55.0, 66.0):
+        _write_pixels(tmp_path, r, markers=_upsampled(r.markers, fps / 60.0))
+        assert len(sd.tail_beat_check(sd.load_dir(tmp_path))["flagged"]) == 1, fps
     for bad in (0.0, -60.0, float("nan")):
         with pytest.raises(InputError, match="fps"):
             sd.load_dir(tmp_path, fps=bad)

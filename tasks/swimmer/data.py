@@ -75,8 +75,10 @@ CLEAR_STEP_RATIO = 2.5  # .. one such step alone must reach this (two rows or mo
 # a foreign clip slower or finer than these (the 0.50 Hz clip at 120 fps: 1.64) may reach 1.8 once by noise
 MAX_SHARED_ROWS = 0.5  # share of the shorter clip's rows found exactly in another clip: one track under two labels
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
-TAIL_BEAT_PER_LABEL_RANGE = (0.64, 0.86)  # +-15 %, outside: flagged. The five clips lie at 0.738-0.756; a frame rate
-# off by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by)
+TAIL_BEAT_PER_LABEL_RANGE = (0.70, 0.80)  # about +-7 %, outside: flagged. The five clips lie at 0.738-0.756, and the
+# three more of fishsim's repository (0.75, 1.50, 2.00 Hz), not seen when this was set, at 0.746-0.752; a frame rate off
+# by 2x lands at 0.375 or 1.5, clips at 50 or 72 fps read at 60 at 0.90 or 0.62 (0.5-1.0 until stop 44 let those by),
+# and at 55 or 66 fps at 0.81-0.82 or 0.67-0.69, which +-15 % (until stop 54) let by with every speed 9 % off
 # fishsim's names, markers_f1_00.csv; a decimal point (markers_f1.00.csv) and any case of the letters read alike
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)[_.](\d+)\.csv$", re.IGNORECASE)
 _CLIP_LIKE = re.compile(r"^(markers|rotatedmarkers)_f\d", re.IGNORECASE)  # any extension: markers_f1_25.txt was
