@@ -384,3 +384,55 @@ def test_a_noisy_logs_tolerance_is_never_below_its_noise(tmp_path):
     v = res["validation"]
     assert v["verdict"] == "absorbed" and v["conditions"]["log_validate"]["fitted_error"] > 0.02
     assert res["parameters"]["K_D"]["fitted"] == pytest.approx(0.5, rel=0.06)
+
+
+def _exact_log(path, lag=0.0, qd_lag=0.0, KP=20.0, KD=0.5, wrap=False, still=0.0, rate=1000.0, dur=6.0):
+    """A log of the exact PD joint (J 0.05) under a multisine command; the logged command `lag` s late against q (its
+    velocity a further `qd_lag` s), a wrapped q_d, or a joint still for its first `still` s."""
+    from wrenorm.tasks.pd.problem import Command, exact_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(int(round(dur * rate)) + 1) / rate
+    move = np.clip(t - still, 0.0, None)
+    q = exact_reference(cmd, 0.05, KP, KD, move)
+    q_d, qd_d = cmd(np.clip(move - lag, 0.0, None))[0], cmd(np.clip(move - lag - qd_lag, 0.0, None))[1]
+    if wrap:
+        q, q_d = q + 3.0, (q_d + 3.0 + np.pi) % (2 * np.pi) - np.pi
+    if still:
+        q = q + 1e-4 * np.random.default_rng(0).standard_normal(len(t))
+    np.savetxt(path, np.stack([t, q, q_d, qd_d], 1), delimiter=",", header="time,q,q_d,qd_d", comments="")
+    return path
+
+
+def _fit_warnings(tmp_path, log):
+    import json
+
+    out = tmp_path / ("fit-" + log.stem)
+    assert main(["fit", "pd", "--quiet", "--no-record", "--reference", str(log), "--out", str(out)]) == 0
+    return json.loads((out / "result.json").read_text())["warnings"]
+
+
+def test_a_command_on_another_clock_or_gains_not_the_logs_are_said(tmp_path):
+    """The exact joint's log fits with nothing said; its command logged 20 ms late fitted K_FF 0.39 (77 % of K_D),
+    and given gains half the log's fitted J 44 % low, both said only "absorbed" (review of stop 54)."""
+    assert _fit_warnings(tmp_path, _exact_log(tmp_path / "clean.csv")) == []
+    said = _fit_warnings(tmp_path, _exact_log(tmp_path / "late.csv", lag=0.02))
+    assert len(said) == 1 and "K_FF" in said[0] and "time offset of about +19" in said[0]
+    said = _fit_warnings(tmp_path, _exact_log(tmp_path / "gains.csv", KP=40.0, KD=1.0))
+    assert any(w.startswith("J fitted at") and "this log's gains" in w for w in said)
+
+
+@pytest.mark.parametrize("how, field, said", [
+    ({"qd_lag": 0.02}, "qd_d", "lags the rate of change of q_d by 20 ms"),
+    ({"wrap": True}, "q_d row", "wrapped at +-pi"),
+    ({"still": 4.5}, "q", "first two thirds of the log, which the fit uses, hardly move"),
+])
+def test_a_command_velocity_on_another_clock_a_wrapped_command_or_a_still_fit_part_is_refused(tmp_path, how, field,
+                                                                                              said):
+    """Each had been fitted and said "absorbed" or "expand" with no cause named (review of stop 54)."""
+    log = _exact_log(tmp_path / "bad.csv", **how)
+    with pytest.raises(InputError) as e:
+        from wrenorm.tasks.pd.problem import PDProblem
+
+        PDProblem(100.0, "semi-implicit", log=load_log(log))
+    assert e.value.field.startswith(field) and said in e.value.problem

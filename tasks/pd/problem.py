@@ -196,6 +196,34 @@ class MeasuredLog:
     qd_d: np.ndarray
 
 
+MAX_COMMAND_LAG = 1  # samples: qd_d shifted more than this against the rate of change of q_d is refused
+
+
+def _check_command_clock(src: str, t: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, step: float) -> None:
+    """qd_d is the rate of change of q_d on the same clock: the shift of qd_d's samples that best matches np.gradient
+    (central, no lag) of q_d is its lag. 20 ms of it had moved J 1.5 %, K_D 2.3 % and K_AFF to 23 % of J, said
+    "absorbed" (review of stop 54)."""
+    rate = np.gradient(q_d, t)
+    n = len(t)
+    most = int(min(max(2, round(0.1 / step)), n // 4))
+    if np.ptp(qd_d) == 0 or np.ptp(rate) == 0 or most < 2:
+        return
+    core = slice(most, n - most)
+
+    def match(k: int) -> float:
+        a, b = rate[core], qd_d[most + k:n - most + k]
+        return float(np.corrcoef(a, b)[0, 1])
+
+    shifts = range(-most, most + 1)
+    corr = np.array([match(k) for k in shifts])
+    best = int(np.argmax(corr)) - most
+    if abs(best) > MAX_COMMAND_LAG and corr[best + most] > 0.9 and corr[best + most] - corr[most] > 0.01:
+        raise InputError(src, "qd_d", f"{'lags' if best > 0 else 'leads'} the rate of change of q_d by "
+                         f"{abs(best) * step * 1000:.3g} ms ({abs(best)} samples; correlation {corr[best + most]:.3f} "
+                         f"shifted, {corr[most]:.3f} as logged): qd_d on another clock? give the command's velocity "
+                         "on q_d's clock")
+
+
 def load_log(path: str | Path) -> MeasuredLog:
     """A measured joint log: CSV with header columns time, q, q_d, qd_d (SI units, rad, rad/s), sampled at a
     steady rate (a hole of more than MAX_GAP_STEPS median steps and MIN_GAP_S is refused)."""
@@ -283,12 +311,15 @@ def load_log(path: str | Path) -> MeasuredLog:
                                           "velocity term of the PD law with q_d")
     # q follows q_d: their motions are of one size. Degrees in one column and radians in the other differ 57x (that log
     # fitted every gain to its bound and said only "expand")
-    # an angle logged modulo a turn jumps by 2 pi between two samples, which no joint under a PD law does
-    jumps = np.abs(np.diff(arr[:, 1]))
-    k = int(np.argmax(jumps))
-    if jumps[k] > 0.9 * 2.0 * np.pi and jumps[k] > 20.0 * max(float(np.median(jumps)), 1e-12):
-        raise InputError(src, f"q row {k + 2}", f"jumps {jumps[k]:.3g} rad from one sample to the next: an angle "
-                                                 "wrapped at +-pi? unwrap it (numpy.unwrap)")
+    # an angle logged modulo a turn jumps by 2 pi between two samples, which no joint under a PD law does, nor its
+    # command (q_d wrapped beside an unwrapped q had been fitted to "expand", or refused as running against q)
+    for j, name in ((1, "q"), (2, "q_d")):
+        jumps = np.abs(np.diff(arr[:, j]))
+        k = int(np.argmax(jumps))
+        if jumps[k] > 0.9 * 2.0 * np.pi and jumps[k] > 20.0 * max(float(np.median(jumps)), 1e-12):
+            raise InputError(src, f"{name} row {k + 2}", f"jumps {jumps[k]:.3g} rad from one sample to the next: an "
+                                                         "angle wrapped at +-pi? unwrap it (numpy.unwrap)")
+    _check_command_clock(src, t, arr[:, 2], arr[:, 3], step)
     # q follows q_d: a joint whose q runs against its command has q (or q_d) logged with the other sign convention
     follow = float(np.corrcoef(arr[:, 1], arr[:, 2])[0, 1])
     if follow < 0.0:
@@ -347,6 +378,9 @@ def start_state(time: np.ndarray, q: np.ndarray, a: float, spline=None) -> tuple
 
 
 NOISE_TOLERANCE = 2.0  # a log's held-out tolerance is at least this many times the error its noise alone leaves
+GAUGE_OFFSET_STEPS = 0.5  # a K_FF implying a command-to-q offset of more than this many simulation steps is said
+GAUGE_MISMATCH = 0.25  # J or K_D further than this share from the finite step's first-order prediction is said (the
+# clean logs: within 5 %; gains twice the given ones: 44-100 %)
 UNEXPLAINED = 3.0  # a held-out misfit this many times what the noise explains (and over a quarter of the tolerance) ..
 # .. is said: the values absorbed something the model omits
 
@@ -444,6 +478,10 @@ class PDProblem(Problem):
                                  f"{self.dt:g} s: the command and q are interpolated between samples (a 10 Hz log "
                                  "fitted at 100 Hz moved K_D 15 %); log at least as fast as f_sim")
         moves = [float(np.std(c.data["q_ref"])) for c in conds]
+        if moves[0] < STILL_FRACTION * moves[1]:  # K_D had gone to its bound, J to a quarter, said "expand" only
+            raise InputError(log.path, "q", f"the first two thirds of the log, which the fit uses, hardly move (q "
+                             f"varies {moves[0]:.3g} rad against {moves[1]:.3g} rad in the last third): nothing to fit "
+                             "there; cut the still start off, or log motion throughout")
         if moves[1] < STILL_FRACTION * moves[0]:
             self.warnings.append(f"{log.path}: the last third of the log, held out for validation, hardly moves (q "
                                  f"varies {moves[1]:.3g} rad against {moves[0]:.3g} rad in the first two thirds): it "
@@ -572,7 +610,33 @@ class PDProblem(Problem):
         return errs, details
 
     def fit_warnings(self, fitted) -> list[str]:
-        return self._unexplained_warnings(fitted) + self._unstable_warnings(fitted)
+        return self._unexplained_warnings(fitted) + self._unstable_warnings(fitted) + self._gauge_warnings(fitted)
+
+    def _gauge_warnings(self, fitted) -> list[str]:
+        """What the fitted values say of the log against the finite step's prediction for the given gains. K_FF is
+        K_P times a time offset between the command and q (the command is sampled with the state, so K_FF stays
+        ~0): 20 ms of command lag fitted K_FF 0.39 (77 % of K_D) and a q stamped a sample late -0.20, both said
+        "absorbed" and nothing else. J or K_D far from their prediction say the given --J/--K-P/--K-D are not this
+        log's: gains twice the given ones fitted J 44 % low, "absorbed" (review of stop 54)."""
+        v = self.space.as_dict(np.asarray(fitted))
+        a = self.analytic(v)
+        out = []
+        free = set(self.space.names[i] for i in np.flatnonzero(self.space.free_mask))
+        if "K_FF" in free:  # ~0 for either integrator on a log on one clock (README, "PD control")
+            offset = v["K_FF"] / self.true["K_P"]
+            if abs(offset) > GAUGE_OFFSET_STEPS * self.dt:
+                out.append(f"K_FF fitted at {v['K_FF']:.3g} where a log on one clock fits ~0: a time offset of about "
+                           f"{1000 * offset:+.3g} ms between the command (q_d, qd_d) and q, which the fitted values "
+                           "absorb (a command or q on another clock, or stamped a sample late?): align the log's "
+                           "clocks before reading J and K_D as resolution effects")
+        for name, predicted in (("J", a["J_sim_first_order"]), ("K_D", a["K_D_sim_first_order"])):
+            if name in free and abs(v[name] / predicted - 1.0) > GAUGE_MISMATCH:
+                out.append(f"{name} fitted at {v[name]:.3g}, {100 * (v[name] / predicted - 1):+.0f} % from the "
+                           f"{predicted:.3g} the finite step predicts for the given J {self.true['J']:g}, K_P "
+                           f"{self.true['K_P']:g}, K_D {self.true['K_D']:g}: are those this log's gains (--J, --K-P, "
+                           "--K-D)? the fitted values are then effective values for other gains, not resolution "
+                           "effects")
+        return out
 
     def _unexplained_warnings(self, fitted) -> list[str]:
         out = []
