@@ -1869,3 +1869,33 @@ def test_the_trust_norm_resumes_as_it_ran_and_needs_a_gauss_newton_step(tmp_path
     correct_cli._check_step_options(parser.parse_args(["--trust-norm", "ball"]))
     with pytest.raises(InputError, match="trust_norm"):
         correct_cli._check_step_options(parser.parse_args(["--method", "plan", "--trust-norm", "ball"]))
+
+
+def test_a_resume_refuses_a_params_file_rewritten_since_the_run_read_it(tmp_path):
+    """A --params result.json rewritten under the same name had a resume throw the stored trials away and throw
+    every trial again on the new model (real trials, on a robot; review of stop 54): its content is kept in
+    settings.json and compared, naming the file. A run saved before that resumes unchecked."""
+    import argparse
+
+    from wrenorm.cli import content_hashes
+    from wrenorm.tasks.rope.control import correct_cli
+
+    model = tmp_path / "model.json"
+    model.write_text('{"parameters": "the model the trials were planned on"}')
+    parser = argparse.ArgumentParser()
+    correct_cli.add_arguments(parser)
+    args = parser.parse_args(["--params", str(model)])
+    saved = json.loads(json.dumps({k: v for k, v in vars(args).items() if k not in correct_cli._NOT_SAVED},
+                                  default=str))
+    saved[correct_cli.PARAMS_HASHES_KEY] = content_hashes([str(model)])
+    f = tmp_path / correct_cli.SETTINGS_FILE
+    f.write_text(json.dumps(saved | {"_digest": correct_cli._settings_digest(saved)}))
+    resume = ["--resume", "--out", str(tmp_path)]
+    correct_cli._restore_settings(parser.parse_args(resume))  # the same file: accepted
+    model.write_text('{"parameters": "another fit"}')
+    with pytest.raises(InputError) as e:
+        correct_cli._restore_settings(parser.parse_args(resume))
+    assert e.value.source == str(model) and e.value.field == "--params" and "is not the file" in e.value.problem
+    older = {k: v for k, v in saved.items() if k != correct_cli.PARAMS_HASHES_KEY}
+    f.write_text(json.dumps(older | {"_digest": correct_cli._settings_digest(older)}))
+    correct_cli._restore_settings(parser.parse_args(resume))

@@ -300,3 +300,44 @@ def test_a_resume_after_the_code_changed_is_refused(tmp_path, capsys, monkeypatc
     del head[found[0]]["code"]
     log.write_text("\n".join([json.dumps(head), *lines[1:]]) + "\n")
     assert main([*cmd, "--resume"]) == 0
+
+
+def test_a_resumed_multi_rate_fit_checks_its_finished_rates_and_its_resolutions(tmp_path, capsys):
+    """A fit at two rates resumed with another --K-D had reused the finished rates' results made with the old one, and
+    one resumed at another --f-sim had started a new fit over the folder's combined result; a cut-short result of a
+    finished rate ended in a traceback (review of stop 54). Each is one line, exit 2; the same resume still works."""
+    import shutil
+
+    base = ["fit", "pd", "--quiet", "--no-record", "--f-sim", "50,100", "--search", "least-squares"]
+    out = tmp_path / "multi"
+    assert main([*base, "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main([*base, "--out", str(out), "--resume", "--K-D", "0.9"]) == 2
+    _one_line_error(capsys, "f_sim50", "search_log.jsonl", "K_D")
+    other = ["fit", "pd", "--quiet", "--no-record", "--f-sim", "200", "--search", "least-squares"]
+    assert main([*other, "--out", str(out), "--resume"]) == 2
+    _one_line_error(capsys, "--resume", "f_sim100, f_sim50", "this one at f_sim200")
+    cut = tmp_path / "cut"
+    shutil.copytree(out, cut)
+    result = cut / "f_sim50" / "result.json"
+    result.write_text(result.read_text()[:200])
+    assert main([*base, "--out", str(cut), "--resume"]) == 2
+    _one_line_error(capsys, "f_sim50", "result.json", "cannot be read back")
+    assert main([*base, "--out", str(out), "--resume"]) == 0
+
+
+def test_a_second_process_on_a_run_folder_in_use_is_refused(tmp_path, capsys):
+    """Every command holds its --out while it runs (sweeps did already): a fit resumed while it still ran had written
+    each generation twice into its search log, and the state was lost (review of stop 54)."""
+    out = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from wrenorm.runfolder import prepare_out; "
+                               "prepare_out(sys.argv[1]); print('held', flush=True); time.sleep(60)", str(out)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main([*PD, "--out", str(out), "--force"]) == 2
+        _one_line_error(capsys, "--out", "another wrenorm process is writing this folder")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main([*PD, "--out", str(out), "--force"]) == 0

@@ -138,6 +138,7 @@ def _end(pids) -> None:
      "axes.freeze: combination freeze=['bend_stifness']: --freeze bend_stifness: unknown parameter of rope"),
     ('task = "fit pd"\n[options]\narm = true\n[axes]\nfree = [["KD12"], ["J"]]', "--free J: unknown parameter of pd"),
     ('task = "flow pd"\n[options]\nfree = ["K_P"]\n[axes]\nfreeze = [["J"], ["K_P"]]', "named both free and frozen"),
+    ('task = "fit pd"\n[options]\nreference = ""', "options.reference: every cell: --reference: an empty path"),
 ])
 def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys, text, key):
     spec = _write(tmp_path, text)
@@ -867,3 +868,16 @@ def test_the_example_specs_load_with_the_commands_own_parsers(name, task, cells,
     spec = load(EXAMPLES / name)
     assert spec.task == task and spec.cells
     assert cells is None or len(spec.cells) == cells
+
+
+def test_a_sweep_state_that_is_not_a_sweeps_is_one_line_on_resume(finished, tmp_path):
+    """A sweep-state.json holding a list, a null or a string record had ended in an AttributeError (review of stop
+    54)."""
+    _, ref, _ = finished
+    for i, text in enumerate(("[]", '{"records": null}', '{"records": {"a": "done"}}')):
+        out = tmp_path / f"copy{i}"
+        shutil.copytree(ref, out)
+        (out / "sweep-state.json").write_text(text)
+        proc = _sweep(out / "spec.toml", out, "--resume")
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert "sweep-state.json: records: not a sweep's state" in proc.stderr

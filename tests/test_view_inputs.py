@@ -164,3 +164,21 @@ def test_a_run_folder_with_one_bad_recording_is_refused(tmp_path, capsys, viewer
     assert main(["view", str(tmp_path)]) == 2
     assert str(tmp_path / "f_sim100" / "recording.rrd") in _one_line(capsys)
     assert viewer == []
+
+
+def test_view_of_a_path_that_does_not_exist_says_so(tmp_path, capsys):
+    """It had said "no recording in this run folder" of a typo (review of stop 54)."""
+    assert main(["view", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert "nope: run: does not exist" in err and err.count("\n") == 1
+
+
+def test_an_interrupted_command_that_cannot_resume_is_not_told_to():
+    """select and sensitivity were told "continue with --resume", which they do not take (review of stop 54)."""
+    from wrenorm.cli import build_parser
+    from wrenorm.interrupt import resume_hint
+
+    fit, select = (build_parser(argv).parse_args(argv) for argv in (["fit", "pd", "--out", "r"],
+                                                                    ["select", "swimmer", "--out", "r"]))
+    assert resume_hint(fit) == "; continue with --resume --out r"
+    assert "does not resume" in resume_hint(select) and "--force --out r" in resume_hint(select)

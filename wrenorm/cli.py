@@ -402,6 +402,8 @@ def cmd_flow(args) -> int:
 
 def cmd_view(args) -> int:
     run = args.run
+    if not run.exists():  # "no recording in this run folder" had been said of a path that does not exist
+        raise InputError(str(run), "run", "does not exist: give a run folder (or its recording.rrd)")
     if args.report:
         import webbrowser
 

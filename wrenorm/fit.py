@@ -404,11 +404,44 @@ def _label(problem: Problem) -> str:
                     if k not in ("dt", "integrator"))
 
 
+def _check_same_resolutions(problems: list, out: Path) -> None:
+    """A resumed fit runs at the resolutions the interrupted one ran at: one resumed at another --f-sim had started
+    a new fit over the folder's combined result (review of stop 54)."""
+    from .errors import InputError
+
+    here = (out / STATE_FILE).exists()
+    subs = sorted(p.parent.name for p in out.glob(f"*/{STATE_FILE}"))
+    labels = sorted(_label(p) for p in problems) if len(problems) > 1 else []
+    if (len(problems) == 1 and subs and not here) or (labels and (here or set(subs) - set(labels))):
+        ran = ", ".join(subs) if subs and not here else "one resolution"
+        now = ", ".join(labels) or _label(problems[0]) or "one resolution"
+        raise InputError(str(out), "--resume", f"the interrupted fit ran at {ran}, this one at {now}: resume with the "
+                                               "same resolutions (--f-sim, --segments, ...)")
+
+
+def _finished_result(path: Path, problem: Problem) -> dict:
+    from .errors import InputError
+
+    try:
+        r = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(str(path), "file", f"cannot be read back ({e.__class__.__name__}): remove that resolution's "
+                                            "folder to fit it again") from None
+    params = r.get("parameters") if isinstance(r, dict) else None
+    if not isinstance(params, dict) or any(not isinstance(params.get(n), dict) or "fitted" not in params[n]
+                                           for n in problem.space.names):
+        raise InputError(str(path), "parameters", "not a finished fit of this parameter set: remove that "
+                                                  "resolution's folder to fit it again")
+    return r
+
+
 def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = False, record: bool = True,
              quiet: bool = False, identity: dict | None = None, command: str | None = None) -> dict:
     """Fit one problem into OUT, or several (e.g. one per f_sim) into OUT/<label>/ with a combined
     OUT/result.json holding `runs`. Each fit starts from its predecessor's result."""
     common = dict(settings=settings, resume=resume, quiet=quiet, record=record, identity=identity)
+    if resume:
+        _check_same_resolutions(problems, out)
     if len(problems) == 1:
         return run_fit(problems[0], out, command=command, **common)
     t0 = time.perf_counter()
@@ -418,7 +451,8 @@ def run_fits(problems: list, out: Path, settings: FitSettings, resume: bool = Fa
         sub = out / label
         done = sub / "result.json"
         if resume and done.exists():
-            r = json.loads(done.read_text())
+            searches.check_finished(sub / STATE_FILE, prob, asdict(settings) | (identity or {}))
+            r = _finished_result(done, prob)
         else:
             r = run_fit(prob, sub, start=start, **common)
         r["folder"] = label

@@ -59,5 +59,9 @@ def restore(previous) -> None:
 
 
 def resume_hint(args) -> str:
+    """What to do after an interrupt: --resume where the command has it; `select` and `sensitivity` had been told to
+    resume, which they cannot, and the folder then refused a plain rerun (review of stop 54)."""
     out = getattr(args, "out", None)
+    if args is not None and not hasattr(args, "resume"):
+        return f"; this command does not resume: run it again with --force --out {out}" if out else ""
     return f"; continue with --resume --out {out}" if out else "; continue with --resume --out <folder>"

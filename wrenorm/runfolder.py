@@ -81,9 +81,10 @@ def hold_folder(out) -> None:
 
 def prepare_out(out, resume: bool = False, force: bool = False, state: str | None = None, inputs=(),
                 command: str = "") -> Path:
-    """The run folder, ready to write into. Refuses to clobber an earlier run unless told to (--force), or
-    continues it (--resume): a run to continue must be wrenorm's and hold its saved `state` file (here or in a
-    sub-run folder)."""
+    """The run folder, ready to write into, and held by this process (hold_folder: every command, not only sweeps;
+    a fit resumed while it still ran had written each generation twice into its log). Refuses to clobber an earlier
+    run unless told to (--force), or continues it (--resume): a run to continue must be wrenorm's and hold its saved
+    `state` file (here or in a sub-run folder)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(str(out), "--out", "exists and is not a folder")
@@ -101,6 +102,7 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
             raise InputError(str(out), "--resume", "is not a wrenorm run folder (no .wrenorm-run marker)")
         if state and not (out / state).exists() and not any(out.glob(f"*/{state}")):
             raise InputError(str(out), "--resume", f"no saved state ({state}) in this folder to resume from")
+        hold_folder(out)
         return out
     if existing:
         if not force:
@@ -110,6 +112,7 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
             raise InputError(str(out), "--force", "the folder is not empty and was not written by wrenorm (no "
                                                   ".wrenorm-run marker): refusing to clear it")
         _guard(out, inputs)
+        hold_folder(out)  # a --force under a run still writing the folder would empty it beneath that run
         for child in out.iterdir():
             if child.name == LOCK:
                 continue
@@ -117,6 +120,7 @@ def prepare_out(out, resume: bool = False, force: bool = False, state: str | Non
                 shutil.rmtree(child)
             else:
                 child.unlink()
+    hold_folder(out)  # two runs started on one new --out wrote one search log between them (review of stop 54)
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / MARKER).write_text(json.dumps({"schema": "wrenorm.run/1", "command": command,

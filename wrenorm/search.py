@@ -235,6 +235,15 @@ def _resume(checkpoint, es: BatchedCMAES, saved: dict) -> list:
     return [g["record"] for g in generations]
 
 
+def check_finished(checkpoint, problem: Problem, settings: dict) -> None:
+    """A finished run's log against this run's parameter set and settings (naming the first that differs), before
+    its result is reused: a resumed multi-rate fit had taken finished rates' results made with another --K-D."""
+    if not Path(checkpoint).exists():
+        raise InputError(str(checkpoint), "file", "missing beside a finished result: cannot tell which settings made "
+                                                  "it; fit again with --force")
+    _read_log(checkpoint, {"free": problem.space.free_names, "settings": settings})
+
+
 def check_resume(checkpoint, problem: Problem, settings: dict, resume: bool) -> None:
     """A search without per-generation state (least squares, a second or so): check a resumed run's settings,
     then record this run's, so that a later --resume can check them in turn."""

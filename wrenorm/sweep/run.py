@@ -72,6 +72,11 @@ def _load_state(out: Path, spec) -> dict:
         state = json.loads(f.read_text())
     except (OSError, ValueError) as e:
         raise InputError(str(f), STATE_FILE, f"cannot be read: {e}") from None
+    records = state.get("records") if isinstance(state, dict) else None
+    if not isinstance(records, dict) or not all(isinstance(r, dict) for r in records.values()):
+        # a list, a null or a record that is a string had ended in a traceback (review of stop 54)
+        raise InputError(str(f), "records", "not a sweep's state (an object of cell records): edited, or not "
+                                            "wrenorm's; start anew with --force")
     if state.get("cells") != _cells_identity(spec):
         raise InputError(str(f), "cells", "the spec expands to other cells than the interrupted sweep's; resume with "
                                           "the same spec (DIR/spec.toml is a copy), or start anew with --force")

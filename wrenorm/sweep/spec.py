@@ -317,7 +317,10 @@ def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
             for v in value if isinstance(value, list) else [value]:
                 for text in _scalar(v, where, spec.path).split(",") if split else [_scalar(v, where, spec.path)]:
                     text = text.strip()
-                    if not text or text in labels:
+                    if not text:  # an empty path had passed here and failed in every cell, after Ray started
+                        raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag}: an empty "
+                                                           "path")
+                    if text in labels:
                         continue
                     problem = _path_problem(Path(text), kind)
                     if problem:

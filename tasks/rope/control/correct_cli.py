@@ -383,6 +383,7 @@ def run(args) -> int:
         from wrenorm.tasks.rope.control.secant import VELOCITY_MODES
 
         saved[BY_ARM_MODES_KEY] = VELOCITY_MODES  # what by-arm means for the renormalised arms today
+        saved[PARAMS_HASHES_KEY] = _params_hashes(args)
         write_json(out / SETTINGS_FILE, saved | {DIGEST_KEY: _settings_digest(saved)})
     t_all = time.perf_counter()
 
@@ -690,6 +691,7 @@ def run_name(label: str) -> str:
 SETTINGS_FILE = "settings.json"
 BY_ARM_MODES_KEY = "by_arm_velocity_modes"  # settings.json: what --velocity-modes by-arm gave the renormalised arms
 DIGEST_KEY = "_digest"
+PARAMS_HASHES_KEY = "params_sha256"  # settings.json: the content of each --params result.json the run read
 
 
 def _kind(value) -> str | None:
@@ -763,6 +765,13 @@ def _typed_options(args) -> set[str]:
     return set(vars(named))
 
 
+def _params_hashes(args) -> dict:
+    from wrenorm.cli import content_hashes
+
+    files = [label for label in args.params if label not in RUN_LABELS]
+    return content_hashes([f for f in files if Path(f).is_file()])
+
+
 def _restore_settings(args) -> None:
     """--resume: the interrupted run's settings, so its plans and trials repeat exactly. An option left out takes
     the saved value; one given with another value than the run had is refused, naming it (also one typed at its
@@ -811,6 +820,18 @@ def _restore_settings(args) -> None:
     # it (stops 49 and before; a run saved before --velocity-modes has "all" from above and never reads it)
     if args.velocity_modes == "by-arm":
         args.by_arm_velocity_modes = saved.get(BY_ARM_MODES_KEY, 3)
+    # a --params file rewritten under the same name: the stored trials were planned on the model it held (a resume
+    # had thrown them away and thrown every trial again on the new model, review of stop 54); saved before: unchecked
+    then = saved.get(PARAMS_HASHES_KEY)
+    if isinstance(then, dict):
+        now = _params_hashes(args)
+        for name in sorted(set(then) | set(now)):
+            if then.get(name) != now.get(name):
+                raise InputError(name, "--params", f"is not the file the interrupted correction read (sha256 "
+                                                   f"{str(then.get(name))[:12]}, now "
+                                                   f"{str(now.get(name))[:12] if name in now else 'missing'}): its "
+                                                   "trials were planned on that model; resume with the same file, or "
+                                                   "start a new run")
     if "trust_region" not in saved and not _adapts({label: _trust_options(args, label) for label in args.params}):
         args.min_radius = None  # saved before the option by a run where no arm adapted: it was ignored then
 
