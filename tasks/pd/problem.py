@@ -215,7 +215,8 @@ def _check_command_clock(src: str, t: np.ndarray, q_d: np.ndarray, qd_d: np.ndar
         return float(np.corrcoef(a, b)[0, 1])
 
     shifts = range(-most, most + 1)
-    corr = np.array([match(k) for k in shifts])
+    with np.errstate(invalid="ignore", divide="ignore"):  # a shift where qd_d holds still has no correlation
+        corr = np.nan_to_num(np.array([match(k) for k in shifts]), nan=-1.0)
     best = int(np.argmax(corr)) - most
     if abs(best) > MAX_COMMAND_LAG and corr[best + most] > 0.9 and corr[best + most] - corr[most] > 0.01:
         raise InputError(src, "qd_d", f"{'lags' if best > 0 else 'leads'} the rate of change of q_d by "
