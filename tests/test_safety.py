@@ -341,3 +341,13 @@ def test_a_second_process_on_a_run_folder_in_use_is_refused(tmp_path, capsys):
         holder.kill()
         holder.wait()
     assert main([*PD, "--out", str(out), "--force"]) == 0
+
+
+def test_a_commands_hold_on_its_folder_ends_with_the_command(tmp_path):
+    """A fit run in this process (a notebook, a sweep worker's cell) had kept its folder from every later process
+    until this one exited (review of stop 54's change)."""
+    out = tmp_path / "run"
+    assert main([*PD, "--out", str(out)]) == 0
+    again = subprocess.run([sys.executable, "-m", "wrenorm", *PD, "--out", str(out), "--force"], capture_output=True,
+                           text=True)
+    assert again.returncode == 0, again.stderr

@@ -881,3 +881,13 @@ def test_a_sweep_state_that_is_not_a_sweeps_is_one_line_on_resume(finished, tmp_
         proc = _sweep(out / "spec.toml", out, "--resume")
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert "sweep-state.json: records: not a sweep's state" in proc.stderr
+
+
+def test_an_empty_part_of_a_list_path_is_skipped_as_the_command_skips_it(tmp_path):
+    """`--reference a.npz,` and ["a.npz", ""] parse to a.npz on the command line; the spec check had refused them
+    (review of stop 54's change). A value with no path at all is still refused."""
+    from wrenorm.sweep.spec import load
+
+    for value in (f'"{ROPE_NPZ},"', f'["{ROPE_NPZ}", ""]'):
+        spec = _write(tmp_path, f'task = "fit rope"\n[options]\nreference = {value}\ngenerations = 1\n')
+        assert [str(ROPE_NPZ)] == load(spec).inputs

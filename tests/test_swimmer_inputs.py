@@ -394,3 +394,18 @@ def test_unreadable_empty_or_misnamed_clip_files_are_refused_naming_the_file(tmp
     with pytest.raises(InputError) as e:
         sd.load_dir(tmp_path)
     assert "markers_f1_25.txt" in e.value.source and e.value.field == "file name"
+
+
+def test_files_beside_the_clips_and_comments_in_them_are_no_clips(tmp_path, rates):
+    """A plot, an editor's backup or a folder named like a clip had refused the whole folder, and a comment after a row
+    (which np.loadtxt read past) was refused as a number (review of stop 54's change)."""
+    path = _write_pixels(tmp_path, rates[1])
+    lines = path.read_text().splitlines()
+    lines[3] += "  # the tracker re-found marker 5"
+    lines.insert(50, "# a comment line is no lost frame")
+    path.write_text("\n".join(lines) + "\n")
+    (tmp_path / "markers_f1_00.png").write_bytes(b"\x89PNG")
+    (tmp_path / "markers_f1_00.csv~").write_text("an editor's backup")
+    (tmp_path / "markers_f1_00_plots").mkdir()
+    got = sd.load_dir(tmp_path)
+    assert len(got) == 1 and len(got[0].markers) == len(rates[1].markers)

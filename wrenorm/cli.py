@@ -481,7 +481,9 @@ def _dispatch(args) -> int:
 
 
 def main(argv=None) -> int:
-    previous_handlers = None
+    from .runfolder import held, release
+
+    previous_handlers, holding = None, held()
     try:
         args = build_parser(argv).parse_args(argv)
         args._argv = list(sys.argv[1:] if argv is None else argv)
@@ -520,5 +522,6 @@ def main(argv=None) -> int:
         from .interrupt import restore
 
         restore(previous_handlers)
+        release(keep=holding)
         # Python's last collections walk Warp's ~100k objects (half a second at exit): they live until exit anyway
         gc.freeze()

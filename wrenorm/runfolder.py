@@ -79,6 +79,18 @@ def hold_folder(out) -> None:
     _held[key] = f
 
 
+def held() -> set:
+    """The folders this process holds now (hold_folder)."""
+    return set(_held)
+
+
+def release(keep=()) -> None:
+    """Let go of the folders held, but those in `keep`: a command's holds end with the command, not with its process
+    (a notebook's fit, or a sweep worker's cell, had kept its folder from every later process; review of stop 54)."""
+    for key in [k for k in _held if k not in set(keep)]:
+        _held.pop(key).close()
+
+
 def prepare_out(out, resume: bool = False, force: bool = False, state: str | None = None, inputs=(),
                 command: str = "") -> Path:
     """The run folder, ready to write into, and held by this process (hold_folder: every command, not only sweeps;

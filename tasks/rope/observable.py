@@ -90,8 +90,10 @@ def from_rollout(res, n_nodes: int, t0: float = 0.0) -> CriticalStates:
 
 
 def velocity_intervals(ref) -> int:
-    """How many frame steps a recording's velocity spans: VELOCITY_WINDOW in frame steps, at least one."""
-    return max(1, int(round(VELOCITY_WINDOW / float(ref.time[1] - ref.time[0]))))
+    """How many frame steps a recording's velocity spans: the odd number nearest VELOCITY_WINDOW in frame steps, so
+    that a window about a frame interval is centred on it (an even one sat half a frame late)."""
+    steps = VELOCITY_WINDOW / float(ref.time[1] - ref.time[0])
+    return max(1, 2 * int(round((steps - 1.0) / 2.0)) + 1)
 
 
 def marker_velocity(ref, first: int, intervals: int) -> np.ndarray:

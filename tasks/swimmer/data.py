@@ -81,8 +81,10 @@ TAIL_BEAT_PER_LABEL_RANGE = (0.70, 0.80)  # about +-7 %, outside: flagged. The f
 # and at 55 or 66 fps at 0.81-0.82 or 0.67-0.69, which +-15 % (until stop 54) let by with every speed 9 % off
 # fishsim's names, markers_f1_00.csv; a decimal point (markers_f1.00.csv) and any case of the letters read alike
 _NAME = re.compile(r"^(markers|rotatedMarkers)_f(\d+)[_.](\d+)\.csv$", re.IGNORECASE)
-_CLIP_LIKE = re.compile(r"^(markers|rotatedmarkers)_f\d", re.IGNORECASE)  # any extension: markers_f1_25.txt was
-# left out in silence, the fit running on one rate fewer
+_CLIP_LIKE = re.compile(r"^(markers|rotatedmarkers)_f\d", re.IGNORECASE)
+# a text table under another extension is meant as a clip too (markers_f1_25.txt was left out in silence, the fit
+# running on one rate fewer); a plot, an editor's backup or a folder beside the clips is not
+CLIP_LIKE_SUFFIXES = (".csv", ".txt", ".tsv", ".dat", "")
 _MARKER_LIKE = re.compile(r"marker.*\.csv$", re.IGNORECASE)  # any CSV naming markers is meant as a clip
 BUILTIN = "fishsim_kinematics.npz"
 # A rotatedMarkers file's forward track is the head's frame-to-frame steps measured along the head's own axis, which
@@ -135,12 +137,14 @@ def _read_csv(path: Path, columns: int) -> np.ndarray:
                          f"{exc.start})") from None
     except OSError as exc:  # a dangling link (git-annex data not fetched), no permission
         raise InputError(str(path), "file", f"cannot be read: {exc.strerror or exc}") from None
-    lines = text.splitlines()
-    numbered = [(i + 1, line) for i, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
+    raw = text.splitlines()
+    comment = [line.lstrip().startswith("#") for line in raw]  # a comment line is no frame, lost or not
+    lines = [line.split("#", 1)[0] for line in raw]  # comments, whole-line or after a row, as loadtxt read them
+    numbered = [(i + 1, line) for i, line in enumerate(lines) if line.strip()]
     if not numbered:
         raise InputError(str(path), "contents", "empty file: no rows of numbers")
     first, last = numbered[0][0], numbered[-1][0]
-    empty = next((n for n in range(first, last) if not lines[n - 1].strip()), None)
+    empty = next((n for n in range(first, last) if not lines[n - 1].strip() and not comment[n - 1]), None)
     if empty is not None:
         raise InputError(str(path), f"row {empty}", "empty line between rows: each row is one frame, so an empty "
                          "line is a frame lost (skipped, the clip would swim too fast); give the frame, or remove the "
@@ -152,7 +156,8 @@ def _read_csv(path: Path, columns: int) -> np.ndarray:
             try:
                 value = float(cell)
             except ValueError:
-                what = f"{cell.strip()[:20]!r} is not a number" if cell.strip() else "empty cell"
+                shown = cell.strip() if len(cell.strip()) <= 40 else cell.strip()[:40] + "..."
+                what = f"{shown!r} is not a number" if cell.strip() else "empty cell"
                 raise InputError(str(path), f"row {n} column {col + 1}", f"not a numeric CSV: {what}") from None
             if col < columns:
                 data[row, col] = value
@@ -339,7 +344,8 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
             continue
         got = _label_of(f)
         if got is None:
-            if _CLIP_LIKE.match(f.name) or (f.is_file() and _MARKER_LIKE.search(f.name)):
+            clip_like = f.is_file() and _CLIP_LIKE.match(f.name) and f.suffix.lower() in CLIP_LIKE_SUFFIXES
+            if clip_like or (f.is_file() and _MARKER_LIKE.search(f.name)):
                 # meant as a clip (markers_f_1_25.csv, fish_markers_f1_25.csv): left out, the fit would run on
                 # fewer rates in silence
                 raise InputError(str(f), "file name", "looks like a clip but is not named markers_fX_YZ.csv or "

@@ -314,20 +314,18 @@ def _check_paths(spec: Spec, parser: argparse.ArgumentParser) -> None:
         where, flag = f"{table}.{key}", next(f for f in action.option_strings if f.startswith("--"))
         split = isinstance(action, ListAction)  # --reference a.npz,b.npz: the parser splits it, and so must this
         for value in values:
-            for v in value if isinstance(value, list) else [value]:
-                for text in _scalar(v, where, spec.path).split(",") if split else [_scalar(v, where, spec.path)]:
-                    text = text.strip()
-                    if not text:  # an empty path had passed here and failed in every cell, after Ray started
-                        raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag}: an empty "
-                                                           "path")
-                    if text in labels:
-                        continue
-                    problem = _path_problem(Path(text), kind)
-                    if problem:
-                        raise InputError(spec.path, where,
-                                         f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
-                    if text not in spec.inputs:
-                        spec.inputs.append(text)
+            texts = [part.strip() for v in (value if isinstance(value, list) else [value])
+                     for part in (_scalar(v, where, spec.path).split(",") if split else [_scalar(v, where, spec.path)])]
+            if not any(texts):  # had passed here and failed in every cell, after Ray started (review of stop 54)
+                raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag}: an empty path")
+            for text in texts:
+                if not text or text in labels:  # an empty part of a list: the command skips it too
+                    continue
+                problem = _path_problem(Path(text), kind)
+                if problem:
+                    raise InputError(spec.path, where, f"{_whose(spec, table, key, value)}: {flag} {text}: {problem}")
+                if text not in spec.inputs:
+                    spec.inputs.append(text)
 
 
 def _whose(spec: Spec, table: str, key: str, value) -> str:

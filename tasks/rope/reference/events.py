@@ -1254,9 +1254,11 @@ def critical(ref, time_tolerance: float = TIME_TOLERANCE) -> Critical:
                         f"{cols}, longest gap {int(missing_runs(np.asarray(missing, bool)).max())} frames)")
     lag = float(getattr(ref, "hand_lag", 0.0) or 0.0)
     if lag:
-        warnings.append(f"the hand's track {'lags' if lag > 0 else 'leads'} the markers' by one frame "
-                        f"({1000 * abs(lag):.0f} ms; marker 0, the held end, sits on the hand shifted so): the chain "
-                        "is driven that much off the rope's own clock; give the hand on the markers' clock")
+        frames = int(round(abs(lag) / ref.dt))
+        warnings.append(f"the hand's track {'lags' if lag > 0 else 'leads'} the markers' by {1000 * abs(lag):.0f} ms "
+                        f"({frames} frame{'s' if frames != 1 else ''}; marker 0, the held end, sits on the hand "
+                        "shifted so): the chain is driven that much off the rope's own clock; give the hand on the "
+                        "markers' clock")
     unseen = getattr(ref, "start_unseen", ()) or ()
     if unseen:
         frames, seconds, which = unseen

@@ -117,12 +117,13 @@ def _scalar(src: str, name: str, value, lo: float, hi: float, unit: str) -> floa
 
 HELD_START_TIME = 0.01  # s: markers unseen for longer than this at the start leave those frames out
 GRAVITY_MAX_DEG = 45.0  # gravity estimated from the motion further off -z than this: another frame, refused
-HANGING_SPEED = 0.2  # m/s: frames whose markers move slower than this (RMS) hang, for the direction check
+HANGING_SPEED = 0.2  # m/s: frames whose markers move slower than this (RMS) hang, for the direction check ..
+HANGING_WINDOW = 0.05  # s: .. measured over this long
 
 
 MAX_HAND_SHIFT = 10  # frames searched either way for the shift that puts marker 0 on the hand
-HAND_CLOCK_TOLERANCE = 0.01  # s: a hand track shifted by more than this, or by 2 frames or more, is refused; by one
-# frame within it, said
+HAND_CLOCK_TOLERANCE = 0.01  # s: a hand track shifted by more than this is refused, and by 2 frames or more beyond
+HAND_CLOCK_SAID = 0.005  # s: this; a shorter lag (one frame; 2 ms at 1 kHz) is said
 HAND_CLOCK_FLOOR = 0.002  # m: marker 0 nearer the hand than this in its fastest frames is on the hand (noise)
 
 
@@ -134,8 +135,8 @@ def _hand_clock_lag(src: str, time: np.ndarray, held_marker: np.ndarray, hand: n
     (half the distance or less; a marker down the rope trails the hand at any shift). A hand from
     another clock (a robot's encoders beside the motion capture) 3 frames (12 ms) late had left marker 0 up to 40 mm
     off the hand but 2.7 mm in median, under the reach limits, and moved the fit in silence; at 200 Hz one frame's lag
-    was refused as a hand recorded at the wrist (review of stop 54). Refused beyond HAND_CLOCK_TOLERANCE or one frame;
-    one frame within it is returned, and said."""
+    was refused as a hand recorded at the wrist (review of stop 54). Refused beyond HAND_CLOCK_TOLERANCE, or beyond
+    HAND_CLOCK_SAID by 2 frames or more; a shorter lag is returned, and said."""
     T = len(time)
     if T < 4 * MAX_HAND_SHIFT:
         return 0.0
@@ -152,7 +153,7 @@ def _hand_clock_lag(src: str, time: np.ndarray, held_marker: np.ndarray, hand: n
     if best == 0 or unshifted < HAND_CLOCK_FLOOR or miss.min() > min(0.5 * unshifted, reach):
         return 0.0
     lag = float(np.median(np.diff(time))) * best
-    if abs(best) >= 2 or abs(lag) > HAND_CLOCK_TOLERANCE:
+    if abs(lag) > HAND_CLOCK_TOLERANCE or (abs(best) >= 2 and abs(lag) > HAND_CLOCK_SAID):
         raise InputError(src, "hand", f"the hand's track {'lags' if best > 0 else 'leads'} the markers' by "
                          f"{abs(lag) * 1000:.0f} ms ({abs(best)} frames): marker 0 (the held end) lies "
                          f"{1000 * unshifted:.0f} mm from the hand in median over the hand's fastest frames, "
@@ -188,8 +189,12 @@ def _check_gravity_axis(src: str, time: np.ndarray, markers: np.ndarray, hand: n
     norm = np.linalg.norm(offset, axis=1)
     keep = norm > 1e-9
     if len(time) > 1:
-        speed = np.sqrt(np.mean(np.sum(np.diff(markers, axis=0) ** 2, -1), -1)) / np.diff(time)
-        keep &= np.concatenate([[speed[0]], np.minimum(speed[:-1], speed[1:]), [speed[-1]]]) < HANGING_SPEED
+        # over HANGING_WINDOW, not one frame: 0.5 mm of marker noise reads 0.3 m/s from one 4 ms frame to the next,
+        # and a Y-up rope hanging still with it had passed with no frame counted as hanging (review of stop 54)
+        k = int(np.clip(round(HANGING_WINDOW / float(np.median(np.diff(time)))), 1, len(time) - 1))
+        moved = np.sqrt(np.mean(np.sum((markers[k:] - markers[:-k]) ** 2, -1), -1)) / (time[k:] - time[:-k])
+        speed = np.concatenate([moved, moved[-1:].repeat(k)])  # frame t: the window from t (the last ones: the last)
+        keep &= np.minimum(speed, np.concatenate([speed[:1].repeat(k), speed[:-k]])) < HANGING_SPEED
     if not keep.any():
         return
     mean = (offset[keep] / norm[keep, None]).mean(axis=0)
