@@ -4,7 +4,7 @@ import argparse
 
 import pytest
 
-from wrenorm.cli import build_parser
+from wrenorm.cli import build_parser, main
 from wrenorm.options import add_list
 
 
@@ -27,3 +27,13 @@ def test_fit_rope_keeps_every_reference():
 def test_correct_rope_keeps_every_params_entry():
     argv = ["correct", "rope", "--params", "measured", "--params", "fitted,renormalised"]
     assert build_parser(argv).parse_args(argv).params == ["measured", "fitted", "renormalised"]
+
+
+@pytest.mark.parametrize("flag, most", [("--command-step", "6"), ("--fd-step", "6"), ("--noise-size", "0.1"),
+                                        ("--marker-noise", "0.1"), ("--time-noise", "1"), ("--snr", "1000")])
+def test_sensitivity_rope_refuses_absurd_sizes(tmp_path, capsys, flag, most):
+    """1e300 had been answered with a confident count of directions, overflow warnings or an OverflowError traceback
+    (review of stop 54)."""
+    assert main(["sensitivity", "rope", flag, "1e300", "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert f"{flag}: " in err and f"must be <= {most}" in err and err.count("\n") == 1

@@ -1899,3 +1899,61 @@ def test_a_resume_refuses_a_params_file_rewritten_since_the_run_read_it(tmp_path
     older = {k: v for k, v in saved.items() if k != correct_cli.PARAMS_HASHES_KEY}
     f.write_text(json.dumps(older | {"_digest": correct_cli._settings_digest(older)}))
     correct_cli._restore_settings(parser.parse_args(resume))
+
+
+def test_a_truncated_stored_trial_is_one_line_on_resume(tmp_path, problem):
+    """A stored trial cut short (a full disk, a copy interrupted) had ended a resume in a BadZipFile traceback (review
+    of stop 54): it is named, with what to do."""
+    from wrenorm.tasks.rope.control.correct import StoredTrials
+
+    space = CommandSpace(PATHS["flick"])
+    path = space.decode(np.zeros(space.dim))
+    store = StoredTrials(CoarseRope(problem, problem.space.measured), tmp_path / "trials")
+    store(path)
+    f = store.file_for(path)
+    f.write_bytes(f.read_bytes()[:100])
+    with pytest.raises(InputError) as e:
+        StoredTrials(CoarseRope(problem, problem.space.measured), tmp_path / "trials")(path)
+    assert e.value.source == str(f) and e.value.field == "file"
+    assert "remove it to run that trial again" in e.value.problem
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--method", "qp", "--fd-step", "1e300"], "--fd-step: fd_step: must be a finite number > 0 and at most 6"),
+    (["--velocity-weight", "1e300"], "--velocity-weight: velocity_weight: must be at most 1000"),
+    (["--radius", "1e300"], "--radius: radius: must be a finite number > 0 and at most 6"),
+    (["--perturb", "1e300"], "--perturb: perturb: must be a finite number in [0, 1000]"),
+    (["--dt", "0"], "--dt: dt: 0 s is outside"),
+])
+def test_absurd_numbers_are_refused_before_any_trial(tmp_path, capsys, extra, said):
+    """1e300 had wasted a trial (--fd-step), failed an SVD after trial 1 (--velocity-weight), overflowed (--perturb) or
+    been printed as a 300-digit radius; --dt 0 was refused by the chain only after the goal throw (review of stop
+    54)."""
+    from wrenorm.cli import main
+
+    out = tmp_path / "run"
+    assert main([*CORRECT_QUICK, *extra, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1 and not out.exists()
+
+
+def test_params_files_that_would_share_a_name_or_do_not_hold_a_fit_are_refused_before_any_trial(tmp_path, capsys):
+    """Every fit writes result.json: two of them made both arms write real-trials/result-trial-NN.json, one over the
+    other; a bad file in the second arm was found only after the first arm's trials (review of stop 54)."""
+    from wrenorm.cli import main
+
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "result.json").write_text("{}")
+    out = tmp_path / "run"
+    two = [*CORRECT_QUICK[:-6], "--params", str(tmp_path / "a" / "result.json"), str(tmp_path / "b" / "result.json"),
+           "--no-record", "--quiet", "--out", str(out)]
+    assert main(two) == 2
+    err = capsys.readouterr().err
+    assert "would be named 'result'" in err and err.count("\n") == 1 and not out.exists()
+    bad = [*CORRECT_QUICK[:-6], "--params", "measured", str(tmp_path / "a" / "result.json"), "--no-record", "--quiet",
+           "--out", str(out)]
+    assert main(bad) == 2
+    err = capsys.readouterr().err
+    assert str(tmp_path / "a" / "result.json") in err and err.count("\n") == 1
+    assert not (out / "real-trials").exists() or not any((out / "real-trials").iterdir())

@@ -4,6 +4,7 @@ import io
 import os
 import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -553,3 +554,21 @@ def test_a_y_up_rope_hanging_still_with_marker_noise_is_refused(tmp_path):
     with pytest.raises(InputError) as e:
         load_reference(tmp_path / "yup.npz")
     assert e.value.field == "markers" and "hangs along +y" in e.value.problem
+
+
+def test_reference_rope_does_not_write_over_the_built_in_references(tmp_path, monkeypatch, capsys):
+    """`reference rope --out` at a built-in reference's path (shipped, or the cache) replaced it, and a correction
+    then steered to that throw as the built-in one in silence (review of stop 54). Probed with names no built-in
+    reference has, so that a regression writes a new file (removed) rather than over a shipped one."""
+    from wrenorm import data
+    from wrenorm.cli import main
+
+    monkeypatch.setenv("WRENORM_CACHE", str(tmp_path / "cache"))
+    shipped = Path(data.__file__).parent / "rope_probe_flick.npz"
+    try:
+        for target in (shipped, tmp_path / "cache" / "rope_heavy_flick_high.npz"):
+            assert main(["reference", "rope", "--duration", "0.05", "--out", str(target), "--force"]) == 2
+            err = capsys.readouterr().err
+            assert "built-in references" in err and err.count("\n") == 1 and not target.exists()
+    finally:
+        shipped.unlink(missing_ok=True)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -207,8 +208,9 @@ class StoredTrials:
         try:
             with np.load(f, allow_pickle=False) as data:
                 stored = str(data["trial_key"]) if "trial_key" in data.files else None
-        except (OSError, ValueError) as e:
-            raise InputError(str(f), "file", f"is not a readable .npz archive ({e})") from None
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:  # a truncated file had been a traceback
+            raise InputError(str(f), "file", f"is not a readable .npz archive ({e.__class__.__name__}: {e}): remove "
+                                             "it to run that trial again") from None
         # a file written before trials carried their key (stop 45) is read as before
         if stored is not None and stored != self.key_for(path):
             raise InputError(str(f), "trial_key", "was recorded for another command or another real rope (engine, "

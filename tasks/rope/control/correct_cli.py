@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from wrenorm.errors import InputError, warn
+from wrenorm.tasks.rope.options import DT
 from wrenorm.tasks.rope.reference.generate import DEFAULT_SEGMENTS
 
 SYSTEM = "rope"
@@ -276,13 +277,22 @@ def _check_arguments(args) -> None:
         raise InputError("--max-trials", "max_trials", f"{args.max_trials} is outside [1, 100]")
     if not (np.isfinite(args.tolerance) and args.tolerance > 0):
         raise InputError("--tolerance", "tolerance", f"must be a finite number > 0, got {args.tolerance}")
-    for flag, value, zero_allowed in (("--radius", args.radius, False), ("--fd-step", args.fd_step, False),
-                                      ("--reg", args.reg, True)):
-        if value is not None and not (np.isfinite(value) and (value >= 0 if zero_allowed else value > 0)):
-            raise InputError(flag, flag[2:].replace("-", "_"),
-                             f"must be a finite number {'>=' if zero_allowed else '>'} 0, got {value}")
-    if not (np.isfinite(args.perturb) and args.perturb >= 0):
-        raise InputError("--perturb", "perturb", f"must be a finite number >= 0 (units of u), got {args.perturb}")
+    box = 2 * DEFAULT_BOUND  # the command box's width: no step is longer (1e300 had wasted a trial, or an SVD failed)
+    for flag, value, zero_allowed, most in (("--radius", args.radius, False, box),
+                                            ("--fd-step", args.fd_step, False, box), ("--reg", args.reg, True, 1e6)):
+        if value is not None and not (np.isfinite(value) and (value >= 0 if zero_allowed else value > 0)
+                                      and value <= most):
+            least = ">=" if zero_allowed else ">"
+            raise InputError(flag, flag[2:].replace("-", "_"), f"must be a finite number {least} 0 and at most "
+                                                               f"{most:g}, got {value}")
+    if not (np.isfinite(args.perturb) and 0 <= args.perturb <= 1e3):  # a larger one is clipped to the box, and said;
+        # 1e300 overflowed on its way there
+        raise InputError("--perturb", "perturb", f"must be a finite number in [0, 1000] (units of u), got "
+                                                 f"{args.perturb}")
+    if isinstance(args.velocity_weight, float) and args.velocity_weight > 1e3:
+        raise InputError("--velocity-weight", "velocity_weight", f"must be at most 1000, got {args.velocity_weight:g}")
+    if not (args.dt is None or DT[0] <= args.dt <= DT[1]):  # the chain checked it only after the goal throw had run
+        raise InputError("--dt", "dt", f"{args.dt:g} s is outside [{DT[0]:g}, {DT[1]:g}] s")
     if not 4 <= args.fine_segments <= 1024:  # before either engine builds its rod (MuJoCo's checks divide by it)
         raise InputError("--fine-segments", "fine_segments", f"{args.fine_segments} is outside [4, 1024]")
     if not 1 <= args.fit_generations <= 1000:
@@ -297,6 +307,13 @@ def _check_arguments(args) -> None:
         if label not in RUN_LABELS and not Path(label).is_file():
             raise InputError(label, "--params", f"is neither one of {', '.join(RUN_LABELS)} nor an existing "
                                                 "result.json")
+    names = [run_name(label) for label in args.params]
+    for i, name in enumerate(names):  # every fit writes result.json: two of them had one arm's records overwritten
+        if name in names[:i]:
+            other = args.params[names.index(name)]
+            raise InputError(args.params[i], "--params", f"would be named {name!r} in real-trials/ and the report, as "
+                                                         f"{other} is: one arm's trial records would overwrite the "
+                                                         "other's; copy one under another name (fit-a.json)")
     if args.prior_scale is not None and not 0 < args.prior_scale <= 100:
         raise InputError("--prior-scale", "prior_scale", f"must be in (0, 100], got {args.prior_scale:g}")
     if args.decay is not None and not 0 < args.decay <= 1:
@@ -357,6 +374,7 @@ def run(args) -> int:
         CoarseRope,
         StoredTrials,
         fit_parameters,
+        parameters_from_file,
         real_rope_class,
         trial_rows,
     )
@@ -397,6 +415,9 @@ def run(args) -> int:
     else:
         goal_ref = _builtin_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
+    for label in args.params:  # before any trial: a bad file in a later arm was found after the earlier arms' trials
+        if label not in RUN_LABELS:
+            parameters_from_file(label, problem)
     fitted, fit_info, fit_recorded = None, None, {}
     if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
         fit_throws, dropped, fit_recorded = _fit_throws(args, goal_path, out, progress)

@@ -35,6 +35,7 @@ import numpy as np
 from wrenorm.errors import InputError
 from wrenorm.jacobian import jacobian
 from wrenorm.options import add_number
+from wrenorm.tasks.rope.control.command import DEFAULT_BOUND
 from wrenorm.tasks.rope.options import DT, DT_DEFAULT, SEGMENTS
 
 SYSTEM = "rope"
@@ -55,17 +56,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                help="links of the coarse chain (correct rope steers with 10 by default)")
     add_number(p, "--dt", default=DT_DEFAULT, lo=DT[0], hi=DT[1], unit="s", help="coarse step")
     positive = {"lo": 0.0, "lo_open": True}
-    add_number(p, "--fd-step", default=0.1, **positive, help="command FD step (units of u)")
-    add_number(p, "--param-fd-step", default=0.01, **positive, help="parameter FD step (normalised coordinates)")
+    box = 2 * DEFAULT_BOUND  # the command box's width (units of u): no step or offset is longer (1e300 had been
+    # answered with a confident count and overflow warnings; review of stop 54)
+    add_number(p, "--fd-step", default=0.1, **positive, hi=box, help="command FD step (units of u)")
+    add_number(p, "--param-fd-step", default=0.01, **positive, hi=1.0,
+               help="parameter FD step (normalised coordinates)")
     add_number(p, "--noise-samples", default=32, lo=2, hi=10000, integer=True)
-    add_number(p, "--noise-size", default=1e-3, **positive, help="tiny command offsets (units of u)")
-    add_number(p, "--marker-noise", default=0.003, lo=0.0, unit="m", help="marker position noise")
-    add_number(p, "--time-noise", default=0.002, lo=0.0, unit="s", help="collision time noise")
+    add_number(p, "--noise-size", default=1e-3, **positive, hi=0.1, help="tiny command offsets (units of u)")
+    add_number(p, "--marker-noise", default=0.003, lo=0.0, hi=0.1, unit="m", help="marker position noise")
+    add_number(p, "--time-noise", default=0.002, lo=0.0, hi=1.0, unit="s", help="collision time noise")
     add_number(p, "--real-repeats", default=0, lo=0, hi=1000, integer=True,
                help="newton runs at tiny offsets to measure repeat spread")
-    add_number(p, "--command-step", default=1.0, **positive)
-    add_number(p, "--param-step", default=0.1, **positive)
-    add_number(p, "--snr", default=3.0, **positive)
+    add_number(p, "--command-step", default=1.0, **positive, hi=box)
+    add_number(p, "--param-step", default=0.1, **positive, hi=1.0)
+    add_number(p, "--snr", default=3.0, **positive, hi=1e3)
     add_number(p, "--fit-generations", default=30, lo=1, hi=1000, integer=True)
 
 

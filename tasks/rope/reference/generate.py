@@ -821,6 +821,14 @@ def run_reference(args) -> int:
         raise InputError(str(out), "--out", "is a folder; give the .npz file to write")
     if out.exists() and not getattr(args, "force", False):
         raise InputError(str(out), "--out", "exists; --force replaces it")
+    from wrenorm import data as data_pkg
+
+    builtin = {Path(data_pkg.__file__).parent.resolve(), cache_dir().resolve()}
+    if out.resolve().parent in builtin and out.name.startswith("rope_"):
+        # another throw written there is read as the built-in one: a correction steered to it in silence (review of
+        # stop 54)
+        raise InputError(str(out), "--out", "is where wrenorm keeps its built-in references (shipped, or cached when "
+                                            "made): write your reference elsewhere")
     folder = out.absolute().parent
     while not folder.exists():  # missing folders are made when the file is written
         folder = folder.parent
