@@ -512,7 +512,9 @@ def test_ctrl_c_says_on_the_terminal_how_to_resume(tmp_path, sig, code):
         time.sleep(1.0)
         _end(p for p in below if "ray" in _cmdline(p))
     assert proc.returncode == code, stderr
-    assert f"wrenorm: interrupted; continue with --resume --out {out}" in stderr, stderr
+    hint = next(line for line in stderr.splitlines() if line.startswith("wrenorm: interrupted"))
+    assert hint.startswith(f"wrenorm: interrupted; continue with: python -m wrenorm sweep {spec} --out {out}"), stderr
+    assert hint.endswith(" --resume"), stderr
     # the table says what the saved state says: written before Ray's shut-down, which outlasts the one-second grace
     state = json.loads((out / "sweep-state.json").read_text())["records"]
     assert {r["cell"]: r["status"] for r in _rows(out)} == {c: state.get(c, {}).get("status", "pending")

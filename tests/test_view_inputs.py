@@ -180,5 +180,7 @@ def test_an_interrupted_command_that_cannot_resume_is_not_told_to():
 
     fit, select = (build_parser(argv).parse_args(argv) for argv in (["fit", "pd", "--out", "r"],
                                                                     ["select", "swimmer", "--out", "r"]))
-    assert resume_hint(fit) == "; continue with --resume --out r"
+    assert resume_hint(fit) == "; continue with --resume --out r"  # parsed alone, without the command line
+    fit._argv = ["flow", "pd", "--resolutions", "50", "100", "--out", "r", "--force"]
+    assert resume_hint(fit) == "; continue with: python -m wrenorm flow pd --resolutions 50 100 --out r --resume"
     assert "does not resume" in resume_hint(select) and "--force --out r" in resume_hint(select)

@@ -64,4 +64,10 @@ def resume_hint(args) -> str:
     out = getattr(args, "out", None)
     if args is not None and not hasattr(args, "resume"):
         return f"; this command does not resume: run it again with --force --out {out}" if out else ""
+    argv = [a for a in getattr(args, "_argv", None) or [] if a != "--force"]
+    if out and argv and "--out" in argv:  # the whole command: a flow or a sweep (its spec) resumes only with its own
+        # options, and a flow told "--resume --out DIR" alone had refused with every resolution listed (stop 54)
+        import shlex
+
+        return f"; continue with: python -m wrenorm {shlex.join(argv + ([] if '--resume' in argv else ['--resume']))}"
     return f"; continue with --resume --out {out}" if out else "; continue with --resume --out <folder>"

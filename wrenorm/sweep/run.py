@@ -326,7 +326,9 @@ def cmd_sweep(args) -> int:
                 except KeyboardInterrupt:  # Ctrl-C or SIGTERM (wrenorm.interrupt)
                     # stderr is ray.log here, and Ray's shut-down outlasts the interrupt's one-second grace, whose
                     # line would go there too: say it on the terminal first
-                    print(f"\nwrenorm: interrupted; continue with --resume --out {out}", file=terminal, flush=True)
+                    from wrenorm.interrupt import resume_hint
+
+                    print(f"\nwrenorm: interrupted{resume_hint(args)}", file=terminal, flush=True)
                     interrupted = True
                 finally:
                     if ray.is_initialized():
