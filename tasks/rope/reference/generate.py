@@ -223,6 +223,29 @@ def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, radius:
                          "must be the held end (reverse the marker axis, and marker_arclength with it)")
 
 
+def time_axis(src: str, stored) -> tuple[np.ndarray, float]:
+    """A file's time axis, checked: seconds, strictly increasing, uniform (or a uniform clock stored rounded, which
+    it is returned as); and its frame step."""
+    time = _array(src, "time", stored)
+    if time.ndim != 1 or time.shape[0] < 2:
+        raise InputError(src, "time", f"must have shape (T,) with T >= 2, got {time.shape}")
+    dt = np.diff(time)
+    if not np.all(dt > 0):
+        k = int(np.argmax(~(dt > 0)))
+        raise InputError(src, "time", f"must be strictly increasing: frame {k + 1} at {time[k + 1]:g} s "
+                         f"{'repeats' if dt[k] == 0 else 'goes back from'} frame {k}'s {time[k]:g} s")
+    mean_dt = (time[-1] - time[0]) / (len(time) - 1)
+    if np.max(np.abs(dt - mean_dt)) > 1e-3 * mean_dt + 1e-9:
+        uniform = rounded_uniform_clock(time, np.asarray(stored).dtype)
+        if uniform is None:
+            raise InputError(src, "time", f"must be uniformly spaced (steps range {dt.min():g}..{dt.max():g} s)")
+        time = uniform
+        mean_dt = (time[-1] - time[0]) / (len(time) - 1)
+    if not 1e-5 <= mean_dt <= 0.1:
+        raise InputError(src, "time", f"frame step {mean_dt:g} s is outside [1e-5, 0.1] s (seconds expected)")
+    return time, float(mean_dt)
+
+
 def rounded_uniform_clock(time: np.ndarray, stored) -> np.ndarray | None:
     """The uniform clock a file stored rounded, or None: milliseconds in a CSV export at 240 or 360 Hz (steps of 4 and
     5 ms), float32 seconds of a long session (1000 s in: steps off by 1.5 % at 250 Hz) had a usable recording refused
@@ -274,23 +297,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if data.get("bend_stiffness") is not None:
         bend = _scalar(src, "bend_stiffness", data["bend_stiffness"], 0.0, 1e3, "N m^2")
 
-    time = _array(src, "time", data["time"])
-    if time.ndim != 1 or time.shape[0] < 2:
-        raise InputError(src, "time", f"must have shape (T,) with T >= 2, got {time.shape}")
-    dt = np.diff(time)
-    if not np.all(dt > 0):
-        k = int(np.argmax(~(dt > 0)))
-        raise InputError(src, "time", f"must be strictly increasing: frame {k + 1} at {time[k + 1]:g} s "
-                         f"{'repeats' if dt[k] == 0 else 'goes back from'} frame {k}'s {time[k]:g} s")
-    mean_dt = (time[-1] - time[0]) / (len(time) - 1)
-    if np.max(np.abs(dt - mean_dt)) > 1e-3 * mean_dt + 1e-9:
-        uniform = rounded_uniform_clock(time, np.asarray(data["time"]).dtype)
-        if uniform is None:
-            raise InputError(src, "time", f"must be uniformly spaced (steps range {dt.min():g}..{dt.max():g} s)")
-        time = uniform
-        mean_dt = (time[-1] - time[0]) / (len(time) - 1)
-    if not 1e-5 <= mean_dt <= 0.1:
-        raise InputError(src, "time", f"frame step {mean_dt:g} s is outside [1e-5, 0.1] s (seconds expected)")
+    time, mean_dt = time_axis(src, data["time"])
     T = time.shape[0]
 
     markers = _array(src, "markers", data["markers"], allow_nan=True)
