@@ -415,9 +415,8 @@ def run(args) -> int:
     else:
         goal_ref = _builtin_reference(args.goal, args.variant, progress)
     problem = RopeProblem([goal_ref], segments=args.segments, dt=args.dt, device=args.device, names=[args.goal])
-    for label in args.params:  # before any trial: a bad file in a later arm was found after the earlier arms' trials
-        if label not in RUN_LABELS:
-            parameters_from_file(label, problem)
+    # read before any trial: a bad file in a later arm was found after the earlier arms' trials
+    from_files = {label: parameters_from_file(label, problem) for label in args.params if label not in RUN_LABELS}
     fitted, fit_info, fit_recorded = None, None, {}
     if "fitted" in args.params or "renormalised-from-fitted" in args.params or args.real == "coarse":
         fit_throws, dropped, fit_recorded = _fit_throws(args, goal_path, out, progress)
@@ -465,7 +464,8 @@ def run(args) -> int:
     except InputError:
         u_goal = None
 
-    runs = {label: _correct_arm(args, label, real, problem, fitted, space, goal, u0, recorded, start_state, progress)
+    runs = {label: _correct_arm(args, label, real, problem, from_files.get(label, fitted), space, goal, u0, recorded,
+                                start_state, progress)
             for label in args.params}
 
     result = {
@@ -505,11 +505,12 @@ def run(args) -> int:
 
 
 def _correct_arm(args, label: str, real, problem, fitted, space, goal, u0, recorded, start_state, progress) -> dict:
-    """One arm of the run (its parameters: measured, fitted, renormalised, ... or a file): correct() on the real rope
-    with this arm's method and step options, each trial written to real-trials/ as soon as it is complete."""
+    """One arm of the run (its parameters: measured, fitted, renormalised, ... or a file, whose values `fitted` is
+    then): correct() on the real rope with this arm's method and step options, each trial written to real-trials/ as
+    soon as it is complete."""
     from wrenorm.progress import Progress
     from wrenorm.results import write_json
-    from wrenorm.tasks.rope.control.correct import CoarseModel, correct, parameters_from_file, trial_row
+    from wrenorm.tasks.rope.control.correct import CoarseModel, correct, trial_row
 
     method, steps = _arm_method(args, label)
     name = run_name(label)
@@ -526,10 +527,8 @@ def _correct_arm(args, label: str, real, problem, fitted, space, goal, u0, recor
 
     if label in ("measured", "renormalised"):
         values = problem.space.measured
-    elif label in ("fitted", "renormalised-from-fitted"):
+    else:  # fitted, renormalised-from-fitted, or a file's values
         values = fitted
-    else:
-        values = parameters_from_file(label, problem)
     model = CoarseModel(problem, values, space, label)
     progress(f"correcting with the {label}-parameter coarse model (goal {args.goal}, start {args.start}, "
              f"{args.variant} rope)")
