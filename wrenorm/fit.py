@@ -18,6 +18,7 @@ import numpy as np
 
 from . import search as searches
 from .clock import process_age
+from .errors import InputError
 from .jacobian import Jacobian
 from .problem import Problem, finite_or_inf
 from .restarts import identifiability_restarts, spread_of_optima
@@ -407,8 +408,6 @@ def _label(problem: Problem) -> str:
 def _check_same_resolutions(problems: list, out: Path) -> None:
     """A resumed fit runs at the resolutions the interrupted one ran at: one resumed at another --f-sim had started
     a new fit over the folder's combined result (review of stop 54)."""
-    from .errors import InputError
-
     here = (out / STATE_FILE).exists()
     subs = sorted(p.parent.name for p in out.glob(f"*/{STATE_FILE}"))
     labels = sorted(_label(p) for p in problems) if len(problems) > 1 else []
@@ -420,8 +419,6 @@ def _check_same_resolutions(problems: list, out: Path) -> None:
 
 
 def _finished_result(path: Path, problem: Problem) -> dict:
-    from .errors import InputError
-
     try:
         r = json.loads(path.read_text())
     except (OSError, ValueError) as e:

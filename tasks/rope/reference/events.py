@@ -1168,7 +1168,8 @@ def first_velocity_noise(ref) -> float:
     """The noise (m/s, one coordinate) of the markers' first velocity (observable.marker_velocity over n + 1 frames,
     as the chain's start takes it): sqrt(2) sigma / dt for a frame difference."""
     missing = None if getattr(ref, "missing", None) is None else ref.missing[:20]
-    frames = np.arange(velocity_intervals(ref) + 1) - 0.5 * velocity_intervals(ref)
+    n = velocity_intervals(ref)
+    frames = np.arange(n + 1) - 0.5 * n
     return float(estimate_noise(ref.markers[:20], missing) / (ref.dt * np.sqrt(np.sum(frames ** 2))))
 
 
