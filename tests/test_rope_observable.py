@@ -99,9 +99,8 @@ def test_a_fast_recordings_velocity_is_a_slope_over_the_chains_step_not_a_noisy_
     """Markers on a parabola (constant acceleration, the analytic velocity known) at 1000 Hz with 0.5 mm of noise: a
     1 ms frame difference read the critical state's velocity 1.15 m/s RMS off on a generated throw, and a rope swinging
     at 0.9 m/s as at rest (review of stop 54). The slope over the 5 ms window is the velocity at the window's middle
-    (exact without noise), several times less noisy; at 250 Hz it stays the frame difference, to the bit. A moving
-    start whose velocity noise is a fifth of its speed is said (a chain started from it missed its contact)."""
-    from wrenorm.tasks.rope.reference.events import critical, starts_at_rest
+    (exact without noise), several times less noisy; at 250 Hz it stays the frame difference, to the bit."""
+    from wrenorm.tasks.rope.reference.events import starts_at_rest
     from wrenorm.tasks.rope.reference.generate import RopeReference
 
     rng = np.random.default_rng(0)
@@ -123,9 +122,6 @@ def test_a_fast_recordings_velocity_is_a_slope_over_the_chains_step_not_a_noisy_
     step = np.array([(noisy[k + 1] - noisy[k]) / 1e-3 - (v0 + a * (t[k] + 5e-4)) for k in range(0, 390, 6)])
     assert np.sqrt(np.mean(slope ** 2)) < 0.15 < 0.5 < np.sqrt(np.mean(step ** 2))
     assert not starts_at_rest(ref(noisy))  # swinging at 0.9 m/s: the one-frame rule took it for noise
-    # a moving start this noisy (0.2 m/s on 0.94) is said; the clean one is not
-    said = [any("moving in the first frame" in w for w in critical(ref(m)).warnings) for m in (clean, noisy)]
-    assert said == [False, True]
     still = np.repeat(rest[None], len(t), 0) + rng.normal(0.0, 5e-4, clean.shape)
     assert starts_at_rest(ref(still))
 
@@ -136,3 +132,45 @@ def test_a_fast_recordings_velocity_is_a_slope_over_the_chains_step_not_a_noisy_
     k = 57
     assert np.array_equal(crit.marker_velocity(builtin, k, 1),
                           (builtin.markers[k + 1] - builtin.markers[k]) / (builtin.time[k + 1] - builtin.time[k]))
+
+
+def test_the_chains_start_velocity_is_fitted_over_as_long_a_window_as_the_motion_allows():
+    """The chain starts from the markers' velocity at the first frame: a quadratic over a window the data choose
+    (events.start_velocity). On a parabola (the analytic velocity known) at 1000 Hz with 0.5 mm of noise it is exact
+    without noise and within its stated noise with it, ten times less noisy than the 5 ms slope, which also sat 2.5 ms
+    late; where the rope oscillates at 25 Hz the window stays short, the estimate within twice its stated noise, and
+    a start that noisy against its speed is said, as before."""
+    from wrenorm.tasks.rope.reference.events import critical, start_velocity
+    from wrenorm.tasks.rope.reference.generate import RopeReference
+
+    t = np.arange(400) * 1e-3
+    s = np.linspace(0.0, 1.0, 17)
+    v0, a = np.array([0.9, 0.0, 0.3]), np.array([0.0, 0.0, -9.81])
+    rest = np.stack([0.1 * s, 0.0 * s, 1.6 - 1.1 * s], 1)
+    parabola = rest[None] + (v0 * t[:, None] + 0.5 * a * t[:, None] ** 2)[:, None]
+
+    def ref(markers):
+        return RopeReference(t, markers, markers[:, 0].copy(), 1.1, 0.2, 0.005, None, s, "test")
+
+    def said(markers):
+        return any("moving in the first frame" in w for w in critical(ref(markers)).warnings)
+
+    np.testing.assert_allclose(start_velocity(ref(parabola))[0], np.tile(v0, (17, 1)), atol=1e-9)
+    errors, noises, slopes = [], [], []
+    for seed in range(4):
+        noisy = parabola + np.random.default_rng(seed).normal(0.0, 5e-4, parabola.shape)
+        velocity, noise = start_velocity(ref(noisy))
+        errors.append(np.sqrt(np.mean(np.sum((velocity - v0) ** 2, -1))))
+        noises.append(noise)
+        slopes.append(np.sqrt(np.mean(np.sum((crit.marker_velocity(ref(noisy), 0, 5) - v0) ** 2, -1))))
+        assert not said(noisy)
+    assert np.mean(errors) < 1.5 * np.mean(noises) and np.mean(noises) < 0.03
+    assert np.mean(errors) < 0.1 * np.mean(slopes)
+
+    wave = np.array([1.0, 0.0, 0.0]) * (5e-3 * np.sin(2 * np.pi * 25.0 * t)[:, None] * s[None] ** 2)[..., None]
+    truth = v0 + np.array([1.0, 0.0, 0.0]) * (5e-3 * 2 * np.pi * 25.0 * s ** 2)[:, None]
+    for seed in range(4):
+        noisy = parabola + wave + np.random.default_rng(seed).normal(0.0, 1e-3, parabola.shape)
+        velocity, noise = start_velocity(ref(noisy))
+        assert np.sqrt(np.mean(np.sum((velocity - truth) ** 2, -1))) < 2.0 * noise
+        assert said(noisy)

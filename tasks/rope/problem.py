@@ -40,14 +40,12 @@ from wrenorm.tasks.rope.observable import (
     WEIGHTS,
     Target,
     from_rollout,
-    marker_velocity,
     reference_critical,
     resample,
     stack_targets,
-    velocity_intervals,
 )
 from wrenorm.tasks.rope.options import DT_DEFAULT, FLOW_DT, FLOW_SEGMENTS, ITERATIONS, SEGMENTS_DEFAULT
-from wrenorm.tasks.rope.reference.events import starts_at_rest
+from wrenorm.tasks.rope.reference.events import start_velocity, starts_at_rest
 
 BEND_DAMPING_TIME = 2e-3  # s: internal friction time of a braided rope (as the newton reference)
 RHO_AIR, CD_CYLINDER = 1.2, 1.2
@@ -140,7 +138,7 @@ def prepare_case(name: str, ref, n_nodes: int, dt: float, weights: dict | None =
     s_nodes = np.linspace(0.0, 1.0, n_nodes)
     pos0 = resample(ref.markers[0], ref.marker_arclength, s_nodes)
     pos0[0] = hand[0]
-    vel0 = resample(marker_velocity(ref, 0, velocity_intervals(ref)), ref.marker_arclength, s_nodes)
+    vel0 = resample(start_velocity(ref)[0], ref.marker_arclength, s_nodes)
     # a rope at rest starts the chain at rest (events.starts_at_rest), also one whose first step is within its markers'
     # noise: 0.5 mm of it read 0.23-0.48 m/s on a rope at rest, and the chain's error at measured values ran 0.33-5.05
     # over noise draws against 0.41 clean (3 of 8 missed their contact; a probe of stop 46)
