@@ -56,6 +56,10 @@ NEAR_GAP = 0.02  # m: interval pairs whose rigorous bound is below this get the 
 CONTACT_LEVEL = 5e-4  # m: surfaces this close touch. Fine simulators' first impacts last 1.5-3 ms, after which the
 #                      pieces rest with gaps within +-0.2 mm (MuJoCo dev set): a 200 Hz frame grid lands on those gaps,
 #                      not on the impact; 2.5x that band. Real ropes are fuzzier than that.
+PAIR_END_HORIZON = 0.05  # s: the same for one pair's own gap where it is not the least (_pair_closing_at_the_end):
+# built-in throws cut 3-12 ms before their contact, at 12 and 17 markers, that had read "no contact" (138 of 368) touch
+# within 8.5 ms at their pair's last speed in median, 34 at most; a whole throw's flailing end closes pairs 0.15-0.4 m
+# apart at 1.6-4.6 m/s (50-96 ms), which a horizon as long as END_HORIZON would have said
 END_HORIZON = 0.1  # s: a recording whose last frames close the rope's gap fast enough to touch within this ends too
 # early to say "no contact" (built-in throws cut 2-30 ms before their contact: 1-150 ms to touch at the last speed)
 HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the gap's uncertainty (dev data)
@@ -587,6 +591,49 @@ def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int, level: float) -
     return speed if speed > 0.0 and gap[-1] <= speed * END_HORIZON else None
 
 
+def _pair_gaps(pts, sarc, frames, Ii, Jj, n_sub: int, radius: float, excl: float):
+    """(gap m, s_a m, s_b m) per item: the least surface gap between interval Ii and interval Jj of the reconstructed
+    rope (pts, sarc from reconstruct) at `frames`, farther than excl apart along it, and where it lies."""
+    ia = np.repeat(np.arange(n_sub), n_sub)
+    jb = np.tile(np.arange(n_sub), n_sub)
+    A, B = pts[frames, Ii], pts[frames, Jj]
+    sA, sB = sarc[frames, Ii], sarc[frames, Jj]
+    d, u, v = segment_distances_excluded(
+        A[:, ia], A[:, ia + 1], B[:, jb], B[:, jb + 1],
+        sA[:, ia], sA[:, ia + 1] - sA[:, ia], sB[:, jb], sB[:, jb + 1] - sB[:, jb], excl)
+    d = np.where((Ii == Jj)[:, None] & (jb <= ia)[None, :], np.inf, d)
+    k = np.argmin(d, axis=1)
+    r = np.arange(len(frames))
+    return (d[r, k] - 2.0 * radius, sA[r, ia[k]] + u[r, k] * (sA[r, ia[k] + 1] - sA[r, ia[k]]),
+            sB[r, jb[k]] + v[r, k] * (sB[r, jb[k] + 1] - sB[r, jb[k]]))
+
+
+def _pair_closing_at_the_end(X, S, iv, jv, n_sub: int, radius: float, excl: float, level: float, dt: float,
+                             frames: int, noise: float) -> tuple[float, float] | None:
+    """(speed m/s, gap at the last frame, from the contact level) of an interval pair whose own reconstructed gap
+    closes over the last `frames` frames by more than twice the noise margin, fast enough to touch within END_HORIZON
+    after the recording's end; else None. The least gap per frame (_closing_at_the_end) can belong to another pair:
+    two points pi diameters apart along a straight stretch are 17 mm apart at 4 mm radius, and throws cut 5 ms before
+    their contact read as "no self-contact, 16.9 mm clear" while the pair about to touch closed in (a third
+    simulator's throw, 12 markers at 240 Hz; 123 of 328 cuts of the built-in throws 3-12 ms before their contact, at
+    12 and 17 markers; review of stop 55). Every pair is reconstructed at the two frames: the rigorous bounds of
+    pairs far apart swing by 5-10 mm from frame to frame with 1 mm of marker noise."""
+    T = len(X)
+    n = min(int(frames), T - 1)
+    if n < 1:
+        return None
+    pts, sarc, _ = reconstruct(X[[T - 1 - n, T - 1]], S, n_sub)
+    P = len(iv)
+    g, _, _ = _pair_gaps(pts, sarc, np.repeat([0, 1], P), np.tile(iv, 2), np.tile(jv, 2), n_sub, radius, excl)
+    g0, g1 = g[:P] - level, g[P:] - level
+    speed = (g0 - g1) / (n * dt)
+    closing = np.flatnonzero((g0 - g1 > 2.0 * noise) & (g1 <= speed * PAIR_END_HORIZON))
+    if not len(closing):
+        return None
+    p = closing[np.argmin((g1 / speed)[closing])]
+    return float(speed[p]), float(g1[p])
+
+
 def _first_per_frame(tt: np.ndarray, value: np.ndarray, T: int):
     """Index into tt/value of each frame's smallest value, and the frames that have one."""
     order = np.lexsort((value, tt))
@@ -705,8 +752,6 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     plaus_pair = np.full(T, -1)
     plaus_s = np.full((T, 2), np.nan)
     if len(tt):
-        ia = np.repeat(np.arange(n_sub), n_sub)
-        jb = np.tile(np.arange(n_sub), n_sub)
         chunk = max(1, 200000 // (n_sub * n_sub))
         gmin = np.full(len(tt), np.inf)
         sa_best = np.zeros(len(tt))
@@ -722,19 +767,9 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                                                 b_half[tt, iv[pp]] + b_half[tt, jv[pp]])
         unc = GAP_ERROR + margin + np.where(short_range & (rho_min >= CURL_CHORD_RATIO), 0.0, shape)
         for c0 in range(0, len(tt), chunk):
-            t_, p_ = tt[c0:c0 + chunk], pp[c0:c0 + chunk]
-            Ii, Jj = iv[p_], jv[p_]
-            A, B = pts[t_, Ii], pts[t_, Jj]
-            sA, sB = sarc[t_, Ii], sarc[t_, Jj]
-            d, u, v = segment_distances_excluded(
-                A[:, ia], A[:, ia + 1], B[:, jb], B[:, jb + 1],
-                sA[:, ia], sA[:, ia + 1] - sA[:, ia], sB[:, jb], sB[:, jb + 1] - sB[:, jb], excl)
-            d = np.where((Ii == Jj)[:, None] & (jb <= ia)[None, :], np.inf, d)
-            k = np.argmin(d, axis=1)
-            r = np.arange(len(t_))
-            gmin[c0:c0 + chunk] = d[r, k] - 2.0 * radius
-            sa_best[c0:c0 + chunk] = sA[r, ia[k]] + u[r, k] * (sA[r, ia[k] + 1] - sA[r, ia[k]])
-            sb_best[c0:c0 + chunk] = sB[r, jb[k]] + v[r, k] * (sB[r, jb[k] + 1] - sB[r, jb[k]])
+            sl = slice(c0, c0 + chunk)
+            gmin[sl], sa_best[sl], sb_best[sl] = _pair_gaps(pts, sarc, tt[sl], iv[pp[sl]], jv[pp[sl]], n_sub,
+                                                            float(radius), excl)
         sel = _first_per_frame(tt, gmin, T)
         gap[tt[sel]] = gmin[sel]
         best_s[tt[sel]] = np.stack([sa_best[sel], sb_best[sel]], 1)
@@ -805,10 +840,14 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             reasons.append(f"no contact on the reconstructed rope, but {hidden}: a contact may lie in the gap")
             return result("unusable", "none")
         closing = _closing_at_the_end(gap_series, dt, tol_frames, level)
+        closing = None if closing is None else (closing, float(gap_series[-1]))
+        if closing is None:
+            closing = _pair_closing_at_the_end(X, S, iv, jv, n_sub, float(radius), excl, level, dt, tol_frames,
+                                               margin)
         if kq is None and closing is not None:
             reasons.append(f"no contact before the recording ends, but it ends while the rope closes in (gap "
-                           f"{1000 * (gap_series[-1] + level):.1f} mm at its last frame, t={time[-1]:.3f} s, closing "
-                           f"at {closing:.2f} m/s): a contact just after its end cannot be excluded; give the "
+                           f"{1000 * (closing[1] + level):.1f} mm at its last frame, t={time[-1]:.3f} s, closing "
+                           f"at {closing[0]:.2f} m/s): a contact just after its end cannot be excluded; give the "
                            "recording through the throw")
             return result("unusable", "none")
         if kq is None:
