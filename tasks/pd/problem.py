@@ -629,17 +629,21 @@ class PDProblem(Problem):
         if "K_FF" in free:  # ~0 for either integrator on a log on one clock (README, "PD control")
             offset = v["K_FF"] / self.true["K_P"]
             if abs(offset) > GAUGE_OFFSET_STEPS * self.dt:
-                out.append(f"K_FF fitted at {v['K_FF']:.3g} where a log on one clock fits ~0: a time offset of about "
-                           f"{1000 * offset:+.3g} ms between the command (q_d, qd_d) and q, which the fitted values "
-                           "absorb (a command or q on another clock, or stamped a sample late?): align the log's "
-                           "clocks before reading J and K_D as resolution effects")
+                out.append(f"K_FF fitted at {v['K_FF']:.3g} where the PD law of --K-P/--K-D on a log on one clock "
+                           f"fits ~0: either a time offset of about {1000 * offset:+.3g} ms between the command (q_d, "
+                           "qd_d) and q (on another clock, or stamped a sample late? then align the clocks), or "
+                           "physics beside that law that acts on velocity: a derivative on the measurement rather "
+                           "than on the error (K_FF = -K_D), viscous joint friction b (K_FF = -b), a velocity "
+                           "feed-forward, or a command held a step (K_FF = -K_P h / 2); J and K_D read as resolution "
+                           "effects only once the cause is known")
         for name, predicted in (("J", a["J_sim_first_order"]), ("K_D", a["K_D_sim_first_order"])):
             if name in free and abs(v[name] / predicted - 1.0) > GAUGE_MISMATCH:
                 out.append(f"{name} fitted at {v[name]:.3g}, {100 * (v[name] / predicted - 1):+.0f} % from the "
                            f"{predicted:.3g} the finite step predicts for the given J {self.true['J']:g}, K_P "
                            f"{self.true['K_P']:g}, K_D {self.true['K_D']:g}: are those this log's gains (--J, --K-P, "
-                           "--K-D)? the fitted values are then effective values for other gains, not resolution "
-                           "effects")
+                           "--K-D)? or does the servo sample and hold its controller at its own rate f_c (that moves "
+                           "K_D by about -K_P / (2 f_c) and J by -K_D / (2 f_c))? either way the fitted values are "
+                           "effective values for that joint, not this resolution's effects")
         return out
 
     def _unexplained_warnings(self, fitted) -> list[str]:
