@@ -28,6 +28,7 @@ def test_fit_matches_first_order_formulas_and_rest_shrinks_like_dt2(integrator):
         assert fit["K_D"] == pytest.approx(kd_1, rel=0.02)
         assert fit["J"] == pytest.approx(j_1, rel=0.02)
         assert fit["K_P"] == KP  # frozen: the gauge
+        assert abs(fit["K_FF"] - p.analytic(fit)["K_FF_first_order"]) < 0.05 * c["K_D"] * dt * KP + 1e-3
         # the correction itself is resolved, not just the total
         assert (fit["J"] - J) == pytest.approx(c["J"] * dt * KD, rel=0.2)
         gaps[f] = (abs(fit["J"] - j_1), abs(fit["K_D"] - kd_1))

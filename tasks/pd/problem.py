@@ -576,7 +576,10 @@ class PDProblem(Problem):
             "J_sim_first_order": J + d_j * KD,
             "J_sim_second_order": J + d_j * KD + d_j ** 2 * KP / 2,
             "second_order_inertia_term": d_j ** 2 * KP / 2,
-            "K_FF_first_order": -d_kd * KP,
+            # the delay seen by K_P acts on the error, whose rate (qd_d - qd) K_D multiplies: K_D takes it whole
+            # and the velocity command's own gain stays 0 (it had read -dt K_P for the explicit step, -0.2 at 100 Hz,
+            # beside a fitted -0.004; review of stop 55)
+            "K_FF_first_order": 0.0,
             "fitted_delay_from_K_D": delay_kd,
             "fitted_delay_from_J": delay_j,
             "fitted_delay_from_K_D_over_dt": delay_kd / dt,
