@@ -139,3 +139,18 @@ def test_the_three_rates_the_shipped_data_lacks_load_unflagged(tmp_path):
         speeds = sd.beat_speeds(r)
         assert len(speeds) >= 2 and np.ptp(speeds) < 0.1 * np.median(speeds)
         assert abs(np.median(speeds) / r.speed - 1.0) < 0.1
+
+
+@pytest.mark.parametrize("lab", LABELS)
+def test_a_clip_written_tail_first_or_with_its_head_markers_exchanged_names_that(tmp_path, lab):
+    """Written tail first, a clip had been refused as a tail-marker swap, and with head markers 0 and 1 exchanged as
+    markers that do not lie one behind another, naming neither cause (review of stop 55). As tracked, it loads."""
+    markers = _pixels(lab).reshape(-1, 9, 2)
+    path = _write(tmp_path, f"markers_f{lab}.csv", markers.reshape(len(markers), -1))
+    assert [r.speed > 0 for r in sd.load_dir(tmp_path)] == [True]
+    for order, field, said in ((list(range(8, -1, -1)), "marker order", "written tail first"),
+                               ([1, 0, *range(2, 9)], "markers 0 and 1", "exchanged")):
+        _write(tmp_path, path.name, markers[:, order].reshape(len(markers), -1))
+        with pytest.raises(InputError) as e:
+            sd.load_dir(tmp_path)
+        assert e.value.field == field and said in e.value.problem

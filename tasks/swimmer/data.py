@@ -73,6 +73,9 @@ MAX_STEP_RATIO = 1.8  # a frame step along the mean of the steps either side of 
 # noise) goes unseen alone; so do deletions in the 0.50 Hz clip, whose markers move ~1 px a frame
 CLEAR_STEP_RATIO = 2.5  # .. one such step alone must reach this (two rows or more), else two steps must pass 1.8:
 # a foreign clip slower or finer than these (the 0.50 Hz clip at 120 fps: 1.64) may reach 1.8 once by noise
+HEAD_FLEX = 0.05  # relative std of the head markers' distance above this, with the last two markers' below half of
+# it, is a clip written tail first (the head: 0.4-2.9 % in the five clips, with 1 px of noise, rounded or resampled;
+# the last two markers 2.6-13 %)
 MAX_SHARED_ROWS = 0.5  # share of the shorter clip's rows found exactly in another clip: one track under two labels
 TAIL_BEAT_PER_LABEL = 0.75  # this robot's tail-beat frequency / motor-rate label (fishsim README)
 TAIL_BEAT_PER_LABEL_RANGE = (0.70, 0.80)  # about +-7 %, outside: flagged. The five clips lie at 0.738-0.756, and the
@@ -536,9 +539,42 @@ def _swap_error(source: str, a: int, b: int, ahead: np.ndarray):
                      "each marker's identity kept")
 
 
+def _a_body_with_head_markers_exchanged(source: str, markers: np.ndarray) -> bool:
+    """Whether exchanging head markers 0 and 1 gives this robot's body: tail markers one behind another, the tail
+    base where the body has it (a file written x0..x8, y0..y8 gives neither either way)."""
+    swapped = markers[:, [1, 0, *range(2, N_MARKERS)]]
+    if len(tail_markers(head_frame(swapped))) < 3:
+        return False
+    try:
+        _check_body(source, swapped)
+    except InputError:
+        return False
+    return True
+
+
+def _check_marker_order(source: str, markers: np.ndarray, local: np.ndarray) -> None:
+    """Head markers 0 and 1 sit on the rigid head, in front of the tail. Written tail first, markers 0-1 flex and 7-8
+    keep their distance; with 0 and 1 exchanged, the tail lies on the far side of marker 0 from marker 1. Both had been
+    refused as a tail-marker swap or as markers that do not lie one behind another, naming neither cause (review of
+    stop 55)."""
+    def flex(a: int, b: int) -> float:
+        d = np.linalg.norm(markers[:, a] - markers[:, b], axis=1)
+        return float(d.std() / max(d.mean(), 1e-300))
+
+    head, tail = flex(0, 1), flex(N_MARKERS - 2, N_MARKERS - 1)
+    if head > HEAD_FLEX and tail < head / 2:
+        raise InputError(source, "marker order", f"head markers 0 and 1 flex ({100 * head:.1f} % scatter in their "
+                         f"distance) while the last two keep theirs ({100 * tail:.1f} %): written tail first? write "
+                         "x0, y0, ..., x8, y8 with the head's markers 0 and 1 first")
+    if len(tail_markers(local)) < 3 and _a_body_with_head_markers_exchanged(source, markers):
+        raise InputError(source, "markers 0 and 1", "the tail lies on the far side of marker 0 from marker 1: head "
+                         "markers 0 and 1 exchanged? marker 0 is the head's front marker, marker 1 the one behind it")
+
+
 def analyse(rate: Rate) -> Rate:
     """Fill tail_freq, speed and the head-frame tail markers (meta) of a rate."""
     local = head_frame(rate.markers)
+    _check_marker_order(rate.source or rate.name, rate.markers, local)
     keep = tail_markers(local)
     if len(keep) < 3:
         # also what a file written x0..x8, y0..y8 gives: its "markers" do not lie one behind another
