@@ -204,3 +204,21 @@ def test_a_slow_clip_is_judged_by_its_own_speed_and_clips_the_checks_doubt_do_no
     v = _validation(wrong, measured, measured)
     assert v["verdict"] == "unvalidated" and "flag every held-out condition" in v["note"]
     assert "worst_fitted_error" not in v and all(c["data_flags"] for c in v["conditions"].values())
+
+
+def test_a_fitted_model_that_misses_its_training_speed_or_swims_tail_first_is_said(rates):
+    """Clips of another swimming model had been fitted with the training 1.00 Hz speed -51 % and held-out rates swum
+    backward, nothing said (review of stop 55). The README's fitted coefficients (seed 0) swim every training rate
+    within 2 %: nothing said; with half their Kutta lift the model swims the 1.00 Hz beat tail first and the 1.75 Hz
+    one 61 % slow, both said."""
+    prob = swimmer.SwimmerProblem(rates, [1.0, 1.75], dt=0.016)
+    names = [p.name for p in prob.space.parameters]
+    fitted = dict(blunt_drag=0.269, slender_drag=0.33, angular_drag=1.91, kutta_lift=1.22, magnus_lift=0.239,
+                  viscosity=0.0642)
+    vector = np.array([fitted[n] for n in names])
+    assert prob.fit_warnings(vector) == []
+    weak = vector.copy()
+    weak[names.index("kutta_lift")] *= 0.5
+    said = prob.fit_warnings(weak)
+    assert any("swims tail first or stands at 1.00 Hz" in w for w in said), said
+    assert any("misses the training speed at 1.75 Hz by -61 %" in w for w in said), said
