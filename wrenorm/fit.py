@@ -23,7 +23,7 @@ from .jacobian import Jacobian
 from .problem import Problem, finite_or_inf
 from .restarts import identifiability_restarts, spread_of_optima
 from .results import SCHEMA, versions, write_json
-from .uncertainty import check_against_optima, uncertainty
+from .uncertainty import check_against_optima, optima_from_report, uncertainty
 
 STATE_FILE = "search_log.jsonl"
 ADOPT_BETTER = 0.01  # a restart whose objective is lower than the main search's by more than this share replaces it
@@ -247,7 +247,6 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
         objectives, errs = searches.mean_loss(problem, both, problem.train)
         losses = errs.mean(axis=1)
     unc = uncertainty(problem, fitted, jac=jac)
-    check_against_optima(unc, space, fitted, restart_report, unc["std"])
     params = {}
     for i, p in enumerate(space.parameters):
         params[p.name] = {
@@ -304,13 +303,18 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
             np.array([o["loss"] for o in optima]))
     if restart_report is not None:
         result["restarts"] = restart_report
+    if stalled is None:  # else the values reported are the measured ones, which no search ended at
+        check_against_optima(result["uncertainty"], space, fitted, float(objectives[1]),
+                             optima_from_report(space, restart_report)
+                             + optima_from_report(space, result.get("searches_spread")), unc["std"])
     result.update(problem.report(fitted, measured))
     if stalled is not None:
         result["search"]["stalled"] = stalled
     if adopted is not None:
         result["search"]["adopted_restart"] = {k: adopted[k] for k in ("seed", "objective", "main_objective")}
     unconverged = None
-    if res.stop == "iterations" and "least_squares" in history and len(history["least_squares"]) > 5:
+    if (res.stop == "iterations" and "least_squares" in history and len(history["least_squares"]) > 5
+            and stalled is None and adopted is None):  # else the values reported are not this search's
         costs = [h["cost"] for h in history["least_squares"]]
         unconverged = (f"the least-squares search stopped at its limit of {len(costs) - 1} iterations, still moving "
                        f"(cost {costs[-6]:.4g} -> {costs[-1]:.4g} over its last 5): the values may not be its optimum, "

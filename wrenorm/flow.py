@@ -21,7 +21,7 @@ from .results import SCHEMA, stored_digest, versions, write_json
 from .runfolder import check_same_settings
 from .search import mean_loss, restarts_together
 from .search import restarts as seeded_searches
-from .uncertainty import uncertainty
+from .uncertainty import check_against_optima, uncertainty
 
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
 
@@ -81,6 +81,10 @@ def run_flow(problems: list, out: Path, seed: int = 0, restarts: int = 4, popsiz
         spread = vals.std(axis=0, ddof=1) if len(vals) > 1 and stalled is None else np.full(len(prob.space.names),
                                                                                                np.nan)
         unc = uncertainty(prob, fitted)
+        if stalled is None:
+            check_against_optima(unc, prob.space, fitted, float(best.best_loss),
+                                 [(r.best_values[prob.space.free_mask], float(r.best_loss)) for r in res
+                                  if r is not best], unc["std"])
         loss, _ = mean_loss(prob, np.stack([prob.space.measured, fitted]), prob.train)
         point = {
             "resolution": prob.resolution,

@@ -85,6 +85,7 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
     chi2_dof = float(r0 @ r0) / dof
     # noise-normalised residuals: the noise is known (sigma = 1); else estimate it from the misfit
     sigma2 = 1.0 if problem.noise_normalised else chi2_dof
+    out["noise_variance"] = sigma2  # of a residual: what a change of the objective is measured in
     cov_u, std_u, JtJ = _std(J, sigma2)
     scale = np.abs(space.dvalue_dunit(fitted))
     col_norm = np.linalg.norm(J, axis=0)
@@ -109,7 +110,8 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
         data_std = {p.name: float(s) for p, s in zip(free, std_u * scale)}
         cov_u, std_u, JtJ = _std(np.concatenate([J / np.sqrt(sigma2), space.prior_jacobian_unit(fitted)]), 1.0)
         out["data_only_std"] = data_std
-        out["held_by_prior"] = [p.name for p in free if p.prior is not None and p.name not in out["determined_by_data"]]
+        out["held_by_prior"] = [p.name for p in free if p.prior is not None and p.name not in out["determined_by_data"]
+                                and p.name not in at_bound]
     std = std_u * scale
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_u / np.outer(std_u, std_u)
@@ -134,29 +136,46 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
     return out
 
 
-def check_against_optima(unc: dict, space, fitted: np.ndarray, spread: dict | None, std: dict) -> None:
-    """Where seeded searches that fit about as well as the best end farther apart than OPTIMA_SPREAD_STDS of a
-    parameter's stated std, the local Gauss-Newton std is wrong there (several optima, or a Jacobian that changes
-    faster than its step): the parameter is not determined, and this is said. The fish fitted on its rotated-marker
-    files alone had stated blunt drag +-0.025 % while its restarts spanned 0.180-0.2025, and called it determined
-    or not by the seed (review of stop 55). Edits `unc` in place."""
-    if not spread or not spread.get("optima"):
+
+def optima_from_report(space, report: dict | None) -> list:
+    """(free values, objective) of each seeded search in a spread_of_optima report (restarts, searches_spread)."""
+    names = [p.name for p in space.free]
+    return [(np.array([o["values"][n] for n in names], np.float64), float(o["train_loss"]))
+            for o in (report or {}).get("optima", [])]
+
+
+def check_against_optima(unc: dict, space, fitted: np.ndarray, fitted_objective: float, optima: list,
+                         std: dict) -> None:
+    """Where seeded searches that fit as well as the best (their objective within the 99 % chi-square region of as
+    many parameters, in units of the noise variance) end farther apart than OPTIMA_SPREAD_STDS of a parameter's
+    stated std, the local Gauss-Newton std is wrong there (several optima, or a Jacobian that changes faster than
+    its step): the parameter is not determined, and this is said. The fish fitted on its rotated-marker files alone
+    had stated blunt drag +-0.025 % while its restarts spanned 0.180-0.2025, and called it determined or not by the
+    seed (review of stop 55). Edits `unc` in place; optima: (free values, objective) per search."""
+    from scipy.stats import chi2
+
+    noise = unc.get("noise_variance")
+    if not optima or not noise or not np.isfinite(fitted_objective):
         return
     names = [p.name for p in space.free]
-    rows = [fitted[space.free_mask]] + [np.array([o["values"][n] for n in names], np.float64)
-                                        for o in spread["optima"] if o.get("fits_as_well")]
+    best = min([fitted_objective, *(o for _, o in optima if np.isfinite(o))])
+    window = float(chi2.ppf(0.99, len(names))) * noise
+    rows = [np.asarray(fitted, np.float64)[space.free_mask]] + [v for v, o in optima if o - best <= window]
     if len(rows) < 2:
         return
     vals = np.array(rows)
     width = vals.max(0) - vals.min(0)
-    wrong = [(n, w / std[n]) for n, w in zip(names, width)
-             if std.get(n) is not None and np.isfinite(std[n]) and w > OPTIMA_SPREAD_STDS * max(std[n], 1e-300)]
+    wrong = []
+    for n, w in zip(names, width):
+        sd = std.get(n)
+        if sd is not None and np.isfinite(sd) and w > OPTIMA_SPREAD_STDS * sd:
+            wrong.append((n, f"{w / sd:.0f}x" if sd > 0 else "any multiple of (a std of 0)"))
     if not wrong:
         return
-    unc["std_understated"] = {n: float(r) for n, r in wrong}
+    unc["std_understated"] = dict(wrong)
     unc["determined_by_data"] = [n for n in unc.get("determined_by_data", []) if n not in dict(wrong)]
     unc["undetermined"] = list(dict.fromkeys([*unc.get("undetermined", []), *dict(wrong)]))
-    said = (f"searches that fit as well as the best end apart by {', '.join(f'{r:.0f}x' for _, r in wrong)} the "
-            f"stated std of {', '.join(n for n, _ in wrong)}: the std from the local Jacobian understates them "
-            "(several optima, or a Jacobian that changes within its step); read their spread across the searches")
+    said = (f"searches that fit as well as the best end apart by {', '.join(r for _, r in wrong)} the stated std of "
+            f"{', '.join(n for n, _ in wrong)}: the std from the local Jacobian understates them (several optima, or a "
+            "Jacobian that changes within its step); read their spread across the searches")
     unc["warning"] = "; ".join(w for w in (unc.get("warning"), said) if w)
