@@ -37,3 +37,12 @@ def test_sensitivity_rope_refuses_absurd_sizes(tmp_path, capsys, flag, most):
     assert main(["sensitivity", "rope", flag, "1e300", "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err
     assert f"{flag}: " in err and f"must be <= {most}" in err and err.count("\n") == 1
+
+
+def test_an_option_of_wrenorm_itself_after_the_command_says_where_it_goes(capsys):
+    """`fit pd --verbose` had said "wrenorm: error: wrenorm: unrecognized arguments: --verbose" (a new user's review of
+    stop 55): the program named twice, and not where the option goes."""
+    assert main(["fit", "pd", "--verbose"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("wrenorm: error: unrecognized arguments: --verbose") and "goes before the command" in err

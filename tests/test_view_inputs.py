@@ -184,3 +184,14 @@ def test_an_interrupted_command_that_cannot_resume_is_not_told_to():
     fit._argv = ["flow", "pd", "--resolutions", "50", "100", "--out", "r", "--force"]
     assert resume_hint(fit) == "; continue with: python -m wrenorm flow pd --resolutions 50 100 --out r --resume"
     assert "does not resume" in resume_hint(select) and "--force --out r" in resume_hint(select)
+
+
+def test_view_report_of_a_sweep_or_select_folder_says_what_the_folder_is(tmp_path, capsys):
+    """A finished sweep's folder had been called "not a finished run folder" (a new user's review of stop 55)."""
+    (tmp_path / "sweep.json").write_text("{}")
+    assert main(["view", str(tmp_path), "--report"]) == 2
+    assert "a sweep's folder (sweep.json)" in _one_line(capsys)
+    (tmp_path / "sweep.json").unlink()
+    (tmp_path / "select.json").write_text("{}")
+    assert main(["view", str(tmp_path), "--report"]) == 2
+    assert "a select run's folder" in _one_line(capsys)

@@ -493,7 +493,12 @@ def load_result(folder: Path) -> tuple[dict, Path]:
             path = folder / name
             break
     else:
-        raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: not a finished run folder")
+        kind = ("a sweep's folder (sweep.json): its table is sweep.csv and sweep.png, `view DIR` opens its "
+                "recording, and each cell's report is in its folder under DIR/cells" if (folder / "sweep.json").exists()
+                else
+                "a select run's folder (select.json): its answer is that file" if (folder / "select.json").exists()
+                else "not a finished run folder")
+        raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: {kind}")
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError:

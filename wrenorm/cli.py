@@ -63,7 +63,7 @@ def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
                         "cmaes+least-squares for a global search polished locally")
     add_number(p, "--generations", default=d.generations, lo=1, hi=100000, integer=True, help="CMA-ES generations")
     add_number(p, "--popsize", default=d.popsize, lo=4, hi=1_000_000, integer=True,
-               help="CMA-ES population (default: pycma's for the dimension when unset)")
+               help="CMA-ES population", default_text=None if d.popsize else "pycma's for the dimension")
     add_number(p, "--sigma0", default=d.sigma0, lo=0.0, lo_open=True, hi=1.0,
                help="initial CMA-ES step in normalised [0, 1] coordinates")
     add_number(p, "--searches", default=None, lo=1, hi=65536, integer=True,
@@ -344,7 +344,8 @@ def _print_summary(result: dict, out: Path) -> None:
             f"verdict's worst fitted {'no event, at least ' if v.get('worst_is_miss') else ''}"
             f"{v['worst_fitted_error']:.4g} ({v.get('worst_condition', '?')}) against its "
             f"tolerance {v.get('worst_tolerance', v['tolerance']):.4g})" if "worst_fitted_error" in v else ""))
-        if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")):
+        if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")
+                              or v["verdict"] == "unvalidated"):
             print(f"  {v['note']}")
         for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
             spread = r.get(key) or {}

@@ -18,7 +18,10 @@ class OneLineParser(argparse.ArgumentParser):
             flag, problem = m.groups()
             dest = next((a.dest for a in self._actions if flag in a.option_strings), None)
             message = f"{flag}: {dest}: {problem}" if dest else f"{flag}: {problem}"
-        print(f"wrenorm: error: {self.prog.split(' ', 1)[-1]}: {' '.join(message.split())}", file=sys.stderr)
+        if "unrecognized arguments" in message and "--verbose" in message.split():
+            message += " (--verbose goes before the command: python -m wrenorm --verbose fit ...)"
+        where = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""  # the top parser is wrenorm itself
+        print(f"wrenorm: error: {where}{' '.join(message.split())}", file=sys.stderr)
         raise SystemExit(2)
 
 
