@@ -136,7 +136,6 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
     return out
 
 
-
 def optima_from_report(space, report: dict | None) -> list:
     """(free values, objective) of each seeded search in a spread_of_optima report (restarts, searches_spread)."""
     names = [p.name for p in space.free]
@@ -169,13 +168,14 @@ def check_against_optima(unc: dict, space, fitted: np.ndarray, fitted_objective:
     for n, w in zip(names, width):
         sd = std.get(n)
         if sd is not None and np.isfinite(sd) and w > OPTIMA_SPREAD_STDS * sd:
-            wrong.append((n, f"{w / sd:.0f}x" if sd > 0 else "any multiple of (a std of 0)"))
+            wrong.append((n, float(w / sd) if sd > 0 else None))  # None: a std of 0
     if not wrong:
         return
     unc["std_understated"] = dict(wrong)
     unc["determined_by_data"] = [n for n in unc.get("determined_by_data", []) if n not in dict(wrong)]
     unc["undetermined"] = list(dict.fromkeys([*unc.get("undetermined", []), *dict(wrong)]))
-    said = (f"searches that fit as well as the best end apart by {', '.join(r for _, r in wrong)} the stated std of "
+    said = (f"searches that fit as well as the best end apart by "
+            f"{', '.join(f'{r:.0f}x' if r is not None else 'any multiple of' for _, r in wrong)} the stated std of "
             f"{', '.join(n for n, _ in wrong)}: the std from the local Jacobian understates them (several optima, or a "
             "Jacobian that changes within its step); read their spread across the searches")
     unc["warning"] = "; ".join(w for w in (unc.get("warning"), said) if w)
