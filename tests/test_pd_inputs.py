@@ -1,5 +1,7 @@
 """PD log CSVs as spreadsheets and loggers leave them: a byte-order mark is read past; a column named twice and a
 hole in the sample times are refused in one line naming the file, the column and the problem."""
+import json
+
 import numpy as np
 import pytest
 
@@ -436,3 +438,40 @@ def test_a_command_velocity_on_another_clock_a_wrapped_command_or_a_still_fit_pa
 
         PDProblem(100.0, "semi-implicit", log=load_log(log))
     assert e.value.field.startswith(field) and said in e.value.problem
+
+
+def _sample_and_hold_log(path, rate_c: float, J=0.05, KP=20.0, KD=0.5, rate=1000.0, T=9.0):
+    """A servo that samples q, qd and the command at rate_c and holds its PD torque between, on a joint integrated
+    exactly (constant acceleration within each 1 ms), logged at 1 kHz."""
+    t = np.arange(int(T * rate) + 1) / rate
+    w, a = np.array([0.7, 1.9, 3.1]), np.array([0.5, 0.2, 0.08])
+    q_d, qd_d = (a * np.sin(np.outer(t, w))).sum(1), (a * w * np.cos(np.outer(t, w))).sum(1)
+    q, v, u, rows = 0.0, 0.0, 0.0, []
+    every = int(round(rate / rate_c))
+    for k in range(len(t)):
+        rows.append((t[k], q, q_d[k], qd_d[k]))
+        if k % every == 0:
+            u = KP * (q_d[k] - q) + KD * (qd_d[k] - v)
+        q, v = q + v / rate + u / (2 * J) / rate ** 2, v + u / J / rate
+    np.savetxt(path, np.array(rows), delimiter=",", header="time,q,q_d,qd_d", comments="", fmt="%.12g")
+    return path
+
+
+def test_a_servo_that_samples_and_holds_its_torque_is_predicted_with_controller_rate(tmp_path, capsys):
+    """A 50 Hz servo moves K_D by -K_P / (2 f_c) = -41 % and J by -K_D / (2 f_c): the fit recovers that (a review's
+    peer-simulated logs, stop 55), and without --controller-rate the gains check names the hold as a cause; with it,
+    the predictions include the hold and nothing is said. The built-in reference has no servo to give a rate to."""
+    log = _sample_and_hold_log(tmp_path / "servo50.csv", 50.0)
+    for extra, said in (([], True), (["--controller-rate", "50"], False)):
+        out = tmp_path / f"fit{len(extra)}"
+        assert main(["fit", "pd", "--reference", str(log), "--f-sim", "200", *extra, "--out", str(out), "--quiet",
+                     "--no-record"]) == 0
+        r = json.loads((out / "result.json").read_text())
+        gains = [w for w in r["warnings"] if "sample and hold" in w]
+        assert bool(gains) == said, r["warnings"]
+    a, fitted = r["analytic"], {k: v["fitted"] for k, v in r["parameters"].items()}
+    assert a["controller_hold_s"] == pytest.approx(0.01)
+    assert fitted["K_D"] == pytest.approx(a["K_D_sim_first_order"], rel=0.03)  # 0.3 against 0.5 given
+    assert fitted["J"] == pytest.approx(a["J_sim_first_order"], rel=0.03)
+    assert main(["fit", "pd", "--controller-rate", "50", "--out", str(tmp_path / "builtin")]) == 2
+    assert "--controller-rate: controller_rate: goes with --reference" in capsys.readouterr().err

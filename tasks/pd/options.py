@@ -21,6 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                help="real derivative gain")
     p.add_argument("--reference", default=None, metavar="FILE.csv",
                    help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
+    add_number(p, "--controller-rate", default=None, lo=1.0, hi=1e6, unit="Hz", default_text="continuous",
+               help="the real servo's own control rate, with --reference: it samples and holds its torque for a "
+                    "period, which moves K_D by about -K_P / (2 rate) and J by -K_D / (2 rate); the predictions and "
+                    "the gains check then include that shift (the fit is the same)")
     p.add_argument("--arm", action="store_true",
                    help="two-link arm with M(q) and gain matrices: fit the joint-space inertia correction and K_D^sim")
 

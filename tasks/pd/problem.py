@@ -417,7 +417,8 @@ class PDProblem(Problem):
     def __init__(self, f_sim: float, integrator: str = "semi-implicit", device: str = "cpu",
                  J: float = MEASURED["J"], KP: float = MEASURED["K_P"], KD: float = MEASURED["K_D"],
                  log: MeasuredLog | None = None, tolerance: float = 0.02,
-                 train: list[Command] | None = None, held_out: list[Command] | None = None):
+                 train: list[Command] | None = None, held_out: list[Command] | None = None,
+                 controller_rate: float | None = None):
         from wrenorm.kernels import pd as kpd
 
         _check_positive({"f_sim": f_sim, "J": J, "K_P": KP, "K_D": KD})
@@ -429,6 +430,8 @@ class PDProblem(Problem):
         self.integrator_name, self.integrator = integrator, kpd.INTEGRATORS[integrator]
         self.device = device
         self.true = {"J": J, "K_P": KP, "K_D": KD}
+        # a servo that holds its torque for 1 / rate acts, to first order, as a continuous one delayed by half that
+        self.hold = 0.0 if controller_rate is None else 0.5 / float(controller_rate)
         self.space = parameter_space(J, KP, KD)
         self.tolerance = tolerance
         self.resolution = {"f_sim": self.f_sim, "dt": self.dt, "integrator": integrator}
@@ -564,9 +567,13 @@ class PDProblem(Problem):
     def analytic(self, fitted: dict) -> dict:
         J, KP, KD, dt = self.true["J"], self.true["K_P"], self.true["K_D"], self.dt
         c = ANALYTIC_DELAY[self.integrator_name]
-        d_kd, d_j = c["K_D"] * dt, c["J"] * dt
-        delay_kd = (fitted["K_D"] - KD) / KP
-        delay_j = (fitted["J"] - J) / KD
+        # the servo's hold (--controller-rate) delays its torque by h: the real joint is, to first order, a
+        # continuous one with J - K_D h and K_D - K_P h (a review's sample-and-hold logs at 50-1000 Hz fitted exactly
+        # that, and had been read as the simulator's delay; stop 55), which the simulator's step then moves as usual
+        h = self.hold
+        d_kd, d_j = c["K_D"] * dt - h, c["J"] * dt - h
+        delay_kd = (fitted["K_D"] - KD) / KP + h  # the simulator's own share: the servo's hold taken out
+        delay_j = (fitted["J"] - J) / KD + h
         return {
             "dt": dt,
             "delay_model": c["why"],
@@ -580,6 +587,7 @@ class PDProblem(Problem):
             # and the velocity command's own gain stays 0 (it had read -dt K_P for the explicit step, -0.2 at 100 Hz,
             # beside a fitted -0.004; review of stop 55)
             "K_FF_first_order": 0.0,
+            "controller_hold_s": h,
             "fitted_delay_from_K_D": delay_kd,
             "fitted_delay_from_J": delay_j,
             "fitted_delay_from_K_D_over_dt": delay_kd / dt,
@@ -747,7 +755,12 @@ def build_problems(args, device: str) -> list[PDProblem]:
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
         return [ArmProblem(f, device) for f in args.f_sim]
     log = load_log(args.reference) if args.reference else None
-    problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log) for f in args.f_sim]
+    rate = getattr(args, "controller_rate", None)
+    if rate is not None and log is None:
+        raise InputError("--controller-rate", "controller_rate", "goes with --reference: the built-in reference's "
+                                                                 "controller is continuous")
+    problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log, controller_rate=rate)
+                for f in args.f_sim]
     for w in dict.fromkeys(w for p in problems for w in p.warnings):  # said as they arise, once; kept in result.json
         warn(w)
     return problems
