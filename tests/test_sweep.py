@@ -139,7 +139,6 @@ def _end(pids) -> None:
     ('task = "fit pd"\n[options]\narm = true\n[axes]\nfree = [["KD12"], ["J"]]', "--free J: unknown parameter of pd"),
     ('task = "flow pd"\n[options]\nfree = ["K_P"]\n[axes]\nfreeze = [["J"], ["K_P"]]', "named both free and frozen"),
     ('task = "fit pd"\n[options]\nreference = ""', "options.reference: every cell: --reference: an empty path"),
-    ('task = "fit pd"\n[options]\nrestarts = 1', "--restarts: restarts: needs 0 (none) or at least 2"),
 ])
 def test_a_bad_spec_exits_2_naming_the_key_before_anything_runs(tmp_path, capsys, text, key):
     spec = _write(tmp_path, text)

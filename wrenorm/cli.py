@@ -70,10 +70,7 @@ def _fit_arguments(p: argparse.ArgumentParser, system) -> None:
                help="seeded CMA-ES searches side by side in one batched evaluation; the best is kept and the spread "
                     f"of their optima reported (default by device kind: cpu 1, cuda {d.wide_searches} with "
                     f"{d.wide_popsize_factor}x pycma's population)")
-    # 1 refused in the parser, where a sweep checks its cells before Ray starts (a cell with 1 had started Ray and
-    # failed; a new user's review of stop 55)
     add_number(p, "--restarts", default=d.restarts, lo=0, hi=1000, integer=True,
-               refuse={1: "needs 0 (none) or at least 2 searches for a spread"},
                help="identifiability check after the fit: further seeded searches side by side (0: none; else >= 2)")
     add_number(p, "--polish", default=d.polish, lo=0, hi=10000, integer=True,
                help="L-BFGS evaluations on Warp-tape gradients after the search (systems with a tape; 0: none)")

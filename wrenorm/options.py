@@ -29,9 +29,9 @@ def _fmt(x) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-def number(lo=None, hi=None, integer: bool = False, lo_open: bool = False, refuse: dict | None = None):
+def number(lo=None, hi=None, integer: bool = False, lo_open: bool = False):
     """An argparse `type` that accepts a finite number (an integer if asked) in [lo, hi] (or (lo, hi] with
-    lo_open), but none of `refuse`'s values (value: why)."""
+    lo_open)."""
     def parse(text: str):
         s = str(text).strip()
         try:
@@ -45,8 +45,6 @@ def number(lo=None, hi=None, integer: bool = False, lo_open: bool = False, refus
             raise argparse.ArgumentTypeError(f"must be {'>' if lo_open else '>='} {_fmt(lo)}, got {s}")
         if hi is not None and v > hi:
             raise argparse.ArgumentTypeError(f"must be <= {_fmt(hi)}, got {s}")
-        if refuse and v in refuse:
-            raise argparse.ArgumentTypeError(f"{refuse[v]}, got {s}")
         return v
 
     parse.__name__ = "integer" if integer else "number"
@@ -97,14 +95,13 @@ class ListAction(argparse.Action):
 
 
 def add_number(p: argparse.ArgumentParser, flag: str, *, default, lo=None, hi=None, integer: bool = False,
-               lo_open: bool = False, help: str = "", unit: str = "", default_text: str | None = None,
-               refuse: dict | None = None, **kw) -> None:
+               lo_open: bool = False, help: str = "", unit: str = "", default_text: str | None = None, **kw) -> None:
     """--flag N, range-checked; the range (and unit) appear in --help, with `default_text` in place of the default
     where that is None (filled in later)."""
     rng = range_text(lo, hi, lo_open)
     shown = default if default_text is None else default_text
     text = f"{help} ({'integer ' if integer else ''}{rng}{' ' + unit if unit else ''}; default {shown})".strip()
-    p.add_argument(flag, type=number(lo, hi, integer, lo_open, refuse), default=default, help=text, **kw)
+    p.add_argument(flag, type=number(lo, hi, integer, lo_open), default=default, help=text, **kw)
 
 
 def add_list(p: argparse.ArgumentParser, flag: str, *, default, item=str, help: str = "", unique: bool = True,
