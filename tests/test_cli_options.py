@@ -46,3 +46,21 @@ def test_an_option_of_wrenorm_itself_after_the_command_says_where_it_goes(capsys
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert err.startswith("wrenorm: error: unrecognized arguments: --verbose") and "goes before the command" in err
+
+
+def test_the_summary_prints_the_std_with_the_misfit_as_noise_beside_the_posterior_one(tmp_path, capsys):
+    """The real fish misses its noise-normalised features by chi^2/dof 13: the printed +- (the posterior's) is 3.7x
+    narrower than the data allow with the misfit taken as noise, which result.json held and the summary did not print
+    (a review of stop 55). A fit within its noise prints the one std."""
+    from wrenorm.cli import _print_summary
+
+    def result(chi2):
+        return {"task": "swimmer", "resolution": {}, "loss": {"measured": 1.0, "fitted": 0.5},
+                "parameters": {"kutta_lift": {"measured": 3.84, "fitted": 1.22, "std": 0.048, "frozen": False}},
+                "validation": {"verdict": "expand", "note": ""},
+                "uncertainty": {"chi2_per_dof": chi2, "std_inflated_by_misfit": {"kutta_lift": 0.048 * chi2 ** 0.5}}}
+
+    _print_summary(result(13.0), tmp_path)
+    assert "fitted 1.22 ± 0.048 (± 0.173 from the data alone, the misfit taken as noise)" in capsys.readouterr().out
+    _print_summary(result(0.8), tmp_path)
+    assert "± 0.048\n" in capsys.readouterr().out
