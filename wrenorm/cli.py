@@ -81,7 +81,8 @@ def _flow_arguments(p: argparse.ArgumentParser, system) -> None:
     _run_arguments(p)
     add_list(p, "--resolutions", item=number(), default=None, metavar="R", help=system.flow.resolutions_help)
     add_number(p, "--restarts", default=4, lo=2, hi=1000, integer=True,
-               help="seeded CMA-ES searches side by side per resolution (their spread is the uncertainty)")
+               help="seeded CMA-ES searches side by side per resolution (their spread is the uncertainty; what "
+                    "fit calls --searches, not fit's --restarts, the check after a fit)")
     add_number(p, "--generations", default=system.flow.generations, lo=1, hi=100000, integer=True)
     add_number(p, "--popsize", default=16, lo=4, hi=1_000_000, integer=True, help="CMA-ES population per search")
     how = p.add_mutually_exclusive_group()
