@@ -580,55 +580,60 @@ def _crossing(gap: np.ndarray, start: int = 0):
     return k, float(np.clip(frac, 0.0, 1.0))
 
 
-def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int, level: float) -> float | None:
-    """The speed (m/s) at which the rope's gap (measured from the contact level) closes over its last `frames` frames,
-    when at that speed it would touch within END_HORIZON after the recording's end; else None. Only a reconstructed
-    gap (below NEAR_GAP) counts: above it the series is a lower bound."""
+def _closing_at_the_end(gap: np.ndarray, dt: float, frames: int, level: float) -> tuple[float, float] | None:
+    """(speed m/s, gap at the last frame) where the rope's least gap (measured from the contact level) closes over its
+    last `frames` frames fast enough to touch within END_HORIZON after the recording's end; else None. Only a
+    reconstructed gap (below NEAR_GAP) counts: above it the series is a lower bound."""
     n = min(int(frames), len(gap) - 1)
     if n < 1 or not gap[-1] + level < NEAR_GAP:
         return None
     speed = float(gap[-1 - n] - gap[-1]) / (n * dt)
-    return speed if speed > 0.0 and gap[-1] <= speed * END_HORIZON else None
+    return (speed, float(gap[-1])) if speed > 0.0 and gap[-1] <= speed * END_HORIZON else None
 
 
 def _pair_gaps(pts, sarc, frames, Ii, Jj, n_sub: int, radius: float, excl: float):
     """(gap m, s_a m, s_b m) per item: the least surface gap between interval Ii and interval Jj of the reconstructed
-    rope (pts, sarc from reconstruct) at `frames`, farther than excl apart along it, and where it lies."""
+    rope (pts, sarc from reconstruct) at `frames`, farther than excl apart along it, and where it lies. In blocks of
+    about 200 000 segment pairs: every pair of a long, thin rope at once had needed GiBs."""
     ia = np.repeat(np.arange(n_sub), n_sub)
     jb = np.tile(np.arange(n_sub), n_sub)
-    A, B = pts[frames, Ii], pts[frames, Jj]
-    sA, sB = sarc[frames, Ii], sarc[frames, Jj]
-    d, u, v = segment_distances_excluded(
-        A[:, ia], A[:, ia + 1], B[:, jb], B[:, jb + 1],
-        sA[:, ia], sA[:, ia + 1] - sA[:, ia], sB[:, jb], sB[:, jb + 1] - sB[:, jb], excl)
-    d = np.where((Ii == Jj)[:, None] & (jb <= ia)[None, :], np.inf, d)
-    k = np.argmin(d, axis=1)
-    r = np.arange(len(frames))
-    return (d[r, k] - 2.0 * radius, sA[r, ia[k]] + u[r, k] * (sA[r, ia[k] + 1] - sA[r, ia[k]]),
-            sB[r, jb[k]] + v[r, k] * (sB[r, jb[k] + 1] - sB[r, jb[k]]))
+    gap, sa, sb = np.empty(len(frames)), np.empty(len(frames)), np.empty(len(frames))
+    chunk = max(1, 200000 // (n_sub * n_sub))
+    for c0 in range(0, len(frames), chunk):
+        sl = slice(c0, c0 + chunk)
+        f, I, J = frames[sl], Ii[sl], Jj[sl]
+        A, B = pts[f, I], pts[f, J]
+        sA, sB = sarc[f, I], sarc[f, J]
+        d, u, v = segment_distances_excluded(
+            A[:, ia], A[:, ia + 1], B[:, jb], B[:, jb + 1],
+            sA[:, ia], sA[:, ia + 1] - sA[:, ia], sB[:, jb], sB[:, jb + 1] - sB[:, jb], excl)
+        d = np.where((I == J)[:, None] & (jb <= ia)[None, :], np.inf, d)
+        k = np.argmin(d, axis=1)
+        r = np.arange(len(f))
+        gap[sl] = d[r, k] - 2.0 * radius
+        sa[sl] = sA[r, ia[k]] + u[r, k] * (sA[r, ia[k] + 1] - sA[r, ia[k]])
+        sb[sl] = sB[r, jb[k]] + v[r, k] * (sB[r, jb[k] + 1] - sB[r, jb[k]])
+    return gap, sa, sb
 
 
 def _pair_closing_at_the_end(X, S, iv, jv, n_sub: int, radius: float, excl: float, level: float, dt: float,
                              frames: int, noise: float) -> tuple[float, float] | None:
     """(speed m/s, gap at the last frame, from the contact level) of an interval pair whose own reconstructed gap
-    closes over the last `frames` frames by more than twice the noise margin, fast enough to touch within END_HORIZON
-    after the recording's end; else None. The least gap per frame (_closing_at_the_end) can belong to another pair:
-    two points pi diameters apart along a straight stretch are 17 mm apart at 4 mm radius, and throws cut 5 ms before
-    their contact read as "no self-contact, 16.9 mm clear" while the pair about to touch closed in (a third
-    simulator's throw, 12 markers at 240 Hz; 123 of 328 cuts of the built-in throws 3-12 ms before their contact, at
-    12 and 17 markers; review of stop 55). Every pair is reconstructed at the two frames: the rigorous bounds of
-    pairs far apart swing by 5-10 mm from frame to frame with 1 mm of marker noise."""
+    closes over the last `frames` frames by more than twice the noise margin, fast enough to touch within
+    PAIR_END_HORIZON after the recording's end; else None. The least gap per frame (_closing_at_the_end) can belong to
+    another pair: two points pi diameters apart along a straight stretch are 17 mm apart at 4 mm radius, and throws
+    cut 5 ms before their contact read as "no self-contact, 16.9 mm clear" while the pair about to touch closed in (a
+    third simulator's throw, 12 markers at 240 Hz; 138 of 368 cuts of the built-in throws 3-12 ms before their
+    contact, at 12 and 17 markers; review of stop 55). Every pair is reconstructed at the two frames: the rigorous
+    bounds of pairs far apart swing by 5-10 mm from frame to frame with 1 mm of marker noise."""
     T = len(X)
     n = min(int(frames), T - 1)
     if n < 1:
         return None
     pts, sarc, _ = reconstruct(X[[T - 1 - n, T - 1]], S, n_sub)
     P = len(iv)
-    frames, Ii, Jj = np.repeat([0, 1], P), np.tile(iv, 2), np.tile(jv, 2)
-    chunk = max(1, 200000 // (n_sub * n_sub))  # segment pairs per block, as detect takes them
-    g = np.concatenate([_pair_gaps(pts, sarc, frames[c:c + chunk], Ii[c:c + chunk], Jj[c:c + chunk], n_sub, radius,
-                                   excl)[0] for c in range(0, 2 * P, chunk)])
-    g0, g1 = g[:P] - level, g[P:] - level
+    g = _pair_gaps(pts, sarc, np.repeat([0, 1], P), np.tile(iv, 2), np.tile(jv, 2), n_sub, radius, excl)[0] - level
+    g0, g1 = g[:P], g[P:]
     speed = (g0 - g1) / (n * dt)
     closing = np.flatnonzero((g0 - g1 > 2.0 * noise) & (g1 <= speed * PAIR_END_HORIZON))
     if not len(closing):
@@ -755,10 +760,6 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
     plaus_pair = np.full(T, -1)
     plaus_s = np.full((T, 2), np.nan)
     if len(tt):
-        chunk = max(1, 200000 // (n_sub * n_sub))
-        gmin = np.full(len(tt), np.inf)
-        sa_best = np.zeros(len(tt))
-        sb_best = np.zeros(len(tt))
         b_half = 0.5 * np.sqrt(np.maximum(1.0 - np.minimum(ratio, 1.0) ** 2, 0.0)) * a[None, :]  # (T, M-1)
         # Uncertainty of the reconstructed gap: resolved-contact error + noise + a fraction of the spheroid
         # half-widths of the two intervals. For pairs inside one interval or two adjacent ones the gap
@@ -769,10 +770,7 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         shape = SHAPE_ERROR_FRACTION * np.where(short_range, np.maximum(b_half[tt, iv[pp]], b_half[tt, jv[pp]]),
                                                 b_half[tt, iv[pp]] + b_half[tt, jv[pp]])
         unc = GAP_ERROR + margin + np.where(short_range & (rho_min >= CURL_CHORD_RATIO), 0.0, shape)
-        for c0 in range(0, len(tt), chunk):
-            sl = slice(c0, c0 + chunk)
-            gmin[sl], sa_best[sl], sb_best[sl] = _pair_gaps(pts, sarc, tt[sl], iv[pp[sl]], jv[pp[sl]], n_sub,
-                                                            float(radius), excl)
+        gmin, sa_best, sb_best = _pair_gaps(pts, sarc, tt, iv[pp], jv[pp], n_sub, float(radius), excl)
         sel = _first_per_frame(tt, gmin, T)
         gap[tt[sel]] = gmin[sel]
         best_s[tt[sel]] = np.stack([sa_best[sel], sb_best[sel]], 1)
@@ -845,7 +843,6 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
         closing = None
         if kq is None:
             closing = _closing_at_the_end(gap_series, dt, tol_frames, level)
-            closing = None if closing is None else (closing, float(gap_series[-1]))
             if closing is None:
                 closing = _pair_closing_at_the_end(X, S, iv, jv, n_sub, float(radius), excl, level, dt, tol_frames,
                                                    margin)
