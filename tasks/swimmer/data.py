@@ -552,7 +552,7 @@ def _a_body_with_head_markers_exchanged(source: str, markers: np.ndarray) -> boo
     return True
 
 
-def _check_marker_order(source: str, markers: np.ndarray, local: np.ndarray) -> None:
+def _check_marker_order(source: str, markers: np.ndarray, keep: list[int]) -> None:
     """Head markers 0 and 1 sit on the rigid head, in front of the tail. Written tail first, markers 0-1 flex and 7-8
     keep their distance; with 0 and 1 exchanged, the tail lies on the far side of marker 0 from marker 1. Both had been
     refused as a tail-marker swap or as markers that do not lie one behind another, naming neither cause (review of
@@ -566,7 +566,7 @@ def _check_marker_order(source: str, markers: np.ndarray, local: np.ndarray) -> 
         raise InputError(source, "marker order", f"head markers 0 and 1 flex ({100 * head:.1f} % scatter in their "
                          f"distance) while the last two keep theirs ({100 * tail:.1f} %): written tail first? write "
                          "x0, y0, ..., x8, y8 with the head's markers 0 and 1 first")
-    if len(tail_markers(local)) < 3 and _a_body_with_head_markers_exchanged(source, markers):
+    if len(keep) < 3 and _a_body_with_head_markers_exchanged(source, markers):
         raise InputError(source, "markers 0 and 1", "the tail lies on the far side of marker 0 from marker 1: head "
                          "markers 0 and 1 exchanged? marker 0 is the head's front marker, marker 1 the one behind it")
 
@@ -574,8 +574,8 @@ def _check_marker_order(source: str, markers: np.ndarray, local: np.ndarray) -> 
 def analyse(rate: Rate) -> Rate:
     """Fill tail_freq, speed and the head-frame tail markers (meta) of a rate."""
     local = head_frame(rate.markers)
-    _check_marker_order(rate.source or rate.name, rate.markers, local)
     keep = tail_markers(local)
+    _check_marker_order(rate.source or rate.name, rate.markers, keep)
     if len(keep) < 3:
         # also what a file written x0..x8, y0..y8 gives: its "markers" do not lie one behind another
         raise InputError(rate.source or rate.name, "tail markers",

@@ -161,6 +161,7 @@ def fit_ebt(moments: list, speeds: list) -> tuple[float, float]:
 
 TRAIN_SPEED_MISS = 0.2  # a fitted training speed further off than this share is said (the real fish: within 1.5 %)
 
+
 class SwimmerProblem(Problem):
     task = "swimmer"
     least_squares = True  # the normalised feature residuals are the observable (a Gaussian likelihood)
