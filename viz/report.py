@@ -493,11 +493,12 @@ def load_result(folder: Path) -> tuple[dict, Path]:
             path = folder / name
             break
     else:
-        kind = ("a sweep's folder (sweep.json): its table is sweep.csv and sweep.png, `view DIR` opens its "
-                "recording, and each cell's report is in its folder under DIR/cells" if (folder / "sweep.json").exists()
-                else
-                "a select run's folder (select.json): its answer is that file" if (folder / "select.json").exists()
-                else "not a finished run folder")
+        kind = "not a finished run folder"
+        if (folder / "sweep.json").exists():
+            kind = ("a sweep's folder (sweep.json): its table is sweep.csv and sweep.png, `view DIR` opens its "
+                    "recording, and each cell's report is in its folder under DIR/cells")
+        elif (folder / "select.json").exists():
+            kind = "a select run's folder (select.json): its answer is that file"
         raise InputError(str(folder), "result.json", f"none of {', '.join(RESULT_FILES)}: {kind}")
     try:
         result = json.loads(path.read_text(encoding="utf-8"))

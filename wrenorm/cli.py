@@ -339,7 +339,7 @@ def _print_summary(result: dict, out: Path) -> None:
         # where the model misses its noise-normalised data by more than their noise, the std that takes the misfit as
         # noise too is the honest one to read beside the posterior's (the real fish: 3.7x wider; a review of stop 55
         # found only the narrower printed)
-        wider = unc.get("std_inflated_by_misfit") or {} if (unc.get("chi2_per_dof") or 0.0) > 1.0 else {}
+        wider = (unc.get("std_inflated_by_misfit") or {}) if (unc.get("chi2_per_dof") or 0.0) > 1.0 else {}
         for name, p in r["parameters"].items():
             tag = " (frozen)" if p["frozen"] else ""
             std = f" ± {p['std']:.3g}" if p.get("std") is not None else ""
