@@ -186,3 +186,33 @@ def test_the_chains_start_velocity_is_fitted_over_as_long_a_window_as_the_motion
         velocity, noise = start_velocity(ref(noisy))
         assert np.sqrt(np.mean(np.sum((velocity - truth) ** 2, -1))) < 2.0 * noise
         assert said(noisy)
+
+
+def test_a_slow_rope_whose_first_step_is_within_the_noise_starts_moving_and_a_still_one_at_rest():
+    """250 Hz, 0.5 mm of noise: one step's noise is 0.18 m/s a coordinate, so a rope drifting at 0.3 m/s passed the
+    one-step rest rule in about half the draws and its chain started at rest (review of stop 55). The velocity fitted
+    over the first frames resolves it; a still rope, and one starting from rest under a smooth pull (the quadratic's
+    bias), stay at rest."""
+    from wrenorm.tasks.rope.reference.events import start_velocity, starts_at_rest, still_within_noise
+    from wrenorm.tasks.rope.reference.generate import RopeReference
+
+    t = np.arange(150) / 250.0
+    s = np.linspace(0.0, 1.0, 17)
+    rest = np.stack([0.1 * s, 0.0 * s, 1.6 - 1.1 * s], 1)
+    drift = np.array([0.3, 0.0, 0.0])
+
+    def ref(markers):
+        return RopeReference(t, markers, markers[:, 0].copy(), 1.1, 0.2, 0.005, None, s, "test")
+
+    one_step_rest = 0
+    for seed in range(8):
+        noise = np.random.default_rng(seed).normal(0.0, 5e-4, (len(t), 17, 3))
+        moving = ref(rest[None] + drift * t[:, None, None] + noise)
+        one_step_rest += still_within_noise(moving)
+        assert not starts_at_rest(moving)
+        v, sigma = start_velocity(moving)
+        assert abs(np.mean(v[:, 0]) - 0.3) < 3 * sigma and sigma < 0.05
+        assert starts_at_rest(ref(rest[None] + noise))
+        pulled = rest[None] + np.array([20.0, 0.0, 10.0]) * t[:, None, None] ** 3 / 6 * s[:, None] + noise
+        assert starts_at_rest(ref(pulled))
+    assert one_step_rest >= 3  # the case the one-step rule got wrong

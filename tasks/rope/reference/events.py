@@ -1143,6 +1143,8 @@ def closest_pair_at(ref, t: float):
 
 REST_SPEED = 0.05  # m/s: every coordinate of the markers' first step below this, the rope starts at rest ..
 REST_TILT_DEG = 2.0  # .. and a rope hanging at rest further off -z than this says the frame is tilted
+REST_FIT_SPEED = 0.1  # m/s RMS: a rope whose one step is within its noise still moves when its fitted start velocity
+REST_FIT_SIGMAS = 3.0  # (start_velocity) exceeds this speed and this many times its noise (3D RMS)
 START_NOISE_SHARE = 0.1  # a moving start whose velocity noise is more than this share of its speed is said: 0.19 m/s
 # RMS on 0.96 (1000 Hz markers with 0.5 mm of noise, from 0.15 s into a throw) made the measured chain miss its contact
 # (error 5.1 against 0.45 from the clean markers; with the clean velocity 0.48; review of stop 54)
@@ -1301,9 +1303,17 @@ def first_step_speed(ref) -> float:
 
 def starts_at_rest(ref) -> bool:
     """Whether the rope starts at rest: its first step under REST_SPEED (a forward difference of a rope released at
-    rest reads g dt, not 0; every built-in path starts so) or within the markers' noise. The chain then starts at rest
-    (the rope's prepare_case), and a rope so at rest hangs along gravity (rest_tilt)."""
-    return first_step_speed(ref) < REST_SPEED or still_within_noise(ref)
+    rest reads g dt, not 0; every built-in path starts so) or within the markers' noise, and then the velocity fitted
+    over the first frames (start_velocity) not clearly moving. One step's noise hides a slow rope (0.5 mm at 250 Hz:
+    0.18 m/s a coordinate), which the longer fit resolves; a fit just above its noise is the quadratic's bias on a rope
+    starting to swing (0.025-0.05 m/s), so both a speed and a multiple of the noise must be exceeded. The chain then
+    starts at rest (the rope's prepare_case), and a rope so at rest hangs along gravity (rest_tilt)."""
+    if first_step_speed(ref) < REST_SPEED:
+        return True
+    if not still_within_noise(ref):
+        return False
+    velocity, noise = start_velocity(ref)
+    return float(np.sqrt(np.mean(np.sum(velocity ** 2, axis=-1)))) <= max(REST_FIT_SPEED, REST_FIT_SIGMAS * noise)
 
 
 def rest_tilt(ref) -> tuple[float, float] | None:
