@@ -31,7 +31,7 @@ def plot_flow(path: Path, flow: dict) -> None:
     for ax, name in zip(axes.flat, names):
         ps = [pt["parameters"][name] for pt in flow["points"]]
         y = np.array([p["fitted"] for p in ps])
-        err = np.array([p["std_restarts"] or 0.0 for p in ps])
+        err = np.array([p.get("std", p.get("std_restarts")) or 0.0 for p in ps])  # flows before stop 56: restarts
         ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="fitted")
         # measured values can depend on resolution too (the rope's per-link stiffness is EI / link length)
         ax.plot(x, [p["measured"] for p in ps], "k:", label="measured")
@@ -49,7 +49,7 @@ def plot_flow(path: Path, flow: dict) -> None:
         ax.set_xlabel(key)
         ax.set_title(name)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{flow['task']}: effective parameters against resolution (error bars: spread of restarts)")
+    fig.suptitle(f"{flow['task']}: effective parameters against resolution (error bars: std)")
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)

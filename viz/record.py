@@ -107,10 +107,10 @@ class Recorder:
             self.stream.set_time(timeline, duration=float(t))
 
     # --- archetypes -----------------------------------------------------------
-    def log_scalar(self, path: str, t: float, value: float, timeline: str = "sim_time") -> None:
+    def log_scalar(self, path: str, t: float, value: float, timeline: str = "sim_time", color=None) -> None:
         if path not in self._styled:
             self._styled.add(path)
-            color = _color_for(path)
+            color = color or _color_for(path)
             if color is not None:  # the same colour for measured / fitted / reference in every view
                 self.stream.log(path, self._rr.SeriesLines(colors=[color]), static=True)
         self._at(t, timeline)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from wrenorm.errors import InputError
 from wrenorm.results import write_atomic
+from wrenorm.uncertainty import not_pinned_text
 
 REPORT_FILE = "report.html"
 
@@ -40,7 +41,7 @@ text-align:right}th{background:#f6f6f6}td:first-child,th:first-child{text-align:
 .charts{display:flex;flex-wrap:wrap;gap:12px}.muted{color:#666}
 code{background:#f3f3f3;padding:1px 4px;border-radius:3px}
 dl{display:grid;grid-template-columns:max-content 1fr;gap:4px 16px}dt{font-weight:600}dd{margin:0}
-details{margin:10px 0}summary{cursor:pointer;font-weight:600}
+details{margin:10px 0}summary{cursor:pointer;font-weight:600}.scroll{overflow-x:auto}
 """
 
 
@@ -67,7 +68,7 @@ def table(header: list[str], rows: list[list]) -> str:
     cell = lambda c: c if isinstance(c, _Html) else esc(c)  # noqa: E731
     head = "".join(f"<th>{esc(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{cell(c)}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f"<div class='scroll'><table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>"
 
 
 def flag(text: str, kind: str = "") -> _Html:
@@ -197,7 +198,7 @@ def _search(r: dict) -> str:
             lo, hi = spread.get("held_out_mean_error_range") or [None, None]
             rows.append([f"{len(spread['optima'])} {who}: held-out mean error", f"{num(lo)} .. {num(hi)}"])
             rows.append([f"{len(spread['optima'])} {who}: parameters not pinned",
-                         ", ".join(spread.get("not_pinned", [])) or "none"])
+                         not_pinned_text(spread, r.get("uncertainty") or {})])
     return table(["", ""], [[a, b if isinstance(b, str) else num(b)] for a, b in rows])
 
 
@@ -283,6 +284,11 @@ def runs_body(result: dict, folder: Path, system) -> str:
     return "".join(parts)
 
 
+def _flow_std(parameter: dict):
+    """A flow point's std (flows before stop 56 kept only the restarts' spread)."""
+    return parameter.get("std", parameter.get("std_restarts"))
+
+
 def flow_body(flow: dict, folder: Path | None) -> str:
     from wrenorm.viz.svg import line_chart
 
@@ -296,8 +302,8 @@ def flow_body(flow: dict, folder: Path | None) -> str:
     for n in names:
         fitted = [p["parameters"][n]["fitted"] for p in points]
         series = [{"x": x, "y": fitted, "label": "fitted", "markers": True, "color": "#2891e6"}]
-        std = [p["parameters"][n].get("std_restarts") or 0.0 for p in points]
-        series += [{"x": x, "y": [f + s for f, s in zip(fitted, std)], "label": "± std over restarts",
+        std = [_flow_std(p["parameters"][n]) or 0.0 for p in points]
+        series += [{"x": x, "y": [f + s for f, s in zip(fitted, std)], "label": "± std",
                     "dash": "3,3", "color": "#9cc9f0"},
                    {"x": x, "y": [f - s for f, s in zip(fitted, std)], "dash": "3,3", "color": "#9cc9f0"}]
         for order, dash in (("first", "6,3"), ("second", "")):
@@ -305,17 +311,20 @@ def flow_body(flow: dict, folder: Path | None) -> str:
             if any(isinstance(a, (int, float)) for a in analytic):
                 series.append({"x": x, "y": [a if isinstance(a, (int, float)) else float("nan") for a in analytic],
                                "label": f"analytic, {order} order", "color": "#50c850", "dash": dash})
-        charts.append(line_chart(series, n, str(key), n, hline=points[0]["parameters"][n]["measured"],
-                                 hline_label="measured", width=360, height=260))
+        # measured values depend on resolution too (the rope's per-link stiffness is EI / link length)
+        series.append({"x": x, "y": [p["parameters"][n]["measured"] for p in points], "label": "measured",
+                       "dash": "2,4", "color": "#555555"})
+        charts.append(line_chart(series, n, str(key), n, width=360, height=260))
     rows = []
     for p in points:
         und = p.get("undetermined") or []
-        rows.append([f"{key} {p['resolution'].get(key)}"]
-                    + [f"{num(p['parameters'][n]['fitted'])} ± {num(p['parameters'][n].get('std_restarts'), 2)}"
-                       for n in names] + [num(p["loss"]["fitted"]), ", ".join(und) or "–"])
+        # what the data cannot pin down first: the last columns of a wide table run off a page
+        rows.append([f"{key} {p['resolution'].get(key)}", ", ".join(und) or "–", num(p["loss"]["fitted"])]
+                    + [f"{num(p['parameters'][n]['fitted'])} ± {num(_flow_std(p['parameters'][n]), 2)}"
+                       + (" (undetermined)" if n in und else "") for n in names])
     parts = ["<p>Each effective parameter against resolution, with its measured value: the paper's "
              "renormalisation flow.</p>", '<div class="charts">' + "".join(charts) + "</div>",
-             table(["resolution"] + names + ["loss", "undetermined"], rows),
+             table(["resolution", "undetermined", "loss"] + names, rows),
              f"<p class='muted'>{esc(flow.get('uncertainty_method', ''))}</p>"]
     # the data's flags first: every point below was fitted under them
     parts[:0] = [f"<p><span class='flag warn'>warning</span> {esc(w)}</p>" for w in flow.get("warnings") or []]

@@ -355,6 +355,8 @@ def _print_summary(result: dict, out: Path) -> None:
         if v.get("note") and (v.get("flagged_conditions") or v.get("fitted_misses") or v.get("measured_misses")
                               or v["verdict"] == "unvalidated"):
             print(f"  {v['note']}")
+        from .uncertainty import not_pinned_text
+
         for key, who in (("searches_spread", "searches side by side"), ("restarts", "further seeded searches")):
             spread = r.get(key) or {}
             if spread.get("optima"):
@@ -363,9 +365,7 @@ def _print_summary(result: dict, out: Path) -> None:
                 if spread.get("main_search_included"):  # a restart replaced the main search, which joined them
                     who = "seeded searches (the main one and its restarts)"
                 print(f"  across {len(spread['optima'])} {who}: {held}"
-                      f"not pinned: {', '.join(spread['not_pinned']) or 'none'}")
-        if r.get("uncertainty", {}).get("warning"):
-            print(f"  warning: {r['uncertainty']['warning']}")
+                      f"not pinned: {not_pinned_text(spread, r.get('uncertainty') or {})}")
         for w in r.get("warnings", []):
             print(f"  warning: {w}")
     view = (out / "recording.rrd").exists() or any(out.glob("*/recording.rrd"))
@@ -398,7 +398,7 @@ def cmd_flow(args) -> int:
                     identity=identity, command=command_line(args),
                     together=device.startswith("cuda") if args.together is None else args.together)
     for pt in flow["points"]:
-        std = {n: float("nan") if p["std_restarts"] is None else p["std_restarts"]  # None: a NaN read back
+        std = {n: float("nan") if p.get("std") is None else p["std"]  # None: a NaN read back
                for n, p in pt["parameters"].items()}
         line = ", ".join(f"{n}={p['fitted']:.5g}±{std[n]:.2g}" for n, p in pt["parameters"].items() if not p["frozen"])
         und = f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""

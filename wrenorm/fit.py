@@ -321,7 +321,10 @@ def run_fit(problem: Problem, out: str | Path, settings: FitSettings = FitSettin
                        "and a slow, long valley often means the data do not determine them; see the restarts")
     result["warnings"] = [*([stalled] if stalled else []), *([adopted["said"]] if adopted else []),
                           *([unpolished] if unpolished else []), *([unconverged] if unconverged else []),
-                          *problem.fit_warnings(fitted), *result.get("warnings", [])]
+                          *problem.fit_warnings(fitted), *result.get("warnings", []),
+                          # what the data cannot determine is said with the rest: a sweep's table and a reader of
+                          # `warnings` had not seen it (review of stop 55)
+                          *([result["uncertainty"]["warning"]] if result["uncertainty"].get("warning") else [])]
     t_write = time.perf_counter()
     if record:
         _record(problem, out, result, history, fitted, measured, quiet)

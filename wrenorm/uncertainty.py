@@ -179,3 +179,14 @@ def check_against_optima(unc: dict, space, fitted: np.ndarray, fitted_objective:
             f"{', '.join(n for n, _ in wrong)}: the std from the local Jacobian understates them (several optima, or a "
             "Jacobian that changes within its step); read their spread across the searches")
     unc["warning"] = "; ".join(w for w in (unc.get("warning"), said) if w)
+
+
+def not_pinned_text(spread: dict, unc: dict) -> str:
+    """The parameters seeded searches leave apart, and those they agree on only because a prior holds them: "none"
+    beside "the data cannot determine X, held by the prior" had read as a contradiction (review of stop 55)."""
+    apart = list(spread.get("not_pinned") or [])
+    by_prior = [n for n in (unc or {}).get("held_by_prior") or [] if n not in apart]
+    text = ", ".join(apart) or "none"
+    if by_prior:
+        text += f" ({', '.join(by_prior)} agree because the prior holds them, not the data)"
+    return text

@@ -68,7 +68,8 @@ def _fit_rows(r: dict, axes) -> list[dict]:
 def _flow_rows(r: dict, axes) -> list[dict]:
     rows = []
     for pt in r.get("points", []):
-        row = _fitted_columns(pt, "std_restarts", axes)
+        row = _fitted_columns(pt, "std" if "std" in next(iter(pt.get("parameters", {}).values()), {}) else
+                              "std_restarts", axes)
         row["wall_seconds"] = r.get("wall_seconds")
         rows.append(row)
     return rows

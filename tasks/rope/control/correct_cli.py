@@ -630,6 +630,7 @@ def run_verdict(r: dict, tolerance: float) -> str:
     # out and was said to be "stopped by the model": a probe of stop 47)
     why = "" if floor is None else (
         f"; when its last trial was planned the corrected model predicted no command better than {floor['error']:.4f}"
+        " anywhere in the command box (its linear model, no trust radius)"
         + (", above the tolerance: the model saw no way to the goal" if floor["error"] > tolerance else ""))
     return f"did not reach the tolerance in {r['trials_used']} trials (best {r['best_error']:.4f}{why})"
 
@@ -1154,7 +1155,7 @@ def _record(path: Path, runs: dict, goal, args, goal_ref=None, real=None, space=
             name = run_name(label)
             names.append(name)
             for t in r["trials"]:
-                rec.log_scalar(f"error/{name}", t.index + 1, t.total, timeline="trial")
+                rec.log_scalar(f"error/{name}", t.index + 1, t.total, timeline="trial", color=_run_color(name, COLORS))
                 rec.log_scalar("error/tolerance", t.index + 1, args.tolerance, timeline="trial")
                 if t.hit:
                     s.log(f"shape/{name}", rr.LineStrips3D([t.state.pos[0].astype(np.float32)], radii=0.004,

@@ -361,19 +361,34 @@ def _record(path: Path, model, cmd: dict, par: dict, goal, args) -> None:
             s.set_time("direction", sequence=i + 1)
             s.log("command/singular_value", rr.Scalars(float(sv)))
             s.log("command/noise_floor", rr.Scalars(float(args.snr * nz / args.command_step)))
-        for i, sv in enumerate(par.get("stacked_singular_values", [])):
+        for i, (sv, nz) in enumerate(zip(par.get("stacked_singular_values", []), par.get("stacked_noise", []))):
             s.set_time("direction", sequence=i + 1)
             s.log("parameters/singular_value", rr.Scalars(float(sv)))
+            s.log("parameters/noise_floor", rr.Scalars(float(args.snr * nz / args.param_step)))
+        # views of their own: the two "singular_value" panels had looked alike, each apart from its noise floor,
+        # and the ropes' colours had no key (review of stop 55)
+        for who, step in (("command", args.command_step), ("parameters", args.param_step)):
+            for entity, color in (("singular_value", (230, 230, 230)), ("noise_floor", (230, 80, 80))):
+                s.log(f"{who}/{entity}", rr.SeriesLines(colors=[color], names=[entity.replace("_", " ")]),
+                      static=True)
+            rec.add_view(f"(timeline direction) {who}: singular value (white) against {args.snr:g} x noise / step "
+                         f"{step:g} (red): a direction above its floor moves the critical state past the noise",
+                         [f"/{who}/singular_value", f"/{who}/noise_floor"])
         top = min(3, cmd["dim"])
         V = cmd["right_vectors"][:top]
         U = np.concatenate([np.zeros((1, cmd["dim"])), args.command_step * V, -args.command_step * V])
         st = model.states(np.clip(U, model.space.lower, model.space.upper))
-        s.log("goal/critical", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)]), static=True)
+        s.log("goal/critical", rr.LineStrips3D([goal.state.pos[0].astype(np.float32)], colors=[(90, 200, 90)]),
+              static=True)
         for k in range(top):
             s.set_time("direction", sequence=k + 1)
             strips = [st.pos[j].astype(np.float32) for j in (0, 1 + k, 1 + top + k) if st.hit[j]]
             s.log("command/critical_along_direction", rr.LineStrips3D(
-                strips, colors=[(200, 200, 200), (40, 160, 230), (230, 120, 40)][:len(strips)]))
+                strips, colors=[(200, 200, 200), (170, 90, 220), (220, 200, 40)][:len(strips)]))
+        rec.add_view(f"(timeline direction) the coarse rope at its first self-collision: the goal green, the start "
+                     f"command grey, moved +{args.command_step:g} along direction k purple, -{args.command_step:g} "
+                     "yellow", ["/goal/**", "/command/critical_along_direction"], "spatial3d",
+                     around=np.concatenate([goal.state.pos[0]] + [p for p, h in zip(st.pos, st.hit) if h]))
         rec.close()
     except BaseException:
         rec.abort()
