@@ -21,12 +21,17 @@ def test_pd_flow_follows_kd_plus_dt_kp(tmp_path):
         kd = pt["parameters"]["K_D"]
         assert kd["fitted"] == pytest.approx(0.5 + dt * 20.0, rel=0.01)  # K_D + dt K_P
         assert kd["std_restarts"] is not None and kd["std_restarts"] < 0.01
+        # the std a reader sees is the larger of the two: restarts from one start end together, and their spread
+        # alone had stated K_D +-5e-8 where the Jacobian says 3e-5 (review of stop 55)
+        assert kd["std"] == max(kd["std_restarts"], kd["std_jacobian"]) and kd["std"] >= kd["std_jacobian"] > 0
         delays.append((kd["fitted"] - 0.5) / 20.0)
     # the delay is proportional to 1/f_sim
     assert delays[0] / delays[1] == pytest.approx(2.0, rel=0.05)
     assert delays[1] / delays[2] == pytest.approx(2.0, rel=0.05)
     from wrenorm.viz.readback import entity_paths
 
+    page = (out / "report.html").read_text()
+    assert f"{flow['points'][0]['parameters']['K_D']['std']:.2g}" in page
     paths = entity_paths(out / "recording.rrd")
     assert {"/flow/K_D/fitted", "/flow/K_D/measured", "/flow/K_D/analytic", "/resolution/f_sim"} <= paths
 
@@ -105,3 +110,14 @@ def test_pd_flow_refuses_frequencies_fit_pd_refuses_and_repeats(tmp_path, capsys
         err = capsys.readouterr().err
         assert word in err and "--resolutions" in err and err.count("\n") == 1, err
         assert not (tmp_path / "bad").exists()
+
+
+def test_what_the_data_cannot_determine_is_among_the_fits_warnings(tmp_path):
+    """result.json's `warnings` (what a sweep's table and a reader of the file see) had left out the uncertainty's
+    own warning, which only the console printed (review of stop 55)."""
+    from wrenorm.fit import FitSettings, run_fit
+
+    result = run_fit(WithIdleParameter(), tmp_path / "fit", FitSettings(generations=3, method="least-squares"),
+                     record=False, quiet=True)
+    said = result["uncertainty"]["warning"]
+    assert "idle" in said and said in result["warnings"]
