@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from wrenorm.options import add_number, add_numbers
+from wrenorm.options import add_list, add_number, add_numbers
 
 MEASURED = {"J": 0.05, "K_P": 20.0, "K_D": 0.5}
 FLOW_F_SIM = [50.0, 100.0, 200.0, 400.0, 800.0]
@@ -21,6 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                help="real derivative gain")
     p.add_argument("--reference", default=None, metavar="FILE.csv",
                    help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
+    add_list(p, "--validate", default=None, metavar="FILE.csv",
+             help="held-out logs of the same joint under other commands, with --reference: each is validated whole, "
+                  "beside the reference's last third (which is the same command's, not a new condition)")
     add_number(p, "--controller-rate", default=None, lo=1.0, hi=1e6, unit="Hz", default_text="continuous",
                help="the real servo's own control rate, with --reference: it samples and holds its torque for a "
                     "period, which moves K_D by about -K_P / (2 rate) and J by -K_D / (2 rate); the predictions and "

@@ -12,6 +12,7 @@ measured log (CSV with columns time, q, q_d, qd_d).
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -382,8 +383,10 @@ NOISE_TOLERANCE = 2.0  # a log's held-out tolerance is at least this many times 
 GAUGE_OFFSET_STEPS = 0.5  # a K_FF implying a command-to-q offset of more than this many simulation steps is said
 GAUGE_MISMATCH = 0.25  # J or K_D further than this share from the finite step's first-order prediction is said (the
 # clean logs: within 5 %; gains twice the given ones: 44-100 %)
-UNEXPLAINED = 3.0  # a held-out misfit this many times what the noise explains (and over a quarter of the tolerance) ..
-# .. is said: the values absorbed something the model omits
+UNEXPLAINED = 1.5  # a held-out misfit this many times what the noise explains (and over a quarter of the tolerance) ..
+# .. is said: the values absorbed something the model omits. Noise alone leaves about 0 (a floor misjudged 1.8x would
+# reach 1.5); the 81 review logs: at most 0.43 where the effective values carry to other commands, 2.3 and 4.2 for
+# Coulomb friction, whose values do not (3.0 had let 2.3 pass, "absorbed"; review of stop 55)
 
 
 def q_noise(q: np.ndarray) -> float:
@@ -418,7 +421,7 @@ class PDProblem(Problem):
                  J: float = MEASURED["J"], KP: float = MEASURED["K_P"], KD: float = MEASURED["K_D"],
                  log: MeasuredLog | None = None, tolerance: float = 0.02,
                  train: list[Command] | None = None, held_out: list[Command] | None = None,
-                 controller_rate: float | None = None):
+                 controller_rate: float | None = None, validate_logs: Sequence[MeasuredLog] = ()):
         from wrenorm.kernels import pd as kpd
 
         _check_positive({"f_sim": f_sim, "J": J, "K_P": KP, "K_D": KD})
@@ -442,6 +445,15 @@ class PDProblem(Problem):
             self.held_out = [self._analytic_condition(c) for c in (held_out or HELD_OUT_COMMANDS)]
         else:
             self.train, self.held_out = self._log_conditions(log)
+            names = {c.name for c in self.train + self.held_out}
+            for other in validate_logs:  # whole logs of other commands: new conditions, which the last third is not
+                if other.time[-1] * self.f_sim < 30:
+                    raise InputError(other.path, "time", f"log spans {other.time[-1]:.3g} s: too short for "
+                                                         f"f_sim={self.f_sim} Hz")
+                name = Path(other.path).stem
+                name = next(n for n in (name, *(f"{name}_{i}" for i in range(2, 10**6))) if n not in names)
+                names.add(name)
+                self.held_out.append(self._log_part(other, name, 0.0, float(other.time[-1])))
         self._cache: dict = {}
 
     # conditions carry everything sampled at the simulator's steps
@@ -455,28 +467,11 @@ class PDProblem(Problem):
 
     def _log_conditions(self, log: MeasuredLog):
         """First 2/3 of the log fits, the last 1/3 validates; each part starts from the logged state."""
-        from scipy.interpolate import CubicSpline
-
         T = log.time[-1]
         if T * self.f_sim < 30:
             raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
-        q_spline = CubicSpline(log.time, log.q)
-        noise = q_noise(log.q)
-        conds = []
-        for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items():
-            n = int(np.floor((b - a) * self.f_sim))
-            t = a + np.arange(n + 1) * self.dt
-            q_ref = q_spline(t)
-            origin = float(np.mean(q_ref))
-            conds.append(Condition(name, {
-                "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
-                "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
-                # each part's errors measured against its own motion about its own mean: a held-out third at
-                # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
-                # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
-                "q_ref": q_ref, "init": self._start(log, a, q_spline), "origin": origin,
-                "start_velocity_fitted": True, "noise_floor": noise / float(self.kpd.motion_scale(q_ref, origin)[0])},
-                {"source": log.path}))
+        conds = [self._log_part(log, name, a, b)
+                 for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items()]
         step = float(np.median(np.diff(log.time)))
         if step > self.dt * (1 + 1e-6):
             self.warnings.append(f"{log.path}: sampled every {step:g} s, coarser than the simulation's step "
@@ -493,6 +488,24 @@ class PDProblem(Problem):
                                  "tests nothing, so there is no verdict; log motion throughout")
             conds = conds[:1]
         return conds[:1], conds[1:]
+
+    def _log_part(self, log: MeasuredLog, name: str, a: float, b: float) -> Condition:
+        """The part [a, b] s of a log as a condition, from the logged state at a."""
+        from scipy.interpolate import CubicSpline
+
+        q_spline = CubicSpline(log.time, log.q)
+        n = int(np.floor((b - a) * self.f_sim))
+        t = a + np.arange(n + 1) * self.dt
+        q_ref = q_spline(t)
+        origin = float(np.mean(q_ref))
+        return Condition(name, {
+            "t": t - a, "q_d": np.interp(t[:-1], log.time, log.q_d), "qd_d": np.interp(t[:-1], log.time, log.qd_d),
+            "qdd_d": np.interp(t[:-1], log.time, np.gradient(log.qd_d, log.time)),
+            # each part's errors measured against its own motion about its own mean: a held-out third at
+            # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
+            # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
+            "q_ref": q_ref, "init": self._start(log, a, q_spline), "origin": origin, "start_velocity_fitted": True,
+            "noise_floor": q_noise(log.q) / float(self.kpd.motion_scale(q_ref, origin)[0])}, {"source": log.path})
 
     def _start(self, log: MeasuredLog, a: float, spline) -> tuple[float, float]:
         """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives
@@ -666,10 +679,14 @@ class PDProblem(Problem):
             floor, tol = c.data["noise_floor"], self.tolerance_for(c)
             unexplained = np.sqrt(max(err ** 2 - floor ** 2, 0.0))
             if err <= tol and unexplained > max(UNEXPLAINED * floor, tol / 4):
+                same = (" Held out is the last third of the fitted log, under the same command: such values may not "
+                        "carry to another (Coulomb friction fitted on 2-4 Hz sines missed the same joint's slow motion "
+                        "by twice the tolerance); validate on a log of another command (--validate)"
+                        if c.name == "log_validate" else "")
                 out.append(f"{c.name}: held-out error {err:.3g} is within tolerance {tol:.3g}, but the log's noise "
                            f"explains only {floor:.2g} of it: a structured misfit of {unexplained:.2g} remains "
                            "(friction, gravity, backlash, a command the model samples otherwise?); the fitted values "
-                           "absorb it, so they are effective values, not the joint's physical J and K_D")
+                           "absorb it, so they are effective values, not the joint's physical J and K_D." + same)
         return out
 
     def _unstable_warnings(self, fitted) -> list[str]:
@@ -751,16 +768,24 @@ def build_problems(args, device: str) -> list[PDProblem]:
     if args.arm:
         from wrenorm.tasks.pd.arm import ArmProblem
 
-        if args.reference or args.integrator != "semi-implicit":
+        if args.reference or getattr(args, "validate", None) or args.integrator != "semi-implicit":
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
         return [ArmProblem(f, device) for f in args.f_sim]
     log = load_log(args.reference) if args.reference else None
+    others = list(getattr(args, "validate", None) or [])
+    if others and log is None:
+        raise InputError("--validate", "validate", "goes with --reference: the built-in reference has its own held-out "
+                                                   "commands")
+    if log is not None and any(Path(o).resolve() == Path(args.reference).resolve() for o in others):
+        raise InputError("--validate", "validate", f"{args.reference} is the fitted log itself: validate on a log "
+                                                   "of another command")
+    validate_logs = [load_log(o) for o in others]
     rate = getattr(args, "controller_rate", None)
     if rate is not None and log is None:
         raise InputError("--controller-rate", "controller_rate", "goes with --reference: the built-in reference's "
                                                                  "controller is continuous")
-    problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log, controller_rate=rate)
-                for f in args.f_sim]
+    problems = [PDProblem(f, args.integrator, device, args.J, args.K_P, args.K_D, log=log, controller_rate=rate,
+                          validate_logs=validate_logs) for f in args.f_sim]
     for w in dict.fromkeys(w for p in problems for w in p.warnings):  # said as they arise, once; kept in result.json
         warn(w)
     return problems
