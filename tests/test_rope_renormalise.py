@@ -77,11 +77,14 @@ def test_refit_moves_toward_the_hidden_parameters(problem):
     r = rn.refit(model, measured, goal, sp.measured, sp.measured, best=measured[-1][0], prior_scale=2.0, seed=0)
     assert r.loss < 0.6 * r.loss_start
     assert r.trials == [m[0] for m in measured] and np.isclose(sum(r.weights), 1.0)
-    for name in ("bend_stiffness", "radius"):
+    # the stiffness the trials pin (its distance to the truth falls to 0.001-0.017 of the start's over three command
+    # draws and three refit seeds); the radius they only nudge (0.19-1.16 of it over the same nine since stop 56's
+    # mass mapping, 0.51-0.96 before: 0.743 here had passed a bound of 0.75 by chance)
+    for name, share in (("bend_stiffness", 0.1), ("radius", 1.0)):
         i = sp.free_names.index(name)
         before = abs(sp.to_unit(sp.measured)[i] - sp.to_unit(truth)[i])
         after = abs(sp.to_unit(r.values)[i] - sp.to_unit(truth)[i])
-        assert after < 0.75 * before, name
+        assert after < share * before, name
     target = crit.Target(unseen[2], goal.length, goal.speed, goal.weights)
     err = lambda values: target.terms(CoarseModel(problem, values, space).states(unseen[1][None]))["total"][0]  # noqa
     assert err(r.values) < 0.6 * err(sp.measured)

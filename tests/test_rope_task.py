@@ -464,3 +464,30 @@ def test_marker_noise_at_the_start_does_not_set_the_chain_moving(seed):
     assert not np.any(b.train[0].data.vel0)
     measured = a.space.measured[None]
     assert b.errors(measured, b.train)[0, 0] == pytest.approx(a.errors(measured, a.train)[0, 0], abs=0.03)
+
+
+@pytest.mark.parametrize("segments", [3, 10, 16])
+def test_measured_masses_lump_each_link_half_on_either_end_the_held_ones_on_the_hand(segments):
+    """Lumped masses of a rope of mass M in S links: M / S on each interior node, half that on the free end, and the
+    held node's half link on the hand. All of M had been spread over the free nodes, interior ones (2S - 1) / (2S - 2)
+    too heavy: 5.6 % at 10 links, 25 % at 3 (review of stop 55)."""
+    from wrenorm.tasks.rope.reference.generate import builtin_reference_path, load_reference
+
+    ref = load_reference(builtin_reference_path("flick", "default"))
+    p = task.RopeProblem([ref], segments=segments)
+    masses = p.chain_params(p.space.measured).node_masses(segments + 1)[0]
+    assert np.isinf(masses[0])  # the held node follows the hand
+    np.testing.assert_allclose(masses[1:-1], ref.mass / segments, rtol=1e-6)  # float32
+    assert masses[-1] == pytest.approx(ref.mass / (2 * segments), rel=1e-6)
+    assert masses[1:].sum() == pytest.approx(ref.mass * (1 - 0.5 / segments), rel=1e-6)
+
+
+def test_a_step_whose_float32_increments_round_away_is_refused(capsys):
+    """Below 1 ms a step's change of a coordinate 1.6 m from the origin rounds away in float32 (a pendulum's period
+    84 % off at 0.1 ms; review of stop 55): refused with the range, exit 2."""
+    from wrenorm.cli import main
+
+    for argv in (["fit", "rope", "--dt", "0.0005"], ["flow", "rope", "--axis", "dt", "--resolutions", "0.0005,0.005"]):
+        assert main(argv + ["--quiet", "--no-record"]) == 2
+        err = capsys.readouterr().err
+        assert "0.001" in err and "0.0005" in err and len(err.strip().splitlines()) == 1
