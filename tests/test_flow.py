@@ -121,3 +121,19 @@ def test_what_the_data_cannot_determine_is_among_the_fits_warnings(tmp_path):
                      record=False, quiet=True)
     said = result["uncertainty"]["warning"]
     assert "idle" in said and said in result["warnings"]
+
+
+def test_a_fits_std_is_the_uncertaintys_own_at_the_reported_values_whatever_search_found_them(tmp_path):
+    """The least-squares search's Jacobian (step 1e-4) had been reused for the stds, an adopted restart's values got
+    one at 1e-3: on the swimmer, whose residuals jitter at 1e-4, the same values got stds up to 1000x apart and the
+    seed decided what the data determine (review of stop 55). The std is now a function of the reported values."""
+    import numpy as np
+
+    from wrenorm.fit import FitSettings, run_fit
+
+    p = PDProblem(100.0)
+    result = run_fit(p, tmp_path / "fit", FitSettings(method="least-squares"), record=False, quiet=True)
+    fitted = np.array([result["parameters"][n]["fitted"] for n in p.space.names])
+    again = uncertainty(p, fitted)
+    for name, std in again["std"].items():
+        assert result["parameters"][name]["std"] == pytest.approx(std, rel=1e-9), name

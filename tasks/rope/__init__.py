@@ -11,7 +11,7 @@ from wrenorm.tasks.rope import options
 
 SYSTEM = from_package(
     __name__, "a coarse rope chain matched to a reference rope at its first self-collision (the flying knot)",
-    search=SearchDefaults(generations=60),
+    search=SearchDefaults(generations=60, restarts=4),
     flow=Flow(options.add_flow_arguments, "wrenorm.tasks.rope.problem:flow_problems",
               "segment counts (--axis dt: steps [s])", generations=60),
     observable="the rope's state at its first self-collision: shape, velocity, time and place of the contact",
