@@ -137,3 +137,14 @@ def test_a_fits_std_is_the_uncertaintys_own_at_the_reported_values_whatever_sear
     again = uncertainty(p, fitted)
     for name, std in again["std"].items():
         assert result["parameters"][name]["std"] == pytest.approx(std, rel=1e-9), name
+
+
+def test_a_flow_points_std_stays_infinite_where_the_data_do_not_see_a_parameter(tmp_path):
+    """The larger of the two stds had dropped an infinite Jacobian std and stated the restarts' spread (review of stop
+    56's diff): a parameter the observable ignores has no finite std, and is undetermined."""
+    from wrenorm.flow import run_flow
+
+    flow = run_flow([WithIdleParameter()], tmp_path / "flow", restarts=2, popsize=8, generations=5, quiet=True,
+                    record=False)
+    idle = flow["points"][0]["parameters"]["idle"]
+    assert idle["std"] == float("inf") and "idle" in flow["points"][0]["undetermined"]

@@ -512,3 +512,36 @@ def test_friction_values_fitted_on_one_command_are_validated_on_another_log(tmp_
         assert main(["fit", "pd", "--quiet", "--no-record", "--out", str(tmp_path / "bad")] + extra) == 2
         err = capsys.readouterr().err
         assert "--validate" in err and needle in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_validate_log_is_judged_whole_not_to_the_length_of_the_last_third(tmp_path):
+    """One batch runs its conditions to the shortest: a 6 s --validate log beside the fitted log's 2 s last third was
+    judged on its first 2 s (review of stop 56's diff). Here it agrees with the joint there and not after: its error
+    alone and in the verdict agree, and are large."""
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    fast = load_log(_friction_log(tmp_path / "fast.csv"))
+    other = np.loadtxt(_friction_log(tmp_path / "other.csv", seed=1), delimiter=",", skiprows=1)
+    late = other[:, 0] > 3.0
+    other[late, 1] += 0.3 * np.sin(5 * other[late, 0])  # the joint does something else after 3 s
+    np.savetxt(tmp_path / "other.csv", other, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    p = PDProblem(200.0, log=fast, validate_logs=[load_log(tmp_path / "other.csv")])
+    v = p.space.measured[None]
+    together = p.validation_errors(v, p.held_out)[0][0]
+    alone = [float(p.errors(v, [c])[0, 0]) for c in p.held_out]
+    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    assert alone[1] > 10 * alone[0]
+
+
+def test_a_validate_log_sampled_coarsely_or_standing_still_is_said(tmp_path):
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    fast = load_log(_friction_log(tmp_path / "fast.csv"))
+    coarse = load_log(_friction_log(tmp_path / "coarse.csv", rate=20.0, seed=1))
+    still = np.loadtxt(_friction_log(tmp_path / "still.csv", seed=2), delimiter=",", skiprows=1)
+    still[:, 1:] *= 1e-3
+    np.savetxt(tmp_path / "still.csv", still, delimiter=",", header="time,q,q_d,qd_d", comments="")
+    p = PDProblem(200.0, log=fast, validate_logs=[coarse, load_log(tmp_path / "still.csv")])
+    assert any("coarse.csv" in w and "coarser than the simulation's step" in w for w in p.warnings)
+    assert any("still.csv" in w and "hardly moves" in w for w in p.warnings)
+    assert [c.name for c in p.held_out] == ["log_validate", "coarse"]

@@ -239,3 +239,12 @@ def test_equal_scale_side_views_keep_a_shapes_proportions():
     assert lx > 0 and abs(lx - lz) < 0.2  # pixels: the same metre is as long across as up
     lx, lz = lengths(line_chart(series, width=520, height=300))
     assert abs(lx - lz) > 50  # without it each axis fills its own span
+
+
+def test_the_uncertaintys_warning_is_said_once_on_the_page():
+    """Since stop 56 a fit's `warnings` carry the uncertainty's own warning, which the page had then said twice: at the
+    top and again under Uncertainty (review of stop 56's diff). A result written before keeps it under Uncertainty."""
+    said = "the data cannot determine: K_D"
+    unc = {"undetermined": ["K_D"], "at_bound": [], "method": "gauss-newton", "warning": said}
+    assert render(_result(uncertainty=unc, warnings=[said])).count(said) == 1
+    assert render(_result(uncertainty=unc)).count(said) == 1

@@ -208,7 +208,7 @@ def _uncertainty(r: dict) -> str:
     if unc.get("condition_number") is not None:
         out += f"; condition number {num(unc['condition_number'], 3)}"
     out += ".</p>"
-    if unc.get("warning"):
+    if unc.get("warning") and unc["warning"] not in (r.get("warnings") or []):  # since stop 56 said at the top
         out += f"<p><span class='flag bad'>warning</span> {esc(unc['warning'])}</p>"
     corr = unc.get("correlation")
     if corr and corr.get("names"):

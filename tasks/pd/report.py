@@ -26,12 +26,12 @@ def condition_charts(problem, fitted, measured, points: int = 400) -> list[str]:
     for split, group in (("train", problem.train), ("held out", problem.held_out)):
         if not group:
             continue
-        traj = problem.trajectories(np.stack([measured, fitted]), group)
-        for j, c in enumerate(group):
-            t = c.data["t"][: traj.shape[2]]
+        for c in group:  # one at a time: a batch runs to its shortest condition
+            traj = problem.trajectories(np.stack([measured, fitted]), [c])[:, 0]
+            t = c.data["t"][: traj.shape[1]]
             ref = c.data["q_ref"][: len(t)]
             keep = np.unique(np.linspace(0, len(t) - 1, min(points, len(t))).astype(int))
-            sims = {"measured": traj[0, j][keep], "fitted": traj[1, j][keep]}
+            sims = {"measured": traj[0][keep], "fitted": traj[1][keep]}
             out.append(line_chart(
                 [{"x": t[keep], "y": ref[keep], "label": "reference", "color": ROLE_COLORS["reference"]}]
                 + [{"x": t[keep], "y": q, "label": f"{who} parameters", "color": ROLE_COLORS[who],
