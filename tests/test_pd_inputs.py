@@ -240,14 +240,15 @@ def test_a_logs_residuals_agree_with_its_errors_and_its_trajectories(tmp_path):
     p = PDProblem(100.0, log=load_log(_multisine_log(tmp_path / "log.csv", rate=500.0, noise=2e-3, seed=3)))
     values = p.space.measured[None] * np.array([[1.1, 1.0, 0.9, 1.0, 1.0]]) + np.array([[0, 0, 0, 0.01, 0.0]])
     conds = p.train + p.held_out
-    errors = p.errors(values, conds)[0]
-    r = p.residuals(values, conds)[0].reshape(len(conds), -1)
-    np.testing.assert_allclose(np.sqrt(np.sum(r * r, axis=1)), errors, rtol=1e-9)
-    traj = p.trajectories(values, conds)[0]
+    errors = p.errors(values, conds)[0]  # each part whole (since stop 56: a batch had run to the shortest)
     for j, c in enumerate(conds):
-        n = traj.shape[1] - 1
-        misfit = (traj[j, 1:] - c.data["q_ref"][1:n + 1]) / np.sqrt(np.mean((c.data["q_ref"][1:n + 1] -
-                                                                                c.data["origin"]) ** 2))
+        r = p.residuals(values, [c])[0]
+        assert np.sqrt(np.sum(r * r)) == pytest.approx(errors[j], rel=1e-9)
+        traj = p.trajectories(values, [c])[0, 0]
+        n = len(traj) - 1
+        assert n == len(c.data["q_d"])
+        misfit = (traj[1:] - c.data["q_ref"][1:n + 1]) / np.sqrt(np.mean((c.data["q_ref"][1:n + 1] -
+                                                                             c.data["origin"]) ** 2))
         assert np.sqrt(np.mean(misfit ** 2)) == pytest.approx(errors[j], rel=1e-9)
 
 

@@ -592,6 +592,8 @@ class PDProblem(Problem):
 
     def residuals(self, values, conditions):
         """Signed residuals (B, R): q_sim - q_ref over all conditions, each scaled as in `errors`."""
+        if len({len(c.data["q_d"]) for c in conditions}) > 1:  # one batch runs to its shortest condition
+            return np.concatenate([self.residuals(values, [c]) for c in conditions], axis=1)
         r = self._scaled_misfit(values, conditions)
         return (r / np.sqrt(r.shape[2])).reshape(len(values), -1)
 
