@@ -385,8 +385,8 @@ GAUGE_MISMATCH = 0.25  # J or K_D further than this share from the finite step's
 # clean logs: within 5 %; gains twice the given ones: 44-100 %)
 UNEXPLAINED = 1.5  # a held-out misfit this many times what the noise explains (and over a quarter of the tolerance) ..
 # .. is said: the values absorbed something the model omits. Noise alone leaves about 0 (a floor misjudged 1.8x would
-# reach 1.5); the 81 review logs: at most 0.43 where the effective values carry to other commands, 2.3 and 4.2 for
-# Coulomb friction, whose values do not (3.0 had let 2.3 pass, "absorbed"; review of stop 55)
+# reach 1.5); the 50 review logs that fit: at most 0.43 where the effective values carry to other commands, 2.3 and
+# 4.2 for Coulomb friction, whose values do not (3.0 had let 2.3 pass, "absorbed"; review of stop 55)
 
 
 def q_noise(q: np.ndarray) -> float:
