@@ -430,7 +430,8 @@ class SwimmerProblem(Problem):
                     recorder.log_points2d(f"{tag}/{lab}/markers", tt, pts, radii=0.004)
                     recorder.log_lines2d(f"{tag}/{lab}/body", tt, [pts], radii=0.003)
             split = "train" if c in self.train else "held out"
-            recorder.add_view(f"{rate.label:.2f} Hz ({split}): real grey, fitted blue, published orange",
+            recorder.add_view(f"{rate.label:.2f} Hz ({split}): real grey, fitted blue, measured (the published "
+                              "coefficients) orange",
                               [f"/{who}/{lab}/**" for who in ("reference", "measured", "fitted")], "spatial2d")
         self._record_waveforms(recorder, fitted, measured, conds)
         self._record_speed_plot(recorder, fitted, measured, conds)
@@ -456,7 +457,8 @@ class SwimmerProblem(Problem):
             split = "train" if c in self.train else "held out"
             for k in ("yaw", "sway"):
                 recorder.add_view(f"{c.meta['label']:.2f} Hz ({split}): {k} over a beat [{unit[k]}], real grey, "
-                                  "fitted blue, published orange", [f"/beat/{lab}/{k}/**"], "timeseries")
+                                  "fitted blue, measured (the published coefficients) orange", [f"/beat/{lab}/{k}/**"],
+                                  "timeseries")
             recorder.add_view(f"{c.meta['label']:.2f} Hz ({split}): forward speed over a beat, minus its mean "
                               "[mm/s]", [f"/beat/{lab}/surge/**"], "timeseries")
 
