@@ -197,6 +197,15 @@ class MeasuredLog:
     qd_d: np.ndarray
 
 
+class _LogSpline:
+    """What every part of one log is cut from: its q as a cubic spline in time, and its noise (once per log)."""
+
+    def __init__(self, log: MeasuredLog):
+        from scipy.interpolate import CubicSpline
+
+        self.log, self.q_spline, self.noise = log, CubicSpline(log.time, log.q), q_noise(log.q)
+
+
 MAX_COMMAND_LAG = 1  # samples: qd_d shifted more than this against the rate of change of q_d is refused
 
 
@@ -453,7 +462,7 @@ class PDProblem(Problem):
                 name = Path(other.path).stem
                 name = next(n for n in (name, *(f"{name}_{i}" for i in range(2, 10**6))) if n not in names)
                 names.add(name)
-                part = self._log_part(other, name, 0.0, float(other.time[-1]))
+                part = self._log_part(_LogSpline(other), name, 0.0, float(other.time[-1]))
                 self._check_sampling(other)
                 moves, fitted_moves = float(np.std(part.data["q_ref"])), float(np.std(self.train[0].data["q_ref"]))
                 if moves < STILL_FRACTION * fitted_moves:
@@ -478,7 +487,8 @@ class PDProblem(Problem):
         T = log.time[-1]
         if T * self.f_sim < 30:
             raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
-        conds = [self._log_part(log, name, a, b)
+        whole = _LogSpline(log)
+        conds = [self._log_part(whole, name, a, b)
                  for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items()]
         self._check_sampling(log)
         moves = [float(np.std(c.data["q_ref"])) for c in conds]
@@ -500,11 +510,9 @@ class PDProblem(Problem):
                                  f"{self.dt:g} s: the command and q are interpolated between samples (a 10 Hz log "
                                  "fitted at 100 Hz moved K_D 15 %); log at least as fast as f_sim")
 
-    def _log_part(self, log: MeasuredLog, name: str, a: float, b: float) -> Condition:
+    def _log_part(self, whole: _LogSpline, name: str, a: float, b: float) -> Condition:
         """The part [a, b] s of a log as a condition, from the logged state at a."""
-        from scipy.interpolate import CubicSpline
-
-        q_spline = CubicSpline(log.time, log.q)
+        log, q_spline = whole.log, whole.q_spline
         n = int(np.floor((b - a) * self.f_sim))
         t = a + np.arange(n + 1) * self.dt
         q_ref = q_spline(t)
@@ -516,7 +524,7 @@ class PDProblem(Problem):
             # another pose was judged against its distance from the log's middle (a friction misfit "expand" at
             # one pose, "absorbed" 1 rad away), and the encoder's zero cancels as before
             "q_ref": q_ref, "init": self._start(log, a, q_spline), "origin": origin, "start_velocity_fitted": True,
-            "noise_floor": q_noise(log.q) / float(self.kpd.motion_scale(q_ref, origin)[0])}, {"source": log.path})
+            "noise_floor": whole.noise / float(self.kpd.motion_scale(q_ref, origin)[0])}, {"source": log.path})
 
     def _start(self, log: MeasuredLog, a: float, spline) -> tuple[float, float]:
         """The integrator's state at a log's time a: q, and the velocity where this integrator's velocity lives
