@@ -47,9 +47,10 @@ def _relative(space, fitted: np.ndarray, std: np.ndarray) -> np.ndarray:
         return std / np.maximum(np.abs(v), 1e-300)
 
 
-def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=None) -> dict:
-    """jac: a wrenorm.jacobian.Jacobian of the training residuals in unit coordinates at `fitted` (a
-    least-squares search has one at its optimum), else computed here in one batched evaluation."""
+def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dict:
+    """The training residuals' Jacobian in unit coordinates at `fitted`, by central differences of `step` in one
+    batched evaluation: always its own, so the stds are a function of the reported values (a least-squares search's
+    1e-4 Jacobian had been reused, inside the swimmer's residual jitter; stop 56)."""
     space = problem.space
     out = {"method": None, "std": {}, "correlation": None, "undetermined": [], "warning": None}
     free = space.free
@@ -58,8 +59,7 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3, jac=No
         return out
     u0 = np.clip(space.to_unit(fitted), 0.0, 1.0)
     F = len(u0)
-    if jac is None:
-        jac = jacobian(lambda U: problem.residuals(space.from_unit(U), problem.train), u0, step, 0.0, 1.0)
+    jac = jacobian(lambda U: problem.residuals(space.from_unit(U), problem.train), u0, step, 0.0, 1.0)
     r0 = jac.f0
     if not np.all(np.isfinite(r0)):
         out["method"] = "none: residuals not finite at the optimum"
