@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wrenorm.results import flow_point_std
 from wrenorm.viz.plots import _figure, save_figure
 
 
@@ -31,7 +32,7 @@ def plot_flow(path: Path, flow: dict) -> None:
     for ax, name in zip(axes.flat, names):
         ps = [pt["parameters"][name] for pt in flow["points"]]
         y = np.array([p["fitted"] for p in ps])
-        err = np.array([p.get("std", p.get("std_restarts")) or 0.0 for p in ps])  # flows before stop 56: restarts
+        err = np.array([flow_point_std(p) or 0.0 for p in ps])
         ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="fitted")
         # measured values can depend on resolution too (the rope's per-link stiffness is EI / link length)
         ax.plot(x, [p["measured"] for p in ps], "k:", label="measured")

@@ -14,7 +14,7 @@ import re
 from pathlib import Path
 
 from wrenorm.errors import InputError
-from wrenorm.results import write_atomic
+from wrenorm.results import flow_point_std, write_atomic
 from wrenorm.uncertainty import not_pinned_text
 
 REPORT_FILE = "report.html"
@@ -284,11 +284,6 @@ def runs_body(result: dict, folder: Path, system) -> str:
     return "".join(parts)
 
 
-def _flow_std(parameter: dict):
-    """A flow point's std (flows before stop 56 kept only the restarts' spread)."""
-    return parameter.get("std", parameter.get("std_restarts"))
-
-
 def flow_body(flow: dict, folder: Path | None) -> str:
     from wrenorm.viz.svg import line_chart
 
@@ -302,7 +297,7 @@ def flow_body(flow: dict, folder: Path | None) -> str:
     for n in names:
         fitted = [p["parameters"][n]["fitted"] for p in points]
         series = [{"x": x, "y": fitted, "label": "fitted", "markers": True, "color": "#2891e6"}]
-        std = [_flow_std(p["parameters"][n]) or 0.0 for p in points]
+        std = [flow_point_std(p["parameters"][n]) or 0.0 for p in points]
         series += [{"x": x, "y": [f + s for f, s in zip(fitted, std)], "label": "± std",
                     "dash": "3,3", "color": "#9cc9f0"},
                    {"x": x, "y": [f - s for f, s in zip(fitted, std)], "dash": "3,3", "color": "#9cc9f0"}]
@@ -320,7 +315,7 @@ def flow_body(flow: dict, folder: Path | None) -> str:
         und = p.get("undetermined") or []
         # what the data cannot pin down first: the last columns of a wide table run off a page
         rows.append([f"{key} {p['resolution'].get(key)}", ", ".join(und) or "–", num(p["loss"]["fitted"])]
-                    + [f"{num(p['parameters'][n]['fitted'])} ± {num(_flow_std(p['parameters'][n]), 2)}"
+                    + [f"{num(p['parameters'][n]['fitted'])} ± {num(flow_point_std(p['parameters'][n]), 2)}"
                        + (" (undetermined)" if n in und else "") for n in names])
     parts = ["<p>Each effective parameter against resolution, with its measured value: the paper's "
              "renormalisation flow.</p>", '<div class="charts">' + "".join(charts) + "</div>",

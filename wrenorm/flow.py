@@ -26,12 +26,12 @@ from .uncertainty import check_against_optima, uncertainty
 POINTS_FILE = "flow_points.json"  # finished resolutions, written after each: what --resume continues from
 
 
-
 def _larger_std(restarts: float, jacobian) -> float | None:
     """A flow point's std: the restarts' spread alone had stated K_D +-5e-8 where the Jacobian gives 3e-5 (restarts
     from one start end together; review of stop 55), and the Jacobian alone misses a search that does not repeat."""
     known = [float(v) for v in (restarts, jacobian) if v is not None and not np.isnan(v)]
     return max(known) if known else None  # an infinite Jacobian std (a direction the data do not see) stays infinite
+
 
 def _settings(problems, seed, restarts, popsize, generations, identity, together) -> dict:
     return {"task": problems[0].task, "resolutions": [p.resolution for p in problems], "seed": seed,

@@ -12,6 +12,12 @@ import numpy as np
 SCHEMA = "wrenorm.result/1"
 
 
+def flow_point_std(parameter: dict):
+    """A flow point's std of one parameter, as flow.json holds it (`std`; flows before stop 56 kept only the restarts'
+    spread, `std_restarts`)."""
+    return parameter.get("std", parameter.get("std_restarts"))
+
+
 def jsonable(obj):
     """obj with numpy arrays and scalars as plain lists and numbers, and non-finite floats as None (JSON null)."""
     if isinstance(obj, dict):

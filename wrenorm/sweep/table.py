@@ -14,7 +14,7 @@ from __future__ import annotations
 import csv
 import io
 
-from wrenorm.results import write_atomic
+from wrenorm.results import flow_point_std, write_atomic
 
 LEADING = ("cell", "seed", "status", "resolution")
 VOLATILE = ("wall_seconds", "cell_seconds", "host", "started", "finished")
@@ -34,13 +34,13 @@ def parameter_column(name: str, axes) -> str:
     return f"fitted_{name}" if name in axes else name
 
 
-def _fitted_columns(point: dict, std_key: str, axes) -> dict:
+def _fitted_columns(point: dict, std_of, axes) -> dict:
     """resolution, each parameter's fitted value and spread, and the training loss of one fit or flow point."""
     row = {"resolution": _text(point.get("resolution", ""))}
     for name, p in point.get("parameters", {}).items():
         col = parameter_column(name, axes)
         row[col] = p.get("fitted")
-        row[f"{col}_std"] = p.get(std_key)
+        row[f"{col}_std"] = std_of(p)
     loss = point.get("loss", {})
     row["loss_measured"], row["loss_fitted"] = loss.get("measured"), loss.get("fitted")
     # what the fit said of its own result (a diverged coarse model, a search that found nothing better) travels with
@@ -53,7 +53,7 @@ def _fitted_columns(point: dict, std_key: str, axes) -> dict:
 def _fit_rows(r: dict, axes) -> list[dict]:
     rows = []
     for run in r.get("runs", [r]):
-        row = _fitted_columns(run, "std", axes)
+        row = _fitted_columns(run, lambda p: p.get("std"), axes)
         v = run.get("validation", {})
         for cond, c in v.get("conditions", {}).items():
             row[f"heldout_{cond}_measured"] = c.get("measured_error")
@@ -68,8 +68,7 @@ def _fit_rows(r: dict, axes) -> list[dict]:
 def _flow_rows(r: dict, axes) -> list[dict]:
     rows = []
     for pt in r.get("points", []):
-        row = _fitted_columns(pt, "std" if "std" in next(iter(pt.get("parameters", {}).values()), {}) else
-                              "std_restarts", axes)
+        row = _fitted_columns(pt, flow_point_std, axes)
         row["wall_seconds"] = r.get("wall_seconds")
         rows.append(row)
     return rows
