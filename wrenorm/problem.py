@@ -68,6 +68,12 @@ class Problem(ABC):
         the Gauss-Newton uncertainty and least-squares searches."""
         raise NotImplementedError(f"task {self.task!r} exposes no residual vector")
 
+    def residual_series(self, conditions: Sequence[Condition]) -> list[int] | None:
+        """Lengths of the time-ordered series that `residuals` concatenates, in its order; None where its entries are
+        separate measurements. Where given, the uncertainty allows for residuals correlated in time (coloured noise,
+        a structured misfit), which the white-noise formula understates."""
+        return None
+
     @property
     def has_residuals(self) -> bool:
         return type(self).residuals is not Problem.residuals

@@ -605,6 +605,9 @@ class PDProblem(Problem):
         r = self._scaled_misfit(values, conditions)
         return (r / np.sqrt(r.shape[2])).reshape(len(values), -1)
 
+    def residual_series(self, conditions):
+        return [len(c.data["q_d"]) for c in conditions]  # one sampled trajectory per part, as `residuals` lays them
+
     # --- the paper's predictions ----------------------------------------------------
     def analytic(self, fitted: dict) -> dict:
         J, KP, KD, dt = self.true["J"], self.true["K_P"], self.true["K_D"], self.dt
