@@ -118,3 +118,6 @@ def test_a_pd_logs_stds_cover_the_spread_of_its_fits_under_noise_correlated_over
     assert np.all(np.mean(white, axis=0) / spread < 0.6)
     ratio = np.mean(stds, axis=0) / spread
     assert np.all((ratio > 0.7) & (ratio < 2.0)), ratio
+    from wrenorm.viz.report import render
+
+    assert "wider than the white-noise formula's by J " in render(r)

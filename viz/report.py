@@ -208,6 +208,13 @@ def _uncertainty(r: dict) -> str:
     if unc.get("condition_number") is not None:
         out += f"; condition number {num(unc['condition_number'], 3)}"
     out += ".</p>"
+    corr_res = unc.get("correlated_residuals") if isinstance(unc.get("correlated_residuals"), dict) else {}
+    widening = corr_res.get("widening") if isinstance(corr_res.get("widening"), dict) else {}
+    wide = {n: f for n, f in widening.items() if isinstance(f, (int, float)) and f > 1.05}
+    if wide:
+        out += (f"<p>The residuals are correlated in time (lag {esc(corr_res.get('lag'))} after "
+                "prewhitening): the stds are the sandwich's, wider than the white-noise formula's by "
+                + esc(", ".join(f"{n} {f:.2f}x" for n, f in wide.items())) + ".</p>")
     if unc.get("warning") and unc["warning"] not in (r.get("warnings") or []):  # since stop 56 said at the top
         out += f"<p><span class='flag bad'>warning</span> {esc(unc['warning'])}</p>"
     corr = unc.get("correlation")
