@@ -41,9 +41,16 @@ def test_a_fit_writes_a_report_that_says_what_its_result_says(pd_run):
         assert f"<td>{cond}</td>" in text
     assert "python -m wrenorm fit pd --no-record --quiet --out" in text  # the command to reproduce it
     assert result["command"].startswith("python -m wrenorm fit pd")
-    # self-contained: nothing fetched from anywhere (the page opens offline and from a copied folder)
-    for attr in ("src=", "href=", "@import", "url(http"):
-        assert attr not in text.replace('href="#', ""), attr
+    # self-contained: nothing fetched from anywhere (the page opens offline and from a copied folder); its links go
+    # to its own anchors or to the run's files beside it
+    for attr in ("src=", "@import", "url(http"):
+        assert attr not in text, attr
+    import re
+    from urllib.parse import unquote
+
+    links = re.findall(r"href=['\"]([^'\"]*)['\"]", text)
+    files = [unquote(h) for h in links if not h.startswith("#")]
+    assert "result.json" in files and all((pd_run / f).is_file() and "/" not in f for f in files), links
     charts = _svgs(text)
     assert len(charts) >= 3  # held-out bars, search objective, parameters during the search
     for svg in charts:

@@ -12,6 +12,7 @@ import json
 import math
 import re
 from pathlib import Path
+from urllib.parse import quote
 
 from wrenorm.errors import InputError
 from wrenorm.results import flow_point_std, write_atomic
@@ -241,7 +242,8 @@ def _run_info(r: dict, folder: Path | None) -> str:
     rows.append(["versions", ", ".join(f"{k} {v}" for k, v in (r.get("versions") or {}).items())])
     if folder is not None:
         files = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
-        rows.append(["files", ", ".join(files)])
+        # the page lies in the run's folder: each file a link beside it
+        rows.append(["files", _Html(", ".join(f"<a href='{esc(quote(f))}'>{esc(f)}</a>" for f in files))])
         if (folder / "recording.rrd").exists():
             rows.append(["view", _Html(f"<code>python -m wrenorm view {esc(folder)}</code> (Rerun: fitted against "
                                        "reference)")])
