@@ -29,15 +29,15 @@ class Regression(Problem):
     task = "regression"
     least_squares = True
 
-    def __init__(self, y: np.ndarray, series: bool = True, prior_scale=None):
-        self.y, self.series = y, series
+    def __init__(self, y: np.ndarray, series: bool = True, prior_scale=None, design: np.ndarray = X):
+        self.y, self.series, self.X = y, series, design
         self.space = ParameterSpace([Parameter(n, 0.0, -10.0, 10.0, "linear",
                                                prior=(0.0, prior_scale) if prior_scale else None) for n in "abc"])
         self.train, self.held_out = [Condition("log1"), Condition("log2")], [Condition("log3")]
         self.tolerance, self.resolution = 1.0, {}
 
     def residuals(self, values, conditions):
-        pred = np.atleast_2d(values) @ X.T
+        pred = np.atleast_2d(values) @ self.X.T
         return np.concatenate([pred - self.y[int(c.name[-1]) - 1][None] for c in conditions], axis=1)
 
     def errors(self, values, conditions):
@@ -121,3 +121,15 @@ def test_a_pd_logs_stds_cover_the_spread_of_its_fits_under_noise_correlated_over
     from wrenorm.viz.report import render
 
     assert "wider than the white-noise formula's by J " in render(r)
+
+
+def test_a_direction_the_data_never_see_stays_undetermined_and_its_widening_is_a_number():
+    import json
+
+    blind = np.stack([X[:, 0], X[:, 1], 0.0 * X[:, 2]], axis=1)
+    rng = np.random.default_rng(3)
+    y = np.stack([blind @ TRUE + 0.1 * ar1(rng, len(T), 0.9) for _ in range(3)])
+    unc = uncertainty(Regression(y, design=blind), np.array([1.0, -0.5, 0.0]), step=1e-4)
+    assert np.isinf(unc["std"]["c"]) and np.isfinite(unc["std"]["a"]) and "c" in unc["undetermined"]
+    assert unc["correlated_residuals"]["widening"]["c"] == 1.0 and unc["correlated_residuals"]["widening"]["a"] > 2
+    json.loads(json.dumps(unc["correlated_residuals"], allow_nan=False))

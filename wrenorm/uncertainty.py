@@ -97,7 +97,7 @@ def _widened_for_correlation(J: np.ndarray, r: np.ndarray, lengths: list[int], c
     wide = np.where(np.isfinite(std), np.maximum(std, robust), std)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = sandwich / np.outer(robust, robust)
-        factor = np.where(std > 0, wide / std, 1.0)
+        factor = np.where((std > 0) & np.isfinite(std), wide / std, 1.0)
     corr = np.where(np.isfinite(corr), corr, np.eye(len(std)))
     finite = np.where(np.isfinite(wide), wide, 0.0)
     return np.outer(finite, finite) * corr, wide, lag, factor
