@@ -249,3 +249,12 @@ def test_a_least_squares_search_stopped_at_its_iteration_limit_is_said(tmp_path,
     cut = run_fit(Rosenbrock(), tmp_path / "cut", FitSettings(method="least-squares"), record=False, quiet=True)
     assert cut["search"]["stop"] == "iterations"
     assert any("stopped at its limit of 6 iterations, still moving" in w for w in cut["warnings"])
+
+
+def test_a_least_squares_search_that_converges_early_ends_its_progress_full(capsys):
+    """Its progress had stopped at the iterations done out of the limit (7/100), as if cut short (review of stop 56)."""
+    res, _, _ = levenberg_marquardt(Linear(prior_scale=0.7), MEASURED, quiet=False)
+    assert res.stop in ("cost", "step", "gradient")
+    n = len(res.history) - 1
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"[linear least squares] {n}/{n} it" in last and f"stop {res.stop}" in last, last

@@ -78,6 +78,9 @@ def levenberg_marquardt(problem: Problem, start: np.ndarray, iterations: int = 5
         if dcost <= 1e-12 * cost or dx < 1e-10:
             stop = "cost" if dcost <= 1e-12 * cost else "step"
             break
+    if stop != "iterations":  # done early: the bar ends full at the iterations it took, with why
+        bar.set_total(bar.n)
+        bar.update(0, force=True, stop=stop)
     bar.close()
     result = SearchResult("least-squares", space.from_unit(u[None])[0], cost, history, evaluations, 0, stop)
     return result, r, J
