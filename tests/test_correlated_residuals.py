@@ -133,3 +133,52 @@ def test_a_direction_the_data_never_see_stays_undetermined_and_its_widening_is_a
     assert np.isinf(unc["std"]["c"]) and np.isfinite(unc["std"]["a"]) and "c" in unc["undetermined"]
     assert unc["correlated_residuals"]["widening"]["c"] == 1.0 and unc["correlated_residuals"]["widening"]["a"] > 2
     json.loads(json.dumps(unc["correlated_residuals"], allow_nan=False))
+
+
+def test_with_a_prior_a_combination_the_data_see_keeps_its_information():
+    """p0 and p1 enter only as p0 + p1: the data see their sum, the prior the rest. The widened posterior had taken
+    both as the prior's alone (1.0 instead of 0.707), on white noise (review of stop 57)."""
+    both = np.stack([X[:, 0], X[:, 0], X[:, 1]], axis=1)
+    rng = np.random.default_rng(0)
+    y = np.stack([both @ np.array([0.5, 0.5, 1.0]) + 0.1 * rng.standard_normal(len(T)) for _ in range(3)])
+    b = np.array([0.5, 0.5, 1.0])
+    plain = uncertainty(Regression(y, series=False, prior_scale=1.0, design=both), b, step=1e-4)
+    timed = uncertainty(Regression(y, prior_scale=1.0, design=both), b, step=1e-4)
+    for n in "abc":
+        assert timed["std"][n] == pytest.approx(plain["std"][n], rel=1e-3)
+    assert plain["std"]["a"] == pytest.approx(np.sqrt(0.5), rel=1e-3)
+
+
+class KnownNoise(Regression):
+    """The same residuals divided by a stated noise of 0.05 while the draws carry 0.1: chi^2/dof about 4."""
+
+    noise_normalised = True
+
+    def residuals(self, values, conditions):
+        return super().residuals(values, conditions) / 0.05
+
+
+def test_a_known_noise_is_not_widened_twice_by_the_misfit():
+    """The sandwich of raw residuals already holds the misfit's scale; the std inflated by the misfit multiplied it in
+    again (2x the spread of the fits on white noise at chi^2/dof 4; review of stop 57)."""
+    fits, inflated = [], []
+    for k in range(60):
+        rng = np.random.default_rng(100 + k)
+        y = np.stack([X @ TRUE + 0.1 * rng.standard_normal(len(T)) for _ in range(3)])
+        b = np.linalg.lstsq(np.concatenate([X, X]), np.concatenate(y[:2]), rcond=None)[0]
+        unc = uncertainty(KnownNoise(y), b, step=1e-4)
+        fits.append(b)
+        inflated.append([unc["std_inflated_by_misfit"][n] for n in "abc"])
+    assert unc["chi2_per_dof"] == pytest.approx(4.0, rel=0.15)
+    np.testing.assert_allclose(np.mean(inflated, axis=0) / np.std(fits, axis=0, ddof=1), 1.0, atol=0.25)
+
+
+def test_the_built_in_commands_exact_reference_keeps_the_white_formula():
+    """No noise there: the misfit is the step's own deterministic effect, which the flow measures; widening it by its
+    correlation had made `flow pd`'s stds 4-5x wider with its page still naming the white formula (review of stop
+    57)."""
+    from wrenorm.tasks.pd.problem import PDProblem
+
+    p = PDProblem(100.0)
+    unc = uncertainty(p, p.space.measured)
+    assert p.residual_series(p.train) is None and "correlated_residuals" not in unc and unc["std"]

@@ -213,8 +213,10 @@ def _uncertainty(r: dict) -> str:
     widening = corr_res.get("widening") if isinstance(corr_res.get("widening"), dict) else {}
     wide = {n: f for n, f in widening.items() if isinstance(f, (int, float)) and f > 1.05}
     if wide:
-        out += (f"<p>The residuals are correlated in time (lag {esc(corr_res.get('lag'))} after "
-                "prewhitening): the stds are the sandwich's, wider than the white-noise formula's by "
+        bw = corr_res.get("bandwidth")
+        out += ("<p>The residuals are correlated in time" + (f" (Bartlett bandwidth {num(bw, 3)} samples after "
+                                                              "prewhitening)" if isinstance(bw, (int, float)) else "")
+                + ": the stds are the sandwich's, wider than the white-noise formula's by "
                 + esc(", ".join(f"{n} {f:.2f}x" for n, f in wide.items())) + ".</p>")
     if unc.get("warning") and unc["warning"] not in (r.get("warnings") or []):  # since stop 56 said at the top
         out += f"<p><span class='flag bad'>warning</span> {esc(unc['warning'])}</p>"

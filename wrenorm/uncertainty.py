@@ -41,25 +41,25 @@ def _pairs(G: np.ndarray, lengths: list[int]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
 
 
-def _bartlett_bandwidth(E: np.ndarray, lengths: list[int]) -> int:
-    """Andrews' (1991) AR(1) plug-in lag for the Bartlett kernel, from each component's lag-1 correlation pooled
-    over the series."""
+def _bartlett_bandwidth(E: np.ndarray, lengths: list[int]) -> float:
+    """Andrews' (1991) AR(1) plug-in bandwidth S_T for the Bartlett kernel (weights 1 - j / S_T, j < S_T), from each
+    component's lag-1 correlation pooled over the series."""
     prev, cur = _pairs(E, lengths)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.clip(np.sum(cur * prev, axis=0) / np.sum(prev * prev, axis=0), -0.97, 0.97)
     s4 = np.mean((cur - rho * prev) ** 2, axis=0) ** 2  # innovation variance, squared
     ok = np.isfinite(rho) & (s4 > 0)
     if not ok.any():
-        return 0
+        return 0.0
     rho, s4 = rho[ok], s4[ok]
     alpha = np.sum(4 * rho**2 * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)) / np.sum(s4 / (1 - rho) ** 4)
-    return int(min(np.ceil(1.1447 * (alpha * sum(lengths)) ** (1 / 3)), max(lengths) - 1))
+    return float(min(1.1447 * (alpha * sum(lengths)) ** (1 / 3), max(lengths)))
 
 
 PREWHITEN_MAX = 0.97  # largest singular value of the scores' VAR(1) matrix (Andrews and Monahan 1992)
 
 
-def _scores_long_run(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> tuple[np.ndarray, int]:
+def _scores_long_run(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> tuple[np.ndarray, float]:
     """Long-run covariance of the scores g_t = J_t r_t summed over the series (none correlated with another):
     Andrews and Monahan's prewhitened estimate, a VAR(1) fitted to the scores, the Newey-West (Bartlett) sum over its
     innovations, recoloured. The plain Bartlett sum runs 20-30 % low in variance on AR(1) noise at rho 0.95."""
@@ -71,36 +71,42 @@ def _scores_long_run(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> tuple[
     ends = np.cumsum(lengths)
     E = np.concatenate([G[e - n + 1:e] - G[e - n:e - 1] @ A.T for e, n in zip(ends, lengths) if n > 1])
     inner = [n - 1 for n in lengths if n > 1]
-    lag = _bartlett_bandwidth(E, inner)
+    bandwidth = _bartlett_bandwidth(E, inner)
     S = E.T @ E
     a = 0
     for n in inner:
         e = E[a:a + n]
-        for k in range(1, min(lag, n - 1) + 1):
+        for k in range(1, min(int(np.ceil(bandwidth)), n)):
             gamma = e[k:].T @ e[:-k]
-            S += (1.0 - k / (lag + 1.0)) * (gamma + gamma.T)
+            S += (1.0 - k / bandwidth) * (gamma + gamma.T)
         a += n
     back = np.linalg.inv(np.eye(len(A)) - A)
-    return back @ S @ back.T, lag
+    return back @ S @ back.T, bandwidth
 
 
-def _widened_for_correlation(J: np.ndarray, r: np.ndarray, lengths: list[int], cov: np.ndarray, std: np.ndarray):
+def _widened_for_correlation(J: np.ndarray, r: np.ndarray, lengths: list[int], cov: np.ndarray, std: np.ndarray,
+                             per_noise: float):
     """The sandwich (J^T J)^-1 S (J^T J)^-1 with S the scores' long-run covariance: where the residuals of a time
     series are correlated (coloured noise, a structured misfit) their sum carries fewer independent samples than
     rows, and sigma^2 (J^T J)^-1 understates the spread of the fitted values (PD logs with noise correlated over
-    50 ms: 2-3x). Never narrower than the white-noise std, since the long-run estimate itself runs low on short
-    series. Returns the covariance, std, the lag used and the widening per column."""
-    S, lag = _scores_long_run(J, r, lengths)
+    50 ms: 2-3x). per_noise scales it to the white covariance's noise (sigma^2 / the residuals' own variance: 1 where
+    sigma^2 is estimated from the misfit), so a known noise is not widened by the misfit twice. Each std is never
+    narrower than the white one, since the long-run estimate itself runs low on short series: the sandwich's
+    columns are scaled up to it, keeping its correlations. Returns the covariance, std, the bandwidth and the
+    widening per column; None where the sandwich is empty (no residual left: nothing to estimate it from)."""
+    S, bandwidth = _scores_long_run(J, r, lengths)
     A = np.linalg.pinv(J.T @ J, rcond=1e-12)
-    sandwich = A @ S @ A
+    sandwich = per_noise * A @ S @ A
     robust = np.sqrt(np.maximum(np.diag(sandwich), 0.0))
-    wide = np.where(np.isfinite(std), np.maximum(std, robust), std)
+    seen = np.isfinite(std) & (std > 0)
+    if np.any(seen & (robust <= 0)):
+        return None
+    wide = np.where(seen, np.maximum(std, robust), std)
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = sandwich / np.outer(robust, robust)
-        factor = np.where((std > 0) & np.isfinite(std), wide / std, 1.0)
-    corr = np.where(np.isfinite(corr), corr, np.eye(len(std)))
-    finite = np.where(np.isfinite(wide), wide, 0.0)
-    return np.outer(finite, finite) * corr, wide, lag, factor
+        up = np.where(seen, wide / robust, 1.0)
+    # a direction the data never see stays unseen (infinite std, kept from the white formula); a combination they
+    # do see keeps its information, which zeroing the unseen columns' rows had thrown away (review of stop 57)
+    return up[:, None] * sandwich * up[None, :], wide, bandwidth, np.where(seen, wide / np.where(seen, std, 1.0), 1.0)
 
 
 DETERMINED = 0.3  # a parameter is determined by the data when its data-only std is below this share of its value
@@ -158,10 +164,16 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
     cov_u, std_u, JtJ = _std(J, sigma2)
     series = problem.residual_series(problem.train)
     widened = None
-    if series and sum(series) == len(r0) and max(series) > 2:
-        cov_u, std_u, lag, factor = _widened_for_correlation(J, r0, series, cov_u, std_u)
-        out["correlated_residuals"] = {"lag": lag, "widening": {p.name: float(f) for p, f in zip(free, factor)}}
-        widened = factor
+    if series:
+        if sum(series) != len(r0):
+            raise ValueError(f"task {problem.task!r}: residual_series sums to {sum(series)} rows, its residuals have "
+                             f"{len(r0)}")
+        got = (_widened_for_correlation(J, r0, series, cov_u, std_u, sigma2 / chi2_dof)
+               if max(series) > 2 and chi2_dof > 0 else None)
+        if got is not None:
+            cov_u, std_u, bandwidth, widened = got
+            out["correlated_residuals"] = {"bandwidth": bandwidth,
+                                           "widening": {p.name: float(f) for p, f in zip(free, widened)}}
     scale = np.abs(space.dvalue_dunit(fitted))
     col_norm = np.linalg.norm(J, axis=0)
     und = [p.name for i, p in enumerate(free)
@@ -186,8 +198,8 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         P = space.prior_jacobian_unit(fitted)
         if widened is None:
             cov_u, std_u, JtJ = _std(np.concatenate([J / np.sqrt(sigma2), P]), 1.0)
-        else:  # the data's information is the inverse of their (widened) covariance
-            JtJ = np.linalg.pinv(cov_u, rcond=1e-12) + P.T @ P
+        else:  # the data's information is the pseudo-inverse of their widened covariance
+            JtJ = np.linalg.pinv(np.where(np.isfinite(cov_u), cov_u, 0.0), rcond=1e-12) + P.T @ P
             cov_u = np.linalg.pinv(JtJ, rcond=1e-12)
             std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
         out["data_only_std"] = data_std

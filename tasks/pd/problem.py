@@ -606,7 +606,12 @@ class PDProblem(Problem):
         return (r / np.sqrt(r.shape[2])).reshape(len(values), -1)
 
     def residual_series(self, conditions):
-        return [len(c.data["q_d"]) for c in conditions]  # one sampled trajectory per part, as `residuals` lays them
+        """One sampled trajectory per log part, as `residuals` lays them. The built-in commands' reference is the
+        exact joint, without noise: its misfit is the step's own deterministic effect, the one being measured, not
+        noise that could be coloured (their stds stay the white formula's, as `flow pd` has always stated them)."""
+        if not all("noise_floor" in c.data for c in conditions):
+            return None
+        return [len(c.data["q_d"]) for c in conditions]
 
     # --- the paper's predictions ----------------------------------------------------
     def analytic(self, fitted: dict) -> dict:
