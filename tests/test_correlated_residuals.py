@@ -182,3 +182,18 @@ def test_the_built_in_commands_exact_reference_keeps_the_white_formula():
     p = PDProblem(100.0)
     unc = uncertainty(p, p.space.measured)
     assert p.residual_series(p.train) is None and "correlated_residuals" not in unc and unc["std"]
+
+
+def test_a_perfect_fit_keeps_its_correlations_and_a_wrong_series_layout_is_an_error():
+    y = np.stack([X @ TRUE] * 3)
+    plain = uncertainty(KnownNoise(y, series=False), TRUE, step=1e-4)
+    timed = uncertainty(KnownNoise(y), TRUE, step=1e-4)
+    assert timed["correlation"] == plain["correlation"] and abs(plain["correlation"]["matrix"][0][1]) > 0.05
+    assert "correlated_residuals" not in timed  # no residual left to estimate a correlation in time from
+
+    class Miscounted(Regression):
+        def residual_series(self, conditions):
+            return [len(T)]
+
+    with pytest.raises(ValueError, match="residual_series sums to 800 rows, its residuals have 1600"):
+        uncertainty(Miscounted(y), TRUE, step=1e-4)
