@@ -110,3 +110,11 @@ def test_bench_writes_to_the_checkouts_folder_from_anywhere(tmp_path, monkeypatc
     checkout = Path(bench.__file__).resolve().parents[1] / "bench"
     assert out == (checkout if (checkout / "results.md").is_file() else Path("bench"))
     assert out.is_absolute() == (checkout / "results.md").is_file()
+
+
+def test_only_names_the_default_fits_too(tmp_path):
+    """`--only pd` benched the PD kernel and then ran every system's default fit (a review of stop 57)."""
+    out = tmp_path / "bench"
+    assert main(["bench", "--quick", "--no-cuda-build", "--only", "pd", "--batches", "256", "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert [f["task"] for f in res["fits"]] == ["pd"] and res["fits"][0]["ok"]

@@ -501,6 +501,11 @@ def test_bad_files_exit_2_from_inspect_and_are_left_out_by_fit(tmp_path, capsys)
                 "--out", str(tmp_path / "run2")]
     assert cli(only_bad) == 2
     assert "no usable fit reference remains" in capsys.readouterr().err
+    # one file alone: its own problem is the one line (it had been a warning and then "all 1 left out")
+    f, field = bads[0]
+    assert cli(["fit", "rope", "--reference", str(f), "--no-record", "--quiet", "--out", str(tmp_path / "run3")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"wrenorm: error: {f}: {field}: "), err
 
 
 def test_flagged_event_is_used_and_reported(tmp_path, capsys):

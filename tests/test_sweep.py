@@ -274,10 +274,12 @@ def test_a_failed_cell_records_the_warnings_that_name_the_file_and_why(tmp_path)
     the cell's error (what sweep.csv shows) carries the warning, not only its log."""
     from wrenorm.sweep.cell import WARNINGS_KEPT, _error_line, run_cell
 
-    bad = tmp_path / "trunc.npz"
+    bad, other = tmp_path / "trunc.npz", tmp_path / "trunc2.npz"
     bad.write_bytes(ROPE_NPZ.read_bytes()[:1000])
-    res = run_cell(["fit", "rope", "--no-record", "--reference", str(bad), "--seed", "0"], str(tmp_path / "sweep"),
-                   "000_x", token="t")
+    other.write_bytes(ROPE_NPZ.read_bytes()[:1000])
+    # two files: each is left out with a warning, then the run fails (one file alone is refused in its own line)
+    res = run_cell(["fit", "rope", "--no-record", "--reference", str(bad), str(other), "--seed", "0"],
+                   str(tmp_path / "sweep"), "000_x", token="t")
     assert res["rc"] == 2 and res["result"] is None
     assert f"warning: {bad}: file: is not a readable .npz archive" in res["error"], res["error"]
     assert "no usable fit reference remains" in res["error"] and "\n" not in res["error"]

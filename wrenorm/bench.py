@@ -200,7 +200,7 @@ def run(args) -> int:
         res["parity"] = parity(device)
         _log(f"CPU vs {device}: {res['parity']}")
     if not args.no_fits:
-        res["fits"] = bench_fits(device, list(registered))
+        res["fits"] = bench_fits(device, list(args.only or registered))  # --only names the fits too
         res["peers"] = {}
         for name in only:
             module = str(registered[name].bench or "").partition(":")[0]

@@ -41,7 +41,8 @@ def _device(name: str) -> str:
 
 
 def _run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<command>-<time>)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="run folder (default runs/<system>-<time>; a flow: runs/flow-<system>-<time>)")
     add_number(p, "--seed", default=0, lo=0, hi=2**31 - 1, integer=True, help="random seed")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     p.add_argument("--force", action="store_true", help="clear a non-empty --out folder that wrenorm wrote")

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wrenorm.errors import InputError
+from wrenorm.errors import InputError, warn
 from wrenorm.kernels.rope import ChainParams, RopeSim, critical
 from wrenorm.params import Parameter, ParameterSpace
 from wrenorm.problem import Condition, Problem, finite_or_inf
@@ -548,7 +548,12 @@ def build_problems(args, device: str) -> list[Problem]:
 
     screening: list[dict] = []
     if args.reference:
-        train, names = screen_references(args.reference, "fit", screening)
+        said: list[str] = []
+        train, names = screen_references(args.reference, "fit", screening, warn=said.append)
+        if not train and len(args.reference) == 1:  # one file, one line: its own problem is the error
+            raise InputError(screening[0]["file"], screening[0]["field"], screening[0]["problem"])
+        for message in said:
+            warn(message)
         if not train:
             raise InputError("--reference", "reference",
                              f"no usable fit reference remains: all {len(args.reference)} left out (warnings above)")
