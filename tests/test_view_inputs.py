@@ -90,6 +90,19 @@ def test_a_std_larger_than_its_value_is_not_called_determined(tmp_path):
     (tmp_path / "result.json").write_text(json.dumps(r))
     assert main(["view", str(tmp_path), "--report"]) == 0
     assert "loosely determined" not in (tmp_path / "report.html").read_text()
+    # seeds that end apart and a loose std are two things said, side by side (the rope's radius at +-61 % had shown
+    # "differs across seeds" alone); a prior that holds it says more than loose, and takes its place
+    r["uncertainty"]["determined_by_data"] = []
+    r["restarts"] = {"not_pinned": ["J"]}
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "differs across seeds" in page and "loosely determined" in page
+    r["uncertainty"]["held_by_prior"] = ["J"]
+    (tmp_path / "result.json").write_text(json.dumps(r))
+    assert main(["view", str(tmp_path), "--report"]) == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "held by prior" in page and "loosely determined" not in page
 
 
 def test_a_result_that_is_not_text_is_refused(tmp_path, capsys):

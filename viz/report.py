@@ -141,11 +141,13 @@ def _parameter_rows(r: dict) -> list[list]:
                 flags.append(flag("held by prior", "warn"))
             if name in at_bound:
                 flags.append(flag("at bound", "warn"))
+            said_by_data = bool(flags)  # cannot determine, held by the prior, at a bound: each says more than loose
             if name in not_pinned:
                 flags.append(flag("differs across seeds", "warn"))
-            if not flags and by_data is not None and name not in by_data and p.get("fitted"):
+            if not said_by_data and by_data is not None and name not in by_data and p.get("fitted"):
                 # relative to a value near zero (a freed feed-forward gain measured 0) every std is large: the
-                # undetermined rule, against the bounds, speaks for those
+                # undetermined rule, against the bounds, speaks for those. Beside "differs across seeds" it says
+                # what the std says too (a rope radius at +-61 % had shown the seeds' word alone; review of stop 57)
                 flags.append(flag("loosely determined", "warn"))
             if not flags:
                 flags.append(flag("determined", "ok"))
