@@ -21,6 +21,7 @@ from pathlib import Path
 
 from .errors import AllCandidatesFailed, InputError, warn
 from .options import OneLineParser, add_list, add_number, number, path_kind
+from .results import flow_point_std
 from .system import resolve, systems
 
 CORE_VERBS = ("fit", "flow", "view", "bench")
@@ -399,7 +400,7 @@ def cmd_flow(args) -> int:
                     identity=identity, command=command_line(args),
                     together=device.startswith("cuda") if args.together is None else args.together)
     for pt in flow["points"]:
-        std = {n: float("nan") if p.get("std") is None else p["std"]  # None: a NaN read back
+        std = {n: float("nan") if flow_point_std(p) is None else flow_point_std(p)  # None: a NaN read back
                for n, p in pt["parameters"].items()}
         line = ", ".join(f"{n}={p['fitted']:.5g}±{std[n]:.2g}" for n, p in pt["parameters"].items() if not p["frozen"])
         und = f"  [undetermined: {', '.join(pt['undetermined'])}]" if pt["undetermined"] else ""

@@ -68,8 +68,7 @@ def _scores_long_run(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> tuple[
     A = np.linalg.lstsq(prev, cur, rcond=None)[0].T  # g_t ~ A g_{t-1}
     u, sv, vt = np.linalg.svd(A)
     A = u @ np.diag(np.minimum(sv, PREWHITEN_MAX)) @ vt
-    ends = np.cumsum(lengths)
-    E = np.concatenate([G[e - n + 1:e] - G[e - n:e - 1] @ A.T for e, n in zip(ends, lengths) if n > 1])
+    E = cur - prev @ A.T  # the innovations, series by series as _pairs stacks them
     inner = [n - 1 for n in lengths if n > 1]
     bandwidth = _bartlett_bandwidth(E, inner)
     S = E.T @ E
@@ -84,8 +83,7 @@ def _scores_long_run(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> tuple[
     return back @ S @ back.T, bandwidth
 
 
-def _widened_for_correlation(J: np.ndarray, r: np.ndarray, lengths: list[int], cov: np.ndarray, std: np.ndarray,
-                             per_noise: float):
+def _widened_for_correlation(J: np.ndarray, r: np.ndarray, lengths: list[int], std: np.ndarray, per_noise: float):
     """The sandwich (J^T J)^-1 S (J^T J)^-1 with S the scores' long-run covariance: where the residuals of a time
     series are correlated (coloured noise, a structured misfit) their sum carries fewer independent samples than
     rows, and sigma^2 (J^T J)^-1 understates the spread of the fitted values (PD logs with noise correlated over
@@ -168,7 +166,7 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         if sum(series) != len(r0):
             raise ValueError(f"task {problem.task!r}: residual_series sums to {sum(series)} rows, its residuals have "
                              f"{len(r0)}")
-        got = (_widened_for_correlation(J, r0, series, cov_u, std_u, sigma2 / chi2_dof)
+        got = (_widened_for_correlation(J, r0, series, std_u, sigma2 / chi2_dof)
                if max(series) > 2 and chi2_dof > 0 else None)
         if got is not None:
             cov_u, std_u, bandwidth, widened = got
@@ -199,7 +197,7 @@ def uncertainty(problem: Problem, fitted: np.ndarray, step: float = 1e-3) -> dic
         if widened is None:
             cov_u, std_u, JtJ = _std(np.concatenate([J / np.sqrt(sigma2), P]), 1.0)
         else:  # the data's information is the pseudo-inverse of their widened covariance
-            JtJ = np.linalg.pinv(np.where(np.isfinite(cov_u), cov_u, 0.0), rcond=1e-12) + P.T @ P
+            JtJ = np.linalg.pinv(cov_u, rcond=1e-12) + P.T @ P
             cov_u = np.linalg.pinv(JtJ, rcond=1e-12)
             std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
         out["data_only_std"] = data_std

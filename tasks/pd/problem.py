@@ -456,9 +456,7 @@ class PDProblem(Problem):
             self.train, self.held_out = self._log_conditions(log)
             names = {c.name for c in self.train + self.held_out}
             for other in validate_logs:  # whole logs of other commands: new conditions, which the last third is not
-                if other.time[-1] * self.f_sim < 30:
-                    raise InputError(other.path, "time", f"log spans {other.time[-1]:.3g} s: too short for "
-                                                         f"f_sim={self.f_sim} Hz")
+                self._check_duration(other)
                 name = Path(other.path).stem
                 name = next(n for n in (name, *(f"{name}_{i}" for i in range(2, 10**6))) if n not in names)
                 names.add(name)
@@ -484,9 +482,8 @@ class PDProblem(Problem):
 
     def _log_conditions(self, log: MeasuredLog):
         """First 2/3 of the log fits, the last 1/3 validates; each part starts from the logged state."""
+        self._check_duration(log)
         T = log.time[-1]
-        if T * self.f_sim < 30:
-            raise InputError(log.path, "time", f"log spans {T:.3g} s: too short for f_sim={self.f_sim} Hz")
         whole = _LogSpline(log)
         conds = [self._log_part(whole, name, a, b)
                  for name, (a, b) in {"log_fit": (0.0, 2 * T / 3), "log_validate": (2 * T / 3, T)}.items()]
@@ -502,6 +499,10 @@ class PDProblem(Problem):
                                  "tests nothing, so there is no verdict; log motion throughout")
             conds = conds[:1]
         return conds[:1], conds[1:]
+
+    def _check_duration(self, log: MeasuredLog) -> None:
+        if log.time[-1] * self.f_sim < 30:
+            raise InputError(log.path, "time", f"log spans {log.time[-1]:.3g} s: too short for f_sim={self.f_sim} Hz")
 
     def _check_sampling(self, log: MeasuredLog) -> None:
         step = float(np.median(np.diff(log.time)))
