@@ -8,6 +8,8 @@ from wrenorm import search
 from wrenorm.cli import main
 from wrenorm.tasks.pd.problem import ANALYTIC_DELAY, PDProblem
 
+JOINT = ["--J", "0.05", "--K-P", "20", "--K-D", "0.5"]  # the built-in joint that made the logs
+
 
 def _fit(f_sim, integrator="semi-implicit", generations=120):
     p = PDProblem(f_sim, integrator)
@@ -156,12 +158,50 @@ def test_measured_log_reference(tmp_path):
     f = tmp_path / "log.csv"
     np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
     out = tmp_path / "run"
-    assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--reference", str(f),
+    assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", *JOINT, "--reference", str(f),
                  "--generations", "50"]) == 0
     r = json.loads((out / "result.json").read_text())
     assert r["parameters"]["J"]["fitted"] == pytest.approx(0.0525, rel=0.03)
     v = r["validation"]["conditions"]["log_validate"]
     assert v["fitted_error"] < v["measured_error"]
+
+
+def test_a_log_of_another_joint_needs_its_own_gains(tmp_path, capsys):
+    """A log fixes J and K_D only relative to K_P. A joint of J 0.01, K_P 5, K_D 0.1 fitted under the built-in
+    joint's gains (their ratios 20 % off, inside the gauge check) had given J 0.042 +- 0.00001 and "absorbed" with no
+    word; without its gains the log is refused, and with them J comes out at the finite step's first-order value."""
+    from wrenorm.tasks.pd.problem import Command, continuous_reference
+
+    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
+    t = np.arange(0, 4.0, 0.001)
+    q = continuous_reference(cmd, 0.01, 5.0, 0.1, t)
+    q_d, qd_d, _ = cmd(t)
+    f = tmp_path / "small.csv"
+    np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", "--reference", str(f), "--K-P", "5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(f) in err and "--J, --K-D: not given" in err, err
+    out = tmp_path / "run"
+    assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--J", "0.01", "--K-P", "5", "--K-D", "0.1",
+                 "--reference", str(f)]) == 0
+    r = json.loads((out / "result.json").read_text())
+    # first order at 100 Hz, semi-implicit (README): J + K_D dt / 2 = 0.0105
+    assert r["parameters"]["J"]["fitted"] == pytest.approx(0.0105, rel=0.03)
+    assert r["parameters"]["K_D"]["fitted"] == pytest.approx(0.1, rel=0.05)
+    assert r["parameters"]["K_P"]["measured"] == 5.0
+
+
+def test_a_copy_of_the_fitted_log_is_no_validation(tmp_path, capsys):
+    """--validate on a byte-identical copy of the --reference log had validated the fit on its own data ("absorbed")."""
+    f = tmp_path / "log.csv"
+    f.write_text("time,q,q_d,qd_d\n" + "".join(f"{i * 0.01},{np.sin(i * 0.05)},{np.sin(i * 0.05)},0\n"
+                                               for i in range(400)))
+    copy = tmp_path / "copy.csv"
+    copy.write_bytes(f.read_bytes())
+    assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", *JOINT, "--reference", str(f), "--validate",
+                 str(copy)]) == 2
+    err = capsys.readouterr().err
+    assert f"{copy} is the fitted log itself (the bytes of {f})" in err, err
 
 
 def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):
@@ -180,7 +220,7 @@ def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):
         f = tmp_path / f"{name}.csv"
         np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
         out = tmp_path / name
-        assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", "--reference", str(f)]) == 0
+        assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", *JOINT, "--reference", str(f)]) == 0
         fits[name] = json.loads((out / "result.json").read_text())["parameters"]
         if noise:
             q0, v0, _ = start_state(t, q, 0.0)  # the joint starts at rest

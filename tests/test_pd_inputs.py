@@ -9,6 +9,8 @@ from wrenorm.cli import main
 from wrenorm.errors import InputError
 from wrenorm.tasks.pd.problem import MAX_GAP_STEPS, load_log
 
+JOINT = ["--J", "0.05", "--K-P", "20", "--K-D", "0.5"]  # the built-in joint that made the logs
+
 T = np.arange(0, 4.0, 0.001)
 
 
@@ -117,7 +119,7 @@ def test_a_coarse_log_is_warned_and_a_still_held_out_part_gives_no_verdict(tmp_p
                header="time,q,q_d,qd_d", comments="")
     out = tmp_path / "run"
     # recorded too: the recording walked the held-out conditions and met none
-    assert main(["fit", "pd", "--reference", str(f), "--out", str(out), "--quiet"]) == 0
+    assert main(["fit", "pd", *JOINT, "--reference", str(f), "--out", str(out), "--quiet"]) == 0
     assert (out / "recording.rrd").exists()
     import json
 
@@ -411,7 +413,7 @@ def _fit_warnings(tmp_path, log):
     import json
 
     out = tmp_path / ("fit-" + log.stem)
-    assert main(["fit", "pd", "--quiet", "--no-record", "--reference", str(log), "--out", str(out)]) == 0
+    assert main(["fit", "pd", "--quiet", "--no-record", *JOINT, "--reference", str(log), "--out", str(out)]) == 0
     return json.loads((out / "result.json").read_text())["warnings"]
 
 
@@ -465,8 +467,8 @@ def test_a_servo_that_samples_and_holds_its_torque_is_predicted_with_controller_
     log = _sample_and_hold_log(tmp_path / "servo50.csv", 50.0)
     for extra, said in (([], True), (["--controller-rate", "50"], False)):
         out = tmp_path / f"fit{len(extra)}"
-        assert main(["fit", "pd", "--reference", str(log), "--f-sim", "200", *extra, "--out", str(out), "--quiet",
-                     "--no-record"]) == 0
+        assert main(["fit", "pd", *JOINT, "--reference", str(log), "--f-sim", "200", *extra, "--out", str(out),
+                     "--quiet", "--no-record"]) == 0
         r = json.loads((out / "result.json").read_text())
         gains = [w for w in r["warnings"] if "sample and hold" in w]
         assert bool(gains) == said, r["warnings"]
@@ -491,7 +493,7 @@ def test_friction_values_fitted_on_one_command_are_validated_on_another_log(tmp_
     fast = _friction_log(tmp_path / "fast.csv", coulomb=0.05, noise=5e-4, cmd=Command("f", "multisine", 0.3, 1.7, 2.9))
     slow = _friction_log(tmp_path / "slow.csv", coulomb=0.05, noise=5e-4, seed=1,
                          cmd=Command("s", "multisine", 0.12, 0.4, 0.9))
-    common = ["fit", "pd", "--reference", str(fast), "--f-sim", "200", "--quiet", "--no-record"]
+    common = ["fit", "pd", *JOINT, "--reference", str(fast), "--f-sim", "200", "--quiet", "--no-record"]
     assert main(common + ["--out", str(tmp_path / "one")]) == 0
     one = json.loads((tmp_path / "one" / "result.json").read_text())
     assert one["validation"]["verdict"] == "absorbed"

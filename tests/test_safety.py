@@ -17,7 +17,9 @@ from hypothesis import strategies as st
 from wrenorm.cli import build_parser, main
 from wrenorm.system import systems
 
-PD = ["fit", "pd", "--quiet", "--no-record", "--f-sim", "50"]
+JOINT = ["--J", "0.05", "--K-P", "20", "--K-D", "0.5"]  # the built-in joint that made the logs
+
+PD = ["fit", "pd", "--quiet", "--no-record", "--f-sim", "50", *JOINT]
 
 
 def _one_line_error(capsys, *needles):

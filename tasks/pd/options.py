@@ -14,11 +14,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_numbers(p, "--f-sim", default=[100.0], lo=F_SIM_RANGE[0], hi=F_SIM_RANGE[1], unit="Hz", metavar="HZ",
                 help="simulation frequency; several: one fit each, result.json holds `runs`")
     p.add_argument("--integrator", default="semi-implicit", choices=["semi-implicit", "explicit"])
-    add_number(p, "--J", default=MEASURED["J"], lo=1e-6, hi=1e3, unit="kg m^2", help="measured joint inertia")
-    add_number(p, "--K-P", dest="K_P", default=MEASURED["K_P"], lo=1e-6, hi=1e6, unit="N m/rad",
-               help="real proportional gain")
-    add_number(p, "--K-D", dest="K_D", default=MEASURED["K_D"], lo=0.0, lo_open=True, hi=1e4, unit="N m s/rad",
-               help="real derivative gain")
+    # None until build_problems: a log's joint must name its own (the log fixes J and K_D only relative to K_P)
+    own = "the built-in joint's {:g}; with --reference, required: the logged joint's own"
+    add_number(p, "--J", default=None, lo=1e-6, hi=1e3, unit="kg m^2", help="measured joint inertia",
+               default_text=own.format(MEASURED["J"]))
+    add_number(p, "--K-P", dest="K_P", default=None, lo=1e-6, hi=1e6, unit="N m/rad", help="real proportional gain",
+               default_text=own.format(MEASURED["K_P"]))
+    add_number(p, "--K-D", dest="K_D", default=None, lo=0.0, lo_open=True, hi=1e4, unit="N m s/rad",
+               help="real derivative gain", default_text=own.format(MEASURED["K_D"]))
     p.add_argument("--reference", default=None, metavar="FILE.csv",
                    help="measured log (columns time, q, q_d, qd_d) instead of the built-in continuous reference")
     add_list(p, "--validate", default=None, metavar="FILE.csv",
