@@ -214,6 +214,31 @@ def test_qd_d_in_other_units_than_q_d_per_second_is_refused(tmp_path):
         load_log(_multisine_log(tmp_path / "rpm.csv", qd_scale=60 / (2 * np.pi)))
     assert e.value.field == "qd_d" and "rpm" in e.value.problem
     load_log(_multisine_log(tmp_path / "rad.csv"))
+    # degrees per second beside radians (57.3x, and its inverse) had been refused as a clock in milliseconds
+    for scale in (np.degrees(1.0), np.radians(1.0)):
+        with pytest.raises(InputError) as e:
+            load_log(_multisine_log(tmp_path / "deg.csv", qd_scale=scale))
+        assert e.value.field == "qd_d" and "degrees" in e.value.problem, e.value
+
+
+def test_a_hole_of_exactly_the_longest_allowed_gap_is_read(tmp_path):
+    """A 200 Hz log with 4 samples dropped (a hole of exactly 5 steps, 25 ms) had been refused: 0.025000000000000133 s
+    in floating point is more than 5 x 0.005 s (a probe of stop 58)."""
+    t = np.arange(1200) * 0.005
+    k = 600 + int(np.argmax(t[605:] - t[600:-5] > MAX_GAP_STEPS * 0.005))  # a hole that rounds over
+    keep = np.ones(len(t), bool)
+    keep[k + 1:k + 5] = False
+    q_d = 0.3 * np.sin(2 * np.pi * 0.7 * t)
+    f = tmp_path / "hole5.csv"
+    np.savetxt(f, np.c_[t, q_d, q_d, 0.3 * 2 * np.pi * 0.7 * np.cos(2 * np.pi * 0.7 * t)][keep], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    assert np.max(np.diff(t[keep])) > MAX_GAP_STEPS * 0.005  # the rounding that had refused it
+    load_log(f)
+    keep[k + 5] = False  # 6 steps: rows missing
+    np.savetxt(f, np.c_[t, q_d, q_d, 0.3 * 2 * np.pi * 0.7 * np.cos(2 * np.pi * 0.7 * t)][keep], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError, match="rows missing"):
+        load_log(f)
 
 
 def test_a_noisy_start_velocity_is_fitted_not_absorbed_by_the_gains(tmp_path):

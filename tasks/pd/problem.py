@@ -297,7 +297,7 @@ def load_log(path: str | Path) -> MeasuredLog:
     # or two makes 2-3x; more than MAX_GAP_STEPS medians without a sample is rows lost (cut out, a logger stall),
     # which the interpolation would bridge with a motion nobody measured.
     gap = int(np.argmax(dt))
-    if dt[gap] > max(MAX_GAP_STEPS * step, MIN_GAP_S):
+    if dt[gap] > max(MAX_GAP_STEPS * step, MIN_GAP_S) * (1 + 1e-9):  # a hole of exactly 5 steps is 5 in rounding
         raise InputError(src, "time", f"no sample for {dt[gap]:g} s after time {t[gap]:.12g} s (data row {gap + 1}), "
                                       f"{dt[gap] / step:.0f} times the median step {step:g} s: rows missing? (give "
                                       "a log without holes, or cut it at the gap)")
@@ -314,6 +314,10 @@ def load_log(path: str | Path) -> MeasuredLog:
         if scale < 0:
             raise InputError(src, "qd_d", f"runs against the rate of change of q_d ({scale:.3g} x it): the command "
                                           "velocity with the wrong sign?")
+        degrees = min(abs(np.log(scale / np.degrees(1.0))), abs(np.log(scale * np.degrees(1.0))))
+        if degrees < np.log(MAX_UNIT_MISMATCH):  # 57.3x either way: one of the two in degrees, not the clock
+            raise InputError(src, "qd_d", f"is {scale:.3g} x the rate of change of q_d: one of them in degrees (per "
+                                          "second), the other in radians? give both in radians")
         if not 1.0 / MAX_RATE_MISMATCH <= scale <= MAX_RATE_MISMATCH:
             raise InputError(src, "time", f"qd_d is {scale:.3g} x the rate of change of q_d on this time axis: "
                                           "time in milliseconds (or qd_d in other units than q_d per second)?")
