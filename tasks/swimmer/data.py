@@ -49,6 +49,9 @@ TAIL_BASE_RANGE = (0.85, 1.15)  # x the robot's head-to-tail-base distance; the 
 MAX_REPEATED_FRAMES = 0.01  # share of frames equal to the previous one while the fish swims, refused; fewer are
 # flagged. Tracked video never repeats exactly while the fish moves (the five clips: none; rounded to whole pixels:
 # none), and 3 % (every 33rd frame written twice, a frame-rate conversion) moved the slender drag +4 std in silence
+FILLED_FRAMES = 3  # frames in a row with every marker on a straight line in time, at least: filled in (straight_runs)
+FILLED_MARKER_FRAMES = 9  # the same for one marker, said (the fishsim clips: at most 6; at 30 fps one reaches 8)
+LIKELY_RUN = 1e-3  # ... and longer than a run with this chance in the clip at the rate its frames come elsewhere
 MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
 # one clip moved the slender drag 4x and the viscosity 2.3x, with the head's jump under its limit)
 TAIL_MARKER_MIN_GAP = 0.005  # m along the body: tail markers closer than this track one point
@@ -187,6 +190,7 @@ def _read_pixel(path: Path) -> tuple[np.ndarray, np.ndarray]:
     markers = data.reshape(-1, N_MARKERS, 2)
     _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_repeated_frames(path, markers)
+    _check_filled(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_head(path, markers, rows_per_frame=1)
     _check_jumps(path, markers, rows_per_frame=1)
     head_px = np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1).mean()
@@ -204,7 +208,10 @@ def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int)
         row = frame * rows_per_frame + (marker + 1 if rows_per_frame > 1 else 1)
         raise InputError(str(path), f"row {row} marker {marker}", f"at exactly (0, 0) in frame {frame + 1} "
                          f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate those markers "
-                         "from the frames either side (rows removed would be read as frames cut out of the clip)")
+                         "from the frames either side (rows removed would be read as frames cut out of the clip; "
+                         f"{FILLED_FRAMES} frames or more of the whole fish on a straight line are refused, and "
+                         f"{FILLED_MARKER_FRAMES} or more of one marker said, since they erase the motion within the "
+                         "beat: cut the clip at a longer gap)")
 
 
 def moving_repeats(markers: np.ndarray) -> list[tuple[int, int]]:
@@ -214,6 +221,68 @@ def moving_repeats(markers: np.ndarray) -> list[tuple[int, int]]:
     step = np.linalg.norm(np.diff(head, axis=0), axis=1)
     usual = float(np.median(step[step > 0])) if np.any(step > 0) else 0.0
     return [(first, n) for first, n, moved, span in repeated_runs(markers, head) if moved > 0.5 * usual * span]
+
+
+def _resolution(markers: np.ndarray) -> float:
+    """The file's number grid: the least nonzero change of any coordinate between frames (half a pixel in the fishsim
+    clips; a millimetre in metres written to 3 decimals)."""
+    steps = np.abs(np.diff(markers.reshape(len(markers), -1), axis=0))
+    steps = steps[steps > 0]
+    return float(steps.min()) if steps.size else 0.0
+
+
+def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
+    """Runs of frames in which the markers `which` (all together, or one alone) move on a straight line at constant
+    speed or stand still while the other markers swim on (at least half their usual pace across the run): (first
+    frame, frames, markers), at least FILLED_FRAMES long (one marker: FILLED_MARKER_FRAMES) and longer than a run with
+    LIKELY_RUN of a chance at the rate such frames come elsewhere in the clip. On a line means every coordinate's
+    second difference within the file's number grid, and the whole run within a grid step of the line fitted through
+    it: a slow marker on a coarse grid (integer pixels, millimetres) steps evenly for a dozen frames and more, but its
+    beat curves it away from any line over them. The fishsim clips have no such run (one marker
+    at most 6 frames, all nine at once none). A tracker's gap filling and pandas' interpolate or ffill write them, and
+    they erase the head's sway and surge within the beat: 15 frames of the whole fish filled twice had moved blunt
+    drag -3.7 stds and viscosity +4 stds, and one head marker held for 10 frames the same, in silence (a probe of stop
+    58)."""
+    which = list(which)
+    grid = _resolution(markers) * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
+    d2 = np.abs(np.diff(markers[:, which], 2, axis=0))  # (T-2, len(which), 2): d2[k] centred on frame k + 1
+    line = np.all(d2 <= grid, axis=2)
+    out = []
+    for group in [which] + [[m] for m in which]:
+        least = FILLED_FRAMES if len(group) > 1 else FILLED_MARKER_FRAMES
+        on = np.all(line[:, [which.index(m) for m in group]], axis=1)
+        runs = true_runs(on)
+        longest = max((n for _, n in runs), default=0)
+        share = (on.sum() - longest) / max(len(on) - longest, 1)  # how often such frames come outside the longest run
+        if share >= 1.0:
+            continue  # every frame on a line: this marker's motion is below the file's grid
+        if share > 0.0:  # a run this long has less than LIKELY_RUN of a chance in the clip at that rate
+            least = max(least, int(np.ceil(np.log(LIKELY_RUN / len(on)) / np.log(share))))
+        others = [m for m in range(markers.shape[1]) if m not in group] or list(range(markers.shape[1]))
+        ref = markers[:, others].mean(axis=1)
+        usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+        for a, n in runs:  # frames a + 1 .. a + n lie on the line through frames a and a + n + 1
+            if n < least or not np.linalg.norm(ref[a + n + 1] - ref[a]) > 0.5 * usual * (n + 1):
+                continue
+            pts = markers[a:a + n + 2, group].reshape(n + 2, -1)
+            t = np.arange(n + 2, dtype=np.float64)
+            fit = np.polynomial.polynomial.polyfit(t, pts, 1)
+            if np.abs(pts - np.polynomial.polynomial.polyval(t, fit).T).max() <= grid:
+                out.append((a + 1, n, tuple(group)))
+    return out
+
+
+def _check_filled(path: Path, markers: np.ndarray, which, rows_per_frame: int) -> None:
+    """Every marker on a straight line at once for a run of frames no tracked swim shows is refused (straight_runs; one
+    marker alone is said by feature_flags: a slow marker on a coarse grid may do so by itself)."""
+    whole = [(f, n) for f, n, m in straight_runs(markers, which) if len(m) > 1]
+    if whole:
+        first, n = max(whole, key=lambda r: r[1])
+        rows = f"{first * rows_per_frame + 1}-{(first + n) * rows_per_frame}"
+        raise InputError(str(path), f"rows {rows}", f"every marker moves on a straight line at constant speed for {n} "
+                         f"frames (frames {first + 1}-{first + n}) while the fish swims: filled in by interpolation? "
+                         "that erases the head's sway and surge within the beat, which the fit reads (15 frames so "
+                         "filled twice moved blunt drag by 3.7 stds); give the tracked frames, or cut the clip there")
 
 
 def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
@@ -274,7 +343,8 @@ def _check_dropped_rows(path: Path, markers: np.ndarray, rows_per_frame: int) ->
     raise InputError(str(path), f"rows {first}-{last}", f"every marker steps {ratio[j]:.1f} x the mean of its steps "
                      f"either side between frames {j + 2} and {j + 3} ({steps}): rows deleted where the tracker lost "
                      "the fish? rows are read as consecutive frames, so the clip would swim too fast; put the lost "
-                     "frames back, interpolated from the frames either side (no NaN or empty rows are read)")
+                     "frames back, interpolated from the frames either side (no NaN or empty rows are read; "
+                     f"{FILLED_FRAMES} or more frames so filled in a row are refused: cut the clip there instead)")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
@@ -297,6 +367,7 @@ def read_rotated_markers(path: Path) -> np.ndarray:
     # marker 0 is the head frame's origin, at (0, 0) in the first frame by construction
     _check_dropouts(path, markers, range(1, N_MARKERS), rows_per_frame=N_MARKERS)
     _check_repeated_frames(path, markers)
+    _check_filled(path, markers, range(1, N_MARKERS), rows_per_frame=N_MARKERS)
     _check_head(path, markers, rows_per_frame=N_MARKERS)
     _check_jumps(path, markers, rows_per_frame=N_MARKERS)
     # no _check_dropped_rows: in the head frame the steps of the tail markers are the tail's own wave and the head's
@@ -620,6 +691,7 @@ def analyse(rate: Rate) -> Rate:
     _check_tail_jumps(rate.source or rate.name, local)
     rate.meta = {"local": local, "tail_markers": keep}
     rate.meta["flags"] = clip_flags(rate)
+    rate.meta["feature_flags"] = feature_flags(rate)
     return rate
 
 
@@ -694,17 +766,41 @@ def clip_flags(rate: Rate) -> list[str]:
             flags.append(f"{name}: the fish turns {turn:.0f} deg over the clip (beat-averaged heading): the model "
                          "swims straight, and the speed and head-motion features are read as from a straight swim")
     dist = np.linalg.norm(e, axis=1)
-    scatter = float(np.std(np.diff(dist, 2)) / np.mean(dist))
-    if scatter > MAX_HEAD_SCATTER:
-        flags.append(f"{name}: the rigid head markers' distance scatters {1000 * scatter:.0f} per mille from frame to "
-                     f"frame (tracking noise; the fishsim clips: 11-14): the head-motion features are noisier than "
-                     "the fit's noise model holds")
     third = len(dist) // 3
     drift = float(np.mean(dist[-third:]) / np.mean(dist[:third]) - 1.0)
     if abs(drift) > MAX_HEAD_DRIFT:
         flags.append(f"{name}: the head markers' pixel distance changes {100 * drift:+.0f} % from the first third of "
                      "the clip to the last: the pixel scale changes along the path (a camera not square to the "
                      "water?), and one scale is used for the whole clip")
+    return flags
+
+
+def feature_flags(rate: Rate) -> list[str]:
+    """What the clip's tracking says of its head-motion features alone, which the speed (the held-out verdict's
+    observable, a slope over the whole clip) does not share: one marker held or interpolated for a stretch, tracking
+    noise. Said, and a held-out clip so flagged still decides (1.5 px of noise on the held-out clip alone had left its
+    speed 0.2213 m/s for 0.2214 and turned the verdict from "expand" to "absorbed" by dropping it; a probe of stop
+    58)."""
+    name, flags = rate.source or rate.name, []
+    which = range(N_MARKERS) if rate.frame == "world" else range(1, N_MARKERS)  # a head frame's origin is marker 0
+    runs = [r for r in straight_runs(rate.markers, which) if len(r[2]) == 1]
+    for m in dict.fromkeys(r[2][0] for r in runs):  # one line per marker
+        mine = [(first, n) for first, n, (k,) in runs if k == m]
+        where = ", ".join(f"{first + 1}-{first + n}" for first, n in mine)
+        flags.append(f"{name}: marker {m} moves on a straight line at constant speed (or stands still) for "
+                     f"{max(n for _, n in mine)} frames in a row (frames {where}) while the fish swims (the fishsim "
+                     "clips: at most 6): held or interpolated by a tracker? its motion within the beat is gone there, "
+                     "and the fitted coefficients move with it (one head marker held 10 frames: blunt drag -3.6 stds); "
+                     f"or a marker this slow on the file's number grid ({1000 * _resolution(rate.markers):.2g} mm "
+                     "here; the fishsim clips': 0.5 mm) does so by itself")
+    if rate.frame != "world":
+        return flags
+    dist = np.linalg.norm(rate.markers[:, 0] - rate.markers[:, 1], axis=1)
+    scatter = float(np.std(np.diff(dist, 2)) / np.mean(dist))
+    if scatter > MAX_HEAD_SCATTER:
+        flags.append(f"{name}: the rigid head markers' distance scatters {1000 * scatter:.0f} per mille from frame "
+                     "to frame (tracking noise; the fishsim clips: 11-14): the head-motion features are noisier than "
+                     "the fit's noise model holds (the speed, a slope over the clip, is not)")
     return flags
 
 

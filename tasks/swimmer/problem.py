@@ -203,9 +203,10 @@ class SwimmerProblem(Problem):
                                  f"{', '.join(self.unmeasurable)} cannot be measured and are left out of the fit "
                                  f"(fitted: {', '.join(self.features)}); and {data.ROTATED_SPEED_NOTE}")
         self.data_checks = data.tail_beat_check(rates)
-        self.data_checks["clip_flags"] = {r.name: r.meta.get("flags", []) for r in rates}
+        self.data_checks["clip_flags"] = {r.name: r.meta.get("flags", []) + r.meta.get("feature_flags", [])
+                                          for r in rates}
         self.warnings += list(dict.fromkeys(w for r in rates for w in r.meta.get("load_warnings", [])))  # CSVs not read
-        self.warnings += self.data_checks["flagged"] + [f for r in rates for f in r.meta.get("flags", [])]
+        self.warnings += self.data_checks["flagged"] + [f for fs in self.data_checks["clip_flags"].values() for f in fs]
         self.resolution = {"dt": dt, "min_warm_s": warm_seconds, "measure_s": meas_seconds,
                            "virtual_mass": bool(virtual_mass), "gait": gait_mode,
                            "integrator": "ros2" if scheme == 2 else "implicit-euler", "tail_bodies": self.bodies}
