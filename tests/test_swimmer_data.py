@@ -309,11 +309,21 @@ def test_two_takes_joined_are_refused_and_a_one_frame_glitch_is_not(tmp_path, ra
         sd.load_dir(tmp_path)
     assert "markers_f1_00.csv" in str(e.value) and e.value.field.startswith("tail markers ")
     assert "joined" in e.value.problem
+    np.savetxt(tmp_path / "markers_f1_00.csv", px.reshape(len(px), -1), delimiter=",")
+    clean = sd.load_dir(tmp_path)[0].meta["local"]
     for frames in (1, 3):
         glitch = px.copy()
         glitch[150:150 + frames, 5] += [30.0, 40.0]
         np.savetxt(tmp_path / "markers_f1_00.csv", glitch.reshape(len(px), -1), delimiter=",")
-        assert sd.load_dir(tmp_path)[0].meta["flags"] == []
+        rate = sd.load_dir(tmp_path)[0]
+        assert rate.meta["flags"] == []
+        # the glitch's samples are read as the line between the frames either side, said (kept in the tail wave's
+        # fit, one such frame had moved Kutta lift -3 stds in silence; stop 58)
+        local = rate.meta["local"][:, 5]
+        line = np.linspace(clean[149, 5], clean[150 + frames, 5], frames + 2)[1:-1]
+        assert np.allclose(local[150:150 + frames], line, atol=1e-9) and np.allclose(local[:150], clean[:150, 5])
+        said = rate.meta["feature_flags"]
+        assert len(said) == 1 and "tail marker 5" in said[0] and "glitch" in said[0], said
 
 
 def test_a_long_clip_without_a_tail_beat_says_so_rather_than_too_short(tmp_path, rates):

@@ -664,6 +664,7 @@ def analyse(rate: Rate) -> Rate:
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
     _check_body(rate.source or rate.name, rate.markers)
+    mended = _mend_tail_glitches(local)
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)
     if np.floor(frames / rate.fps * rate.tail_freq + 1e-6) < 1:  # the features are per complete beat
@@ -689,10 +690,38 @@ def analyse(rate: Rate) -> Rate:
                          f"{travel:.3f} m from start to end): a swimming clip moves head first")
     rate.yaw_amp = yaw_amplitude(rate.markers, rate.tail_freq, rate.fps)
     _check_tail_jumps(rate.source or rate.name, local)
-    rate.meta = {"local": local, "tail_markers": keep}
+    rate.meta = {"local": local, "tail_markers": keep, "mended": mended}
     rate.meta["flags"] = clip_flags(rate)
     rate.meta["feature_flags"] = feature_flags(rate)
     return rate
+
+
+def _mend_tail_glitches(local: np.ndarray) -> list[tuple[int, int, int, float]]:
+    """A tail marker that jumps more than MAX_TAIL_JUMP x its steps either side and comes back within 3 frames is a
+    tracking glitch: those samples are read as the line between the frames either side, in the head frame the tail
+    wave is fitted in (mended in place; returned as (marker, first, frames, ratio)). Kept, one glitch of one marker
+    in one frame had moved Kutta lift -3 stds and put the tail tip's amplitude at 0.68 m on a 0.55 m fish, in silence
+    (a probe of stop 58)."""
+    mended = []
+    for i in range(2, N_MARKERS):
+        p = local[:, i]
+        for _ in range(8):  # a few glitches per marker; more is a track, not glitches
+            frame, ratio = largest_jump_on_both_sides(np.linalg.norm(np.diff(p, axis=0), axis=1))
+            if ratio <= MAX_TAIL_JUMP:
+                break
+            step = np.linalg.norm(p[frame + 1] - p[frame])
+            # the jump out (the marker is back at frame k) or the jump back (it had left after frame k)
+            out = [(frame, k) for k in range(frame + 2, min(frame + 5, len(p)))
+                   if np.linalg.norm(p[k] - p[frame]) < 0.5 * step]
+            back = [(k, frame + 1) for k in range(frame - 1, max(frame - 4, -1), -1)
+                    if np.linalg.norm(p[k] - p[frame + 1]) < 0.5 * step]
+            if not out + back:
+                break  # no glitch: a seam, which _check_tail_jumps judges
+            a, b = (out + back)[0]
+            w = (np.arange(1, b - a) / (b - a))[:, None]
+            p[a + 1:b] = (1 - w) * p[a] + w * p[b]
+            mended.append((i, a + 1, b - a - 1, float(ratio)))
+    return mended
 
 
 def _check_tail_jumps(source: str, local: np.ndarray) -> None:
@@ -793,6 +822,10 @@ def feature_flags(rate: Rate) -> list[str]:
                      "and the fitted coefficients move with it (one head marker held 10 frames: blunt drag -3.6 stds); "
                      f"or a marker this slow on the file's number grid ({1000 * _resolution(rate.markers):.2g} mm "
                      "here; the fishsim clips': 0.5 mm) does so by itself")
+    for m, first, n, ratio in rate.meta.get("mended", []):
+        where = f"frame {first + 1}" if n == 1 else f"frames {first + 1}-{first + n}"
+        flags.append(f"{name}: tail marker {m} jumps {ratio:.0f} x its steps either side and comes back ({where}): a "
+                     "tracking glitch, read as the line between the frames either side")
     if rate.frame != "world":
         return flags
     dist = np.linalg.norm(rate.markers[:, 0] - rate.markers[:, 1], axis=1)
