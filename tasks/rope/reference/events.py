@@ -680,13 +680,15 @@ def _unmarked_tip_gap(X: np.ndarray, S: np.ndarray, length: float, radius: float
 
 def detect(time, markers, marker_arclength, length, radius, missing=None, hand=None,
            time_tolerance: float = TIME_TOLERANCE, noise: float | None = None, continuity: bool = False,
-           rules: tuple | None = None, contact_level: float = CONTACT_LEVEL) -> Detection:
+           rules: tuple | None = None, contact_level: float = CONTACT_LEVEL, marker_offset: float = 0.0) -> Detection:
     """First self-contact of a rope from markers, with confidence and reasons.
 
     time (T,) s uniform; markers (T, M, 3) m, held end first (NaN where occluded: bridged here unless the
     caller bridged them and passes `missing`, the (T, M) mask of bridged samples); marker_arclength (M,) in
     [0, 1] increasing; length, radius m. noise: marker noise sigma (m), default estimated from the data; it
     widens the gap's uncertainty only. rules: which confidence rules apply (default all; for measurements).
+    marker_offset: how far (m) the markers' centres may lie from the rope's centre line (markers on its surface);
+    each piece's centre line is then that far from its markers, so it widens the gap's uncertainty by twice it.
     """
     time = np.asarray(time, dtype=np.float64)
     X = np.array(markers, dtype=np.float64)
@@ -725,7 +727,9 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
 
     sigma = estimate_noise(X, missing) if noise is None else float(noise)
     diag["noise_sigma_m"] = sigma
-    margin = 3.0 * np.sqrt(2.0) * sigma  # 3-sigma of the distance between two noisy points, one axis
+    # 3-sigma of the distance between two noisy points, one axis; and two pieces' markers each off their centre line
+    margin = 3.0 * np.sqrt(2.0) * sigma + 2.0 * float(marker_offset)
+    diag["marker_offset_m"] = float(marker_offset)
 
     # --- interval pairs that may touch at all, and the rigorous lower bound of their gap
     iv, jv = np.triu_indices(M - 1, k=0)
@@ -1047,7 +1051,9 @@ class Critical:
 def _content_key(ref) -> str:
     import hashlib
 
-    h = hashlib.sha1(f"events-v{VERSION} L={ref.length!r} r={ref.radius!r}".encode())
+    offset = float(getattr(ref, "marker_offset", 0.0))
+    h = hashlib.sha1((f"events-v{VERSION} L={ref.length!r} r={ref.radius!r}"
+                      + (f" offset={offset!r}" if offset else "")).encode())  # keys without an offset as before
     for a in (ref.time, ref.markers, ref.marker_arclength, getattr(ref, "missing", None), ref.hand):
         if a is not None:
             a = np.ascontiguousarray(a)
@@ -1110,7 +1116,8 @@ def detect_reference(ref, use_cache: bool = True) -> Detection:
             det = None
     if det is None:
         det = detect(ref.time, ref.markers, ref.marker_arclength, ref.length, ref.radius,
-                     missing=getattr(ref, "missing", None), hand=ref.hand)
+                     missing=getattr(ref, "missing", None), hand=ref.hand,
+                     marker_offset=float(getattr(ref, "marker_offset", 0.0)))
         if path is not None:
             try:
                 body = jsonable(_to_json(det))

@@ -37,7 +37,8 @@ __all__ = ["RopeReference", "CollisionEvent", "load_reference", "save_reference"
            "generate_reference", "builtin_references", "add_reference_arguments", "run_reference", "same_recording"]
 
 REQUIRED = ("time", "markers", "hand", "length", "mass", "radius")
-OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s")
+OPTIONAL = ("bend_stiffness", "marker_arclength", "source", "critical_time", "sim_contact_time", "sim_contact_s",
+            "marker_offset")
 FRAME_RATE = 250.0  # Hz: 4 ms frames resolve a tip moving at ~10 m/s to 4 cm
 DEFAULT_DURATION = 1.5  # s: every built-in path collides by ~1.05 s
 DEFAULT_SEGMENTS = 64  # rod segments of the fine rope, and of every built-in reference
@@ -79,6 +80,7 @@ class RopeReference:
     start_unseen: tuple = ()  # (frames, seconds, markers) left out at the start: markers not yet seen there
     hand_lag: float = 0.0  # s, one frame's lag of the hand's track behind the markers' (negative: ahead), said
     zeros_missing: int = 0  # of the missing samples, those the file held as exact zeros (a tracker's lost marker)
+    marker_offset: float = 0.0  # m, how far the markers' centres may lie from the centre line (markers on its surface)
 
     @property
     def dt(self) -> float:
@@ -210,10 +212,10 @@ def _check_gravity_axis(src: str, time: np.ndarray, markers: np.ndarray, hand: n
                                          "gravity must be -z (rotate a Y-up or z-down frame)")
 
 
-def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, radius: float) -> None:
+def _check_marker_order(src: str, markers: np.ndarray, hand: np.ndarray, near: float) -> None:
     """Markers stored free end first (another lab's order): the last marker at the hand, marker 0 away from it
-    (median over the frames that see them). Refused before anything else reads the markers as held end first."""
-    near = held_end_reach(radius)
+    (median over the frames that see them; `near`: how far from the hand the held end's marker may sit). Refused before
+    anything else reads the markers as held end first."""
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a marker never seen: no median, nothing to say
         first, last = (float(np.nanmedian(np.linalg.norm(markers[:, m] - hand, axis=1))) for m in (0, -1))
@@ -299,6 +301,12 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
 
     time, mean_dt = time_axis(src, data["time"])
     T = time.shape[0]
+    # Markers stuck on the rope's surface sit off its centre line, which the contact is measured on: the file may say
+    # how far (README, "Reference format"); it widens the gap's uncertainty, the chords' slack and the held end's reach
+    marker_offset = 0.0
+    if data.get("marker_offset") is not None:
+        marker_offset = _scalar(src, "marker_offset", data["marker_offset"], 0.0, MAX_MARKER_OFFSET, "m")
+    reach = held_end_reach(radius) + marker_offset
 
     markers = _array(src, "markers", data["markers"], allow_nan=True)
     if markers.ndim != 3 or markers.shape[0] != T or markers.shape[2] != 3 or markers.shape[1] < 2:
@@ -332,8 +340,8 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if np.nanmax(np.abs(markers), initial=0.0) > box or np.abs(hand).max() > box:
         raise InputError(src, "markers" if np.nanmax(np.abs(markers), initial=0.0) > box else "hand",
                          f"coordinates beyond {box:g} m: metres expected (millimetres?)")
-    _check_marker_order(src, markers, hand, radius)
-    labels = repair_length(markers, hand, s, length, radius, mean_dt, 0.05 * length + HELD_END_OFFSET)
+    _check_marker_order(src, markers, hand, reach)
+    labels = repair_length(markers, hand, s, length, radius, mean_dt, 0.05 * length + HELD_END_OFFSET, marker_offset)
     if labels.hand_frames:
         k = labels.hand_frames[0]
         raise InputError(src, "hand", f"at {time[k]:.4f} s (frame {k}) the hand is off its path and farther from the "
@@ -409,20 +417,20 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
     # confident contact 20-240 ms early at another place.
     steady = float(np.median(offset)) if offset.size else 0.0
-    if not has_arclength and steady > held_end_reach(radius):
+    if not has_arclength and steady > reach:
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
                          "do the markers sit? give marker_arclength (0 for a marker at the held end)")
-    hand_lag = _hand_clock_lag(src, time, markers[:, 0], hand, missing[:, 0], held_end_reach(radius)) \
+    hand_lag = _hand_clock_lag(src, time, markers[:, 0], hand, missing[:, 0], reach) \
         if s[0] == 0.0 else 0.0
     # the file's own word for it: a hand recorded as a wrist body 15-36 mm off the held end drove the chain from there
     # (measured loss 0.27 -> 1.9, a bend stiffness 100x off with a tight std; a probe of stop 47)
-    if has_arclength and s[0] == 0.0 and steady > held_end_reach(radius):
+    if has_arclength and s[0] == 0.0 and steady > reach:
         raise InputError(src, "hand", "marker_arclength puts marker 0 at the held end, but it lies "
                          f"{1000 * steady:.0f} mm from the hand (median over the frames): is `hand` another body "
                          "(a wrist, a gripper)? give the held end's position")
     reach = offset.max() if offset.size else 0.0
-    allowed = s[0] * length * 1.1 + 0.05 * length + 0.01
+    allowed = s[0] * length * 1.1 + 0.05 * length + 0.01 + marker_offset
     if reach > allowed:
         raise InputError(src, "markers", f"first marker is up to {reach:.3g} m from the hand, expected within "
                                          f"{allowed:.3g} m (marker 0 is the held end)")
@@ -460,9 +468,11 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                          missing if missing.any() else None, src, int(filled.sum()),
                          int((broken & missing).sum()),
                          tuple((float(time0[k]), i, j) for k, i, j in labels.swaps),
-                         int((broken & ~missing).sum()), start_unseen, hand_lag, int(zeros[-len(time):].sum()))
+                         int((broken & ~missing).sum()), start_unseen, hand_lag, int(zeros[-len(time):].sum()),
+                         marker_offset)
 
 
+MAX_MARKER_OFFSET = 0.05  # m: a marker further off the rope than this is on a rig, not on the rope
 MIN_STRAIGHTEST_CHORD = 0.95  # median over intervals of each one's straightest chord / arc, markers evenly spaced
 SAME_RECORDING_TOLERANCE = 1e-6  # m: far below any tracker's precision, far above float64 round-off of a moved copy
 
@@ -566,6 +576,8 @@ def reference_arrays(ref: RopeReference, extra: dict | None = None) -> dict:
     for key in ("bend_stiffness", "critical_time", "sim_contact_time", "sim_contact_s"):
         if getattr(ref, key) is not None:
             data[key] = getattr(ref, key)
+    if ref.marker_offset:
+        data["marker_offset"] = ref.marker_offset
     return data | dict(extra or {})
 
 

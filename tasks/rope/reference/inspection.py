@@ -35,7 +35,7 @@ def inspect_reference(path) -> dict:
         "file": str(path),
         "frames": T, "frame_rate_hz": 1.0 / ref.dt, "duration_s": float(ref.time[-1] - ref.time[0]),
         "time_range_s": [float(ref.time[0]), float(ref.time[-1])], "markers": M,
-        "length_m": ref.length, "radius_m": ref.radius, "mass_kg": ref.mass,
+        "length_m": ref.length, "radius_m": ref.radius, "mass_kg": ref.mass, "marker_offset_m": ref.marker_offset,
         "critical_time_annotation": ref.critical_time,
         "bridged_samples": missing,
         "simulator_contact": None if ref.sim_contact_time is None else {
@@ -55,7 +55,9 @@ def run(args) -> int:
         print(json.dumps(info))
         return 0
     print(f"{info['file']}: {info['frames']} frames at {info['frame_rate_hz']:.4g} Hz ({info['duration_s']:.3f} s), "
-          f"{info['markers']} markers; rope {info['length_m']:g} m, radius {1000 * info['radius_m']:g} mm")
+          f"{info['markers']} markers; rope {info['length_m']:g} m, radius {1000 * info['radius_m']:g} mm"
+          + (f"; markers up to {1000 * info['marker_offset_m']:g} mm off the centre line (marker_offset)"
+             if info["marker_offset_m"] else ""))
     c = info["critical"]
     if c is None:
         print(f"critical moment: none ({info['problem']})")

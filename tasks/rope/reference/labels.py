@@ -134,23 +134,25 @@ def _off_path(col: np.ndarray, t: int, value: np.ndarray | None = None) -> float
 
 
 def repair_length(markers: np.ndarray, hand: np.ndarray, s: np.ndarray, length: float, radius: float, dt: float,
-                  hand_slack: float) -> LengthRepair:
+                  hand_slack: float, marker_offset: float = 0.0) -> LengthRepair:
     """Undo label exchanges and read ghost samples as missing (module docstring). markers: (T, M, 3) NaN where not
     seen; s: marker arc-length fractions; hand_slack: how far (m) the hand may sit from the held end beyond 10 % of
-    the rope to the first marker (the loader's rule for marker 0's reach). `refused`: more than MAX_BROKEN_FRAMES of
-    the frames break the length (wrong units or length, a rope that stretches, markers far noisier than their
-    spacing, exchanges one swap does not undo); the scan stops there."""
+    the rope to the first marker (the loader's rule for marker 0's reach); marker_offset: how far (m) markers may sit
+    off the centre line (on its surface): a chord may exceed its arc by twice that. `refused`: more than
+    MAX_BROKEN_FRAMES of the frames break the length (wrong units or length, a rope that stretches, markers far noisier
+    than their spacing, exchanges one swap does not undo); the scan stops there."""
     X = np.array(markers, dtype=np.float64)
     hand = np.asarray(hand, dtype=np.float64)
     T, M, _ = X.shape
     noise = estimate_noise(X)
     # a chord between two noisy markers scatters by sqrt(2) sigma: 1-3 mm of noise on 24 markers (4.6 cm apart) had
     # every tenth frame break a fixed 2 mm slack (a probe of stop 48)
-    rope = RopeLimits(np.asarray(s, np.float64), length, max(CHORD_SLACK_M, NOISE_SIGMAS * np.sqrt(2.0) * noise),
-                      hand_slack)
+    rope = RopeLimits(np.asarray(s, np.float64), length,
+                      max(CHORD_SLACK_M, NOISE_SIGMAS * np.sqrt(2.0) * noise) + 2.0 * marker_offset,
+                      hand_slack + marker_offset)
     out = LengthRepair(X, noise=noise)
     broken = np.zeros((T, M), bool)
-    for t, i, j in _merged(X, radius, noise):
+    for t, i, j in _merged(X, radius - marker_offset, noise):
         if np.isfinite(X[t, [i, j]]).all():
             m = max((i, j), key=lambda c: _off_path(X[:, c], t))
             X[t, m] = np.nan
