@@ -254,7 +254,9 @@ def test_a_least_squares_search_stopped_at_its_iteration_limit_is_said(tmp_path,
 def test_a_least_squares_search_that_converges_early_ends_its_progress_full(capsys):
     """Its progress had stopped at the iterations done out of the limit (7/100), as if cut short (review of stop 56)."""
     res, _, _ = levenberg_marquardt(Linear(prior_scale=0.7), MEASURED, quiet=False)
-    assert res.stop in ("cost", "step", "gradient")
+    # which converged reason comes first is rounding's choice (stop 57's machine: "cost"; stop 58's: "no decrease", a
+    # step that cannot lower the cost at its converged point); any of them is done early
+    assert res.stop in ("cost", "step", "gradient", "no decrease") and len(res.history) - 1 < 50
     n = len(res.history) - 1
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert f"[linear least squares] {n}/{n} it" in last and f"stop {res.stop}" in last, last
