@@ -232,7 +232,8 @@ def simulate_start_fitted(values: np.ndarray, cmds: PDCommands, fit_start, integ
         return err.numpy().reshape(B, C), shifts, None
     corrected = traj.numpy().reshape(B, C, T + 1)
     if record_unit:
-        corrected = corrected + shifts[..., None] * unit.numpy().reshape(B, C, T + 1)
+        with np.errstate(invalid="ignore", over="ignore"):  # a blown-up candidate's inf shift: NaN, judged upstream
+            corrected = corrected + shifts[..., None] * unit.numpy().reshape(B, C, T + 1)
     return err.numpy().reshape(B, C), shifts, corrected
 
 
