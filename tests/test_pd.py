@@ -147,16 +147,21 @@ def test_malformed_csv_exit_2(tmp_path, capsys, content, field):
     assert str(f) in err and field in err
 
 
-def test_measured_log_reference(tmp_path):
-    """A log made by the continuous joint is fitted like the built-in reference."""
+def _continuous_log(path, J, KP, KD):
+    """A 4 s log at 1 kHz of the continuous joint (J, K_P, K_D) under the built-in multisine."""
     from wrenorm.tasks.pd.problem import Command, continuous_reference
 
     cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
     t = np.arange(0, 4.0, 0.001)
-    q = continuous_reference(cmd, 0.05, 20.0, 0.5, t)
     q_d, qd_d, _ = cmd(t)
-    f = tmp_path / "log.csv"
-    np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    np.savetxt(path, np.c_[t, continuous_reference(cmd, J, KP, KD, t), q_d, qd_d], delimiter=",",
+               header="time,q,q_d,qd_d", comments="")
+    return path
+
+
+def test_measured_log_reference(tmp_path):
+    """A log made by the continuous joint is fitted like the built-in reference."""
+    f = _continuous_log(tmp_path / "log.csv", 0.05, 20.0, 0.5)
     out = tmp_path / "run"
     assert main(["fit", "pd", "--out", str(out), "--quiet", "--no-record", *JOINT, "--reference", str(f),
                  "--generations", "50"]) == 0
@@ -170,14 +175,7 @@ def test_a_log_of_another_joint_needs_its_own_gains(tmp_path, capsys):
     """A log fixes J and K_D only relative to K_P. A joint of J 0.01, K_P 5, K_D 0.1 fitted under the built-in
     joint's gains (their ratios 20 % off, inside the gauge check) had given J 0.042 +- 0.00001 and "absorbed" with no
     word; without its gains the log is refused, and with them J comes out at the finite step's first-order value."""
-    from wrenorm.tasks.pd.problem import Command, continuous_reference
-
-    cmd = Command("mix", "multisine", 0.5, 0.6, 1.7)
-    t = np.arange(0, 4.0, 0.001)
-    q = continuous_reference(cmd, 0.01, 5.0, 0.1, t)
-    q_d, qd_d, _ = cmd(t)
-    f = tmp_path / "small.csv"
-    np.savetxt(f, np.c_[t, q, q_d, qd_d], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    f = _continuous_log(tmp_path / "small.csv", 0.01, 5.0, 0.1)
     assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", "--reference", str(f), "--K-P", "5"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(f) in err and "--J, --K-D: not given" in err, err
