@@ -195,11 +195,14 @@ def test_a_copy_of_the_fitted_log_is_no_validation(tmp_path, capsys):
     f.write_text("time,q,q_d,qd_d\n" + "".join(f"{i * 0.01},{np.sin(i * 0.05)},{np.sin(i * 0.05)},0\n"
                                                for i in range(400)))
     copy = tmp_path / "copy.csv"
-    copy.write_bytes(f.read_bytes())
+    copy.write_bytes(f.read_bytes().replace(b"\n", b"\r\n"))  # the same samples in other bytes
     assert main(["fit", "pd", "--out", str(tmp_path / "x"), "--quiet", *JOINT, "--reference", str(f), "--validate",
                  str(copy)]) == 2
     err = capsys.readouterr().err
-    assert f"{copy} is the fitted log itself (the bytes of {f})" in err, err
+    assert f"{copy} holds the samples of the fitted log {f}" in err, err
+    # the arm has its own gains: the joint's given to it had been dropped in silence
+    assert main(["fit", "pd", "--arm", "--out", str(tmp_path / "y"), "--quiet", "--K-P", "5"]) == 2
+    assert "--arm: --K-P: the two-link arm has its own" in capsys.readouterr().err
 
 
 def test_encoder_noise_does_not_move_the_fit_through_the_start_state(tmp_path):

@@ -12,7 +12,6 @@ measured log (CSV with columns time, q, q_d, qd_d).
 from __future__ import annotations
 
 import csv
-import filecmp
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -801,6 +800,13 @@ def _check_positive(values: dict) -> None:
             raise InputError("options", name, f"must be a positive finite number, got {v!r}")
 
 
+def _same_samples(a: MeasuredLog, b: MeasuredLog) -> bool:
+    """The same log whatever its bytes (line endings, number format): every sample within a part in 1e9."""
+    cols = ("time", "q", "q_d", "qd_d")
+    return len(a.time) == len(b.time) and all(np.allclose(getattr(a, c), getattr(b, c), rtol=1e-9, atol=1e-12)
+                                              for c in cols)
+
+
 def _joint_values(args) -> None:
     """--J, --K-P, --K-D: the built-in joint's where no log is given; a log's joint must give its own. The log fixes
     J and K_D only relative to K_P (the law is linear in them), so the built-in gains put on another joint's log fit
@@ -829,19 +835,25 @@ def build_problems(args, device: str) -> list[PDProblem]:
 
         if args.reference or getattr(args, "validate", None) or args.integrator != "semi-implicit":
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
+        given = [f for f, n in (("--J", "J"), ("--K-P", "K_P"), ("--K-D", "K_D")) if getattr(args, n) is not None]
+        if given:
+            raise InputError("--arm", ", ".join(given), "the two-link arm has its own inertia and gain matrices; "
+                                                        "these are the single joint's")
         return [ArmProblem(f, device) for f in args.f_sim]
     log = load_log(args.reference) if args.reference else None
     others = list(getattr(args, "validate", None) or [])
     if others and log is None:
         raise InputError("--validate", "validate", "goes with --reference: the built-in reference has its own held-out "
                                                    "commands")
-    for o in others:  # by place or by content: a copy of the fitted log validates nothing ("absorbed", stop 58)
-        if log is not None and (Path(o).resolve() == Path(args.reference).resolve()
-                                or (Path(o).is_file() and filecmp.cmp(o, args.reference, shallow=False))):
-            same = "" if Path(o).resolve() == Path(args.reference).resolve() else f" (the bytes of {args.reference})"
-            raise InputError("--validate", "validate", f"{o} is the fitted log itself{same}: validate on a log of "
-                                                       "another command")
+    for o in others:
+        if log is not None and Path(o).resolve() == Path(args.reference).resolve():
+            raise InputError("--validate", "validate", f"{o} is the fitted log itself: validate on a log of another "
+                                                       "command")
     validate_logs = [load_log(o) for o in others]
+    for o, v in zip(others, validate_logs):  # a copy of the fitted log validates nothing ("absorbed", stop 58)
+        if _same_samples(v, log):
+            raise InputError("--validate", "validate", f"{o} holds the samples of the fitted log {args.reference}: "
+                                                       "validate on a log of another command")
     _joint_values(args)  # after the logs: a file's own fault is said first
     rate = getattr(args, "controller_rate", None)
     if rate is not None and log is None:
