@@ -922,7 +922,7 @@ def _on_the_surface(nodes: np.ndarray, s_markers: np.ndarray, offset: float, see
     return out
 
 
-def test_markers_on_the_surface_declared_by_marker_offset_flag_what_they_cannot_time(tmp_path, capsys):
+def test_markers_on_the_surface_declared_by_marker_offset_flag_what_they_cannot_time(tmp_path, capsys, monkeypatch):
     """Markers on a rope's surface sit off the centre line the contact is measured on: 8 mm off (a 10 mm rope, 6 mm
     markers), the default rope's flick_wide at 12 markers put its contact 25 ms late with confidence (a probe of
     stop 58; 16 of 84 MuJoCo throws at 10 mm, 2 at the centre line). A file that gives `marker_offset` widens the
@@ -940,8 +940,11 @@ def test_markers_on_the_surface_declared_by_marker_offset_flag_what_they_cannot_
     np.savez(tmp_path / "surface.npz", **z, marker_offset=0.008)
     ref = load_reference(tmp_path / "surface.npz")
     assert ref.marker_offset == 0.008
-    det = detect_reference(ref, use_cache=False)
+    monkeypatch.setenv("WRENORM_CACHE", str(tmp_path / "cache"))
+    det = detect_reference(ref)
     assert det.status == "contact" and det.flagged and det.diagnostics["marker_offset_m"] == 0.008
+    cached = detect_reference(load_reference(tmp_path / "surface.npz"))  # read back from the disk cache
+    assert cached.time == det.time and cached.diagnostics["marker_offset_m"] == 0.008
     assert cli(["inspect", "rope", str(tmp_path / "surface.npz")]) == 0
     assert "8 mm off the centre line (marker_offset)" in capsys.readouterr().out
     save_reference(tmp_path / "again.npz", ref)

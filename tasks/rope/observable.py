@@ -135,6 +135,7 @@ def from_reference(ref, event=None) -> CriticalStates:
 
         clear = detect_reference(ref).diagnostics.get("summary", {}).get("min_gap_m")
         clear = np.inf if clear is None or not np.isfinite(clear) else float(clear)
+        clear -= 2.0 * float(getattr(ref, "marker_offset", 0.0))  # surface markers: the centre lines may be nearer
         nan = np.full((1, SAMPLES, 3), np.nan)
         return CriticalStates(nan, nan.copy(), np.full(1, np.nan), np.full((1, 2), np.nan), np.zeros(1, bool),
                               np.array([max(clear, 0.0)]))

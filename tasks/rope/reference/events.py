@@ -1077,7 +1077,7 @@ def _to_json(det: Detection) -> dict:
             "earliest_plausible_time", "earliest_possible_time", "approach_episode_start_time", "rules_fired",
             "fastest_motion_time", "after_fastest_s", "event_chord_over_arc", "depth_m", "noise_sigma_m",
             "largest_jump_over_neighbourhood", "hand_doublet_over_neighbourhood", "unmarked_tail_m",
-            "unmarked_tip_reach_time", "repeated_frames")
+            "unmarked_tip_reach_time", "repeated_frames", "marker_offset_m")
     d = {k: det.diagnostics.get(k) for k in keep if k in det.diagnostics}
     e = det.event
     return {"status": det.status, "confidence": det.confidence, "reasons": list(det.reasons),

@@ -152,7 +152,9 @@ def repair_length(markers: np.ndarray, hand: np.ndarray, s: np.ndarray, length: 
                       hand_slack + marker_offset)
     out = LengthRepair(X, noise=noise)
     broken = np.zeros((T, M), bool)
-    for t, i, j in _merged(X, radius - marker_offset, noise):
+    # markers on touching pieces' surfaces come as near as twice the rope's radius less two offsets, or, where the
+    # offset passes the radius (the marker's own radius on top), two markers' radii: half of that is the limit here
+    for t, i, j in _merged(X, abs(radius - marker_offset), noise):
         if np.isfinite(X[t, [i, j]]).all():
             m = max((i, j), key=lambda c: _off_path(X[:, c], t))
             X[t, m] = np.nan
