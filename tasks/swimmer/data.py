@@ -51,6 +51,8 @@ MAX_REPEATED_FRAMES = 0.01  # share of frames equal to the previous one while th
 # none), and 3 % (every 33rd frame written twice, a frame-rate conversion) moved the slender drag +4 std in silence
 FILLED_FRAMES = 3  # frames in a row with every marker on a straight line in time, at least: filled in (straight_runs)
 FILLED_MARKER_FRAMES = 9  # the same for one marker, said (the fishsim clips: at most 6; at 30 fps one reaches 8)
+GRID_STEPS_TO_TELL = 1.5  # straight_runs judges markers moving at least this many grid steps a frame (median)
+GLITCH_GRID_STEPS = 4  # a tail marker's jump must pass this many steps of the file's number grid to be a glitch
 LIKELY_RUN = 1e-3  # ... and longer than a run with this chance in the clip at the rate its frames come elsewhere
 MAX_HELD_FRAMES = 3  # frames in a row equal to the one before: a tracker holding its last position (11 held frames of
 # one clip moved the slender drag 4x and the viscosity 2.3x, with the head's jump under its limit)
@@ -224,11 +226,16 @@ def moving_repeats(markers: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _resolution(markers: np.ndarray) -> float:
-    """The file's number grid: the least nonzero change of any coordinate between frames (half a pixel in the fishsim
-    clips; a millimetre in metres written to 3 decimals)."""
-    steps = np.abs(np.diff(markers.reshape(len(markers), -1), axis=0))
+    """The file's number grid: the least nonzero change of any coordinate between frames that recurs (half a pixel in
+    the fishsim clips; a millimetre in metres written to 3 decimals); a few off-grid values (a dropout mended by
+    unrounded interpolation) do not make it finer. Where no change recurs (unrounded numbers), the least one."""
+    steps = np.abs(np.diff(markers.reshape(len(markers), -1), axis=0)).ravel()
     steps = steps[steps > 0]
-    return float(steps.min()) if steps.size else 0.0
+    if not steps.size:
+        return 0.0
+    values, counts = np.unique(steps, return_counts=True)
+    recurring = values[counts >= max(3, int(0.001 * steps.size))]
+    return float(recurring.min()) if recurring.size else float(values[0])
 
 
 def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
@@ -252,23 +259,38 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
         least = FILLED_FRAMES if len(group) > 1 else FILLED_MARKER_FRAMES
         on = np.all(line[:, [which.index(m) for m in group]], axis=1)
         runs = true_runs(on)
-        longest = max((n for _, n in runs), default=0)
-        share = (on.sum() - longest) / max(len(on) - longest, 1)  # how often such frames come outside the longest run
+        # how often such frames come in the clip's own short runs (long runs, the candidates, left out: several
+        # fills must not make each other likely)
+        short = sum(n for _, n in runs if n < least)
+        share = short / max(len(on) - (on.sum() - short), 1)
         if share >= 1.0:
             continue  # every frame on a line: this marker's motion is below the file's grid
         if share > 0.0:  # a run this long has less than LIKELY_RUN of a chance in the clip at that rate
             least = max(least, int(np.ceil(np.log(LIKELY_RUN / len(on)) / np.log(share))))
-        others = [m for m in range(markers.shape[1]) if m not in group] or list(range(markers.shape[1]))
+        own = float(np.median(np.linalg.norm(np.diff(markers[:, group], axis=0), axis=2)))
+        if own < GRID_STEPS_TO_TELL * grid:
+            continue  # moving under a grid step or so a frame, a tracked marker steps evenly as often as a filled one
+        whole = len(group) > 1
+        others = list(range(markers.shape[1])) if whole else [m for m in range(markers.shape[1]) if m not in group]
         ref = markers[:, others].mean(axis=1)
         usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+        # swimming across the run: the other markers at half their usual pace; a whole fish filled moves at its two
+        # ends' mean pace, which a slow beat's stretch can bring under half the median: a quarter, still not at rest
+        pace = 0.25 if whole else 0.5
         for a, n in runs:  # frames a + 1 .. a + n lie on the line through frames a and a + n + 1
-            if n < least or not np.linalg.norm(ref[a + n + 1] - ref[a]) > 0.5 * usual * (n + 1):
+            if n < least or not np.linalg.norm(ref[a + n + 1] - ref[a]) > pace * usual * (n + 1):
                 continue
-            pts = markers[a:a + n + 2, group].reshape(n + 2, -1)
-            t = np.arange(n + 2, dtype=np.float64)
-            fit = np.polynomial.polynomial.polyfit(t, pts, 1)
-            if np.abs(pts - np.polynomial.polynomial.polyval(t, fit).T).max() <= grid:
-                out.append((a + 1, n, tuple(group)))
+            # the whole run within a grid step of one line; a real frame beside a fill may extend the run by one
+            # on either side without lying on the fill's line
+            for lo, hi in ((a, a + n + 1), (a + 1, a + n + 1), (a, a + n), (a + 1, a + n)):
+                if hi - lo - 1 < least:
+                    continue
+                pts = markers[lo:hi + 1, group].reshape(hi - lo + 1, -1)
+                t = np.arange(hi - lo + 1, dtype=np.float64)
+                fit = np.polynomial.polynomial.polyfit(t, pts, 1)
+                if np.abs(pts - np.polynomial.polynomial.polyval(t, fit).T).max() <= grid:
+                    out.append((lo + 1, hi - lo - 1, tuple(group)))
+                    break
     return out
 
 
@@ -664,7 +686,7 @@ def analyse(rate: Rate) -> Rate:
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
     _check_body(rate.source or rate.name, rate.markers)
-    mended = _mend_tail_glitches(local)
+    mended = _mend_tail_glitches(local, _resolution(rate.markers))
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)
     if np.floor(frames / rate.fps * rate.tail_freq + 1e-6) < 1:  # the features are per complete beat
@@ -696,12 +718,13 @@ def analyse(rate: Rate) -> Rate:
     return rate
 
 
-def _mend_tail_glitches(local: np.ndarray) -> list[tuple[int, int, int, float]]:
+def _mend_tail_glitches(local: np.ndarray, grid: float = 0.0) -> list[tuple[int, int, int, float]]:
     """A tail marker that jumps more than MAX_TAIL_JUMP x its steps either side and comes back within 3 frames is a
     tracking glitch: those samples are read as the line between the frames either side, in the head frame the tail
     wave is fitted in (mended in place; returned as (marker, first, frames, ratio)). Kept, one glitch of one marker
     in one frame had moved Kutta lift -3 stds and put the tail tip's amplitude at 0.68 m on a 0.55 m fish, in silence
-    (a probe of stop 58)."""
+    (a probe of stop 58). grid: the file's number grid (m); a jump of a few grid steps is no glitch however still the
+    marker is otherwise (240 fps with 0.1 px of noise on a 1 px grid: one step 10-39 x the median)."""
     mended = []
     for i in range(2, N_MARKERS):
         p = local[:, i]
@@ -710,6 +733,8 @@ def _mend_tail_glitches(local: np.ndarray) -> list[tuple[int, int, int, float]]:
             if ratio <= MAX_TAIL_JUMP:
                 break
             step = np.linalg.norm(p[frame + 1] - p[frame])
+            if step <= GLITCH_GRID_STEPS * grid:
+                break  # a flicker on the file's number grid of a marker nearly at rest, no glitch
             # the jump out (the marker is back at frame k) or the jump back (it had left after frame k)
             out = [(frame, k) for k in range(frame + 2, min(frame + 5, len(p)))
                    if np.linalg.norm(p[k] - p[frame]) < 0.5 * step]
