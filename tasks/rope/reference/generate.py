@@ -306,7 +306,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     marker_offset = 0.0
     if data.get("marker_offset") is not None:
         marker_offset = _scalar(src, "marker_offset", data["marker_offset"], 0.0, MAX_MARKER_OFFSET, "m")
-    reach = held_end_reach(radius) + marker_offset
+    held_reach = held_end_reach(radius) + marker_offset
 
     markers = _array(src, "markers", data["markers"], allow_nan=True)
     if markers.ndim != 3 or markers.shape[0] != T or markers.shape[2] != 3 or markers.shape[1] < 2:
@@ -340,7 +340,7 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     if np.nanmax(np.abs(markers), initial=0.0) > box or np.abs(hand).max() > box:
         raise InputError(src, "markers" if np.nanmax(np.abs(markers), initial=0.0) > box else "hand",
                          f"coordinates beyond {box:g} m: metres expected (millimetres?)")
-    _check_marker_order(src, markers, hand, reach)
+    _check_marker_order(src, markers, hand, held_reach)
     labels = repair_length(markers, hand, s, length, radius, mean_dt, 0.05 * length + HELD_END_OFFSET, marker_offset)
     if labels.hand_frames:
         k = labels.hand_frames[0]
@@ -417,15 +417,15 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
     # confident contact 20-240 ms early at another place.
     steady = float(np.median(offset)) if offset.size else 0.0
-    if not has_arclength and steady > reach:
+    if not has_arclength and steady > held_reach:
         raise InputError(src, "marker_arclength", f"not in the file, so marker 0 is taken to be the held end, but it "
                          f"lies {1000 * steady:.0f} mm from the hand (median over the frames): where along the rope "
                          "do the markers sit? give marker_arclength (0 for a marker at the held end)")
-    hand_lag = _hand_clock_lag(src, time, markers[:, 0], hand, missing[:, 0], reach) \
+    hand_lag = _hand_clock_lag(src, time, markers[:, 0], hand, missing[:, 0], held_reach) \
         if s[0] == 0.0 else 0.0
     # the file's own word for it: a hand recorded as a wrist body 15-36 mm off the held end drove the chain from there
     # (measured loss 0.27 -> 1.9, a bend stiffness 100x off with a tight std; a probe of stop 47)
-    if has_arclength and s[0] == 0.0 and steady > reach:
+    if has_arclength and s[0] == 0.0 and steady > held_reach:
         raise InputError(src, "hand", "marker_arclength puts marker 0 at the held end, but it lies "
                          f"{1000 * steady:.0f} mm from the hand (median over the frames): is `hand` another body "
                          "(a wrist, a gripper)? give the held end's position")
