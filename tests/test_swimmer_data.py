@@ -380,10 +380,14 @@ def test_a_stretch_filled_on_a_straight_line_is_refused_and_one_held_marker_is_s
     write(filled(px, 100, 2))
     got = {r.label: r for r in sd.load_dir(tmp_path)}
     assert not got[1.0].meta["flags"] and not got[1.0].meta["feature_flags"]
+    # a few frames are said (a clip rounded to whole pixels at half resolution can show 3-5 by itself), 8 refused
     write(filled(px, 100, 5))
+    said = {r.label: r for r in sd.load_dir(tmp_path)}[1.0].meta["feature_flags"]
+    assert len(said) == 1 and "every marker moves on a straight line" in said[0] and "(101-105)" in said[0], said
+    write(filled(px, 100, 8))
     with pytest.raises(InputError) as e:
         sd.load_dir(tmp_path)
-    assert e.value.field == "rows 101-105" and "straight line" in e.value.problem, e.value
+    assert e.value.field == "rows 101-108" and "straight line" in e.value.problem, e.value
     # many fills do not make each other likely (15 fills of 4 frames had loaded where one was refused), and a mended
     # dropout's off-grid numbers do not hide a fill on the half-pixel grid (review of stop 58)
     many = px.copy()
@@ -392,11 +396,25 @@ def test_a_stretch_filled_on_a_straight_line_is_refused_and_one_held_marker_is_s
     write(many)
     with pytest.raises(InputError, match="straight line"):
         sd.load_dir(tmp_path)
-    grid = filled(np.round(px * 2) / 2, 100, 5)
-    grid[100:105] = np.round(grid[100:105] * 2) / 2
+    grid = filled(np.round(px * 2) / 2, 100, 8)
+    grid[100:108] = np.round(grid[100:108] * 2) / 2
     write(filled(grid, 200, 2, [3]))  # unrounded
-    with pytest.raises(InputError, match="rows 101-105"):
+    with pytest.raises(InputError, match="rows 101-108"):
         sd.load_dir(tmp_path)
+    # a spline's fill (one cubic piece between the tracked frames either side) and a clip's start held (bfill)
+    from scipy.interpolate import CubicSpline
+
+    keep = np.r_[0:120, 140:len(px)]
+    spline = px.copy()
+    spline[120:140] = CubicSpline(keep, px[keep], axis=0)(np.arange(120, 140))
+    write(spline)
+    said = {r.label: r for r in sd.load_dir(tmp_path)}[1.0].meta["feature_flags"]
+    assert any("one cubic in time" in f for f in said), said
+    held_start = px.copy()
+    held_start[:12] = px[12]
+    write(held_start)
+    said = {r.label: r for r in sd.load_dir(tmp_path)}[1.0].meta["feature_flags"]
+    assert any("frames 1-13 at the clip's start are one frame repeated" in f for f in said), said
     held = px.copy()
     held[150:160, 0] = held[149, 0]
     write(held)

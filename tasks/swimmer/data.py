@@ -50,6 +50,10 @@ MAX_REPEATED_FRAMES = 0.01  # share of frames equal to the previous one while th
 # flagged. Tracked video never repeats exactly while the fish moves (the five clips: none; rounded to whole pixels:
 # none), and 3 % (every 33rd frame written twice, a frame-rate conversion) moved the slender drag +4 std in silence
 FILLED_FRAMES = 3  # frames in a row with every marker on a straight line in time, at least: filled in (straight_runs)
+REFUSED_FILL_FRAMES = 8  # ... refused from this many (shorter: said); rounded tracked clips reach 3-5 (stop 58)
+CUBIC_FILL_FRAMES = 8  # frames in a row with every marker on one cubic in time (a spline's fill), said
+CUBIC_GRID_STEPS = 4  # a fourth difference of numbers rounded to the grid reaches 4 grid steps (8 x half a step)
+EDGE_HELD_FRAMES = 3  # whole frames repeated at a clip's start or end (a fill by bfill / ffill), said
 FILLED_MARKER_FRAMES = 9  # the same for one marker, said (the fishsim clips: at most 6; at 30 fps one reaches 8)
 GRID_STEPS_TO_TELL = 1.5  # straight_runs judges markers moving at least this many grid steps a frame (median)
 GLITCH_GRID_STEPS = 4  # a tail marker's jump must pass this many steps of the file's number grid to be a glitch
@@ -295,16 +299,61 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
 
 
 def _check_filled(path: Path, markers: np.ndarray, which, rows_per_frame: int) -> None:
-    """Every marker on a straight line at once for a run of frames no tracked swim shows is refused (straight_runs; one
-    marker alone is said by feature_flags: a slow marker on a coarse grid may do so by itself)."""
+    """Every marker on a straight line at once for REFUSED_FILL_FRAMES or more, or for twice that over the clip's runs,
+    is refused (straight_runs; fewer are said by feature_flags, as one marker alone is: a clip rounded to whole pixels
+    at half resolution had shown runs of 3-5 frames in about 1 of 50 rotations, and 15 fills of 4 frames had moved the
+    fit as two of 15 do)."""
     whole = [(f, n) for f, n, m in straight_runs(markers, which) if len(m) > 1]
-    if whole:
+    lengths = [n for _, n in whole]
+    if whole and (max(lengths) >= REFUSED_FILL_FRAMES or sum(lengths) >= 2 * REFUSED_FILL_FRAMES):
         first, n = max(whole, key=lambda r: r[1])
         rows = f"{first * rows_per_frame + 1}-{(first + n) * rows_per_frame}"
+        more = f" ({len(whole)} such runs, {sum(lengths)} frames in all)" if len(whole) > 1 else ""
         raise InputError(str(path), f"rows {rows}", f"every marker moves on a straight line at constant speed for {n} "
-                         f"frames (frames {first + 1}-{first + n}) while the fish swims: filled in by interpolation? "
-                         "that erases the head's sway and surge within the beat, which the fit reads (15 frames so "
-                         "filled twice moved blunt drag by 3.7 stds); give the tracked frames, or cut the clip there")
+                         f"frames (frames {first + 1}-{first + n}){more} while the fish swims: filled in by "
+                         "interpolation? that erases the head's sway and surge within the beat, which the fit "
+                         "reads (15 frames so filled twice moved blunt drag by 3.7 stds); give the tracked frames, or "
+                         "cut the clip there")
+
+
+def cubic_runs(markers: np.ndarray, which) -> list[tuple[int, int]]:
+    """Runs of frames in which every marker of `which` lies on one cubic in time while the fish swims: (first frame,
+    frames), CUBIC_FILL_FRAMES or more. A spline, PCHIP or Akima fill of a gap is one cubic piece between the tracked
+    frames either side, so its frames' fourth differences vanish (within CUBIC_GRID_STEPS of the file's grid when
+    written rounded); the fishsim clips have no frame where all nine markers' do, nor their copies rounded to whole
+    pixels more than one. 20 frames so filled twice had moved blunt drag -3.4 stds and viscosity +5 and loaded as a
+    straight fill would not (review of stop 58)."""
+    which = list(which)
+    if len(markers) < 5:
+        return []
+    grid = _resolution(markers) * CUBIC_GRID_STEPS * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
+    d4 = np.abs(np.diff(markers[:, which], 4, axis=0))  # d4[k] spans frames k .. k + 4
+    on = np.all(d4 <= grid, axis=(1, 2))
+    own = float(np.median(np.linalg.norm(np.diff(markers[:, which], axis=0), axis=2)))
+    if own < GRID_STEPS_TO_TELL * _resolution(markers):
+        return []
+    ref = markers[:, which].mean(axis=1)
+    usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+    out = []
+    for a, n in true_runs(on):  # frames a + 2 .. a + n + 1 lie inside the cubic through frames a .. a + n + 3
+        frames = n + 2  # the frames between the two tracked ones either side that the cubic needs
+        if frames >= CUBIC_FILL_FRAMES and np.linalg.norm(ref[a + n + 3] - ref[a]) > 0.25 * usual * (n + 3):
+            out.append((a + 1, frames))
+    return out
+
+
+def held_edges(markers: np.ndarray) -> list[tuple[int, int]]:
+    """Whole frames repeated exactly at the clip's start or end, EDGE_HELD_FRAMES or more: (first frame, frames). A
+    tracker's first or last position copied over frames it lost (pandas' bfill / ffill, interpolate with
+    limit_direction="both"); repeats inside the clip are moving_repeats', which at the edges cannot see motion across
+    them. 12 such frames at both ends of the 1.00 Hz clip had moved blunt drag -1.65 stds in silence (review of stop
+    58). A fish filmed at rest before it swims holds too, at a pixel's rounding; the clip must cruise anyway."""
+    same = np.all((markers[1:] == markers[:-1]).reshape(len(markers) - 1, -1), axis=1)
+    out = []
+    for a, n in true_runs(same):  # frames a + 1 .. a + n repeat frame a
+        if (a == 0 or a + n == len(same)) and n + 1 >= EDGE_HELD_FRAMES:
+            out.append((a, n + 1))
+    return out
 
 
 def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
@@ -837,7 +886,24 @@ def feature_flags(rate: Rate) -> list[str]:
     58)."""
     name, flags = rate.source or rate.name, []
     which = range(N_MARKERS) if rate.frame == "world" else range(1, N_MARKERS)  # a head frame's origin is marker 0
-    runs = [r for r in straight_runs(rate.markers, which) if len(r[2]) == 1]
+    lines = straight_runs(rate.markers, which)
+    for first, n, _ in (r for r in lines if len(r[2]) > 1):  # shorter than refused
+        flags.append(f"{name}: every marker moves on a straight line at constant speed for {n} frames "
+                     f"({first + 1}-{first + n}) while the fish swims: a fill by interpolation? (the fishsim clips: "
+                     f"none; {REFUSED_FILL_FRAMES} frames or more are refused); rounded to a coarse grid, a tracked "
+                     "clip may do so for a few frames by itself")
+    for first, n in cubic_runs(rate.markers, which):
+        flags.append(f"{name}: every marker lies on one cubic in time for {n} frames ({first + 1}-{first + n}) "
+                     "while the fish swims (the fishsim clips: never): a spline's fill of lost frames? it erases the "
+                     "head's sway and surge within the beat (20 frames so filled twice: blunt drag -3.4 stds); give "
+                     "the tracked frames, or cut the clip there; rounded to a coarse grid, a tracked clip may do so "
+                     "for a few frames by itself")
+    for first, n in held_edges(rate.markers):
+        where = "start" if first == 0 else "end"
+        flags.append(f"{name}: frames {first + 1}-{first + n} at the clip's {where} are one frame repeated exactly: "
+                     "a lost stretch filled with the first or last position (bfill / ffill)? cut them (12 such frames "
+                     "at both ends: blunt drag -1.65 stds)")
+    runs = [r for r in lines if len(r[2]) == 1]
     for m in dict.fromkeys(r[2][0] for r in runs):  # one line per marker
         mine = [(first, n) for first, n, (k,) in runs if k == m]
         where = ", ".join(f"{first + 1}-{first + n}" for first, n in mine)
