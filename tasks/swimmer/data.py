@@ -328,6 +328,8 @@ def cubic_runs(markers: np.ndarray, which) -> list[tuple[int, int]]:
         return []
     grid = _resolution(markers) * CUBIC_GRID_STEPS * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
     d4 = np.abs(np.diff(markers[:, which], 4, axis=0))  # d4[k] spans frames k .. k + 4
+    if np.median(d4.max(axis=(1, 2))) < 2.0 * grid:
+        return []  # a clip this smooth on its grid (fast frames, noise under a grid step) is a cubic everywhere
     on = np.all(d4 <= grid, axis=(1, 2))
     own = float(np.median(np.linalg.norm(np.diff(markers[:, which], axis=0), axis=2)))
     if own < GRID_STEPS_TO_TELL * _resolution(markers):
