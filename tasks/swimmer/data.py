@@ -246,14 +246,14 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
     """Runs of frames in which the markers `which` (all together, or one alone) move on a straight line at constant
     speed or stand still while the other markers swim on (at least half their usual pace across the run): (first
     frame, frames, markers), at least FILLED_FRAMES long (one marker: FILLED_MARKER_FRAMES) and longer than a run with
-    LIKELY_RUN of a chance at the rate such frames come elsewhere in the clip. On a line means every coordinate's
-    second difference within the file's number grid, and the whole run within a grid step of the line fitted through
-    it: a slow marker on a coarse grid (integer pixels, millimetres) steps evenly for a dozen frames and more, but its
-    beat curves it away from any line over them. The fishsim clips have no such run (one marker
-    at most 6 frames, all nine at once none). A tracker's gap filling and pandas' interpolate or ffill write them, and
-    they erase the head's sway and surge within the beat: 15 frames of the whole fish filled twice had moved blunt
-    drag -3.7 stds and viscosity +4 stds, and one head marker held for 10 frames the same, in silence (a probe of stop
-    58)."""
+    LIKELY_RUN of a chance at the rate such frames come in the clip's short runs. On a line means every coordinate's
+    second difference within the file's number grid, and the whole run (or it less a frame at either end) within a
+    grid step of the line fitted through it: a slow marker on a coarse grid (integer pixels, millimetres) steps evenly
+    for a dozen frames and more, but its beat curves it away from any line over them; markers slower than
+    GRID_STEPS_TO_TELL grid steps a frame are not judged. The fishsim clips have no such run (one marker at most 6
+    frames, all nine at once none). A tracker's gap filling and pandas' interpolate or ffill write them, and they erase
+    the head's sway and surge within the beat: 15 frames of the whole fish filled twice had moved blunt drag -3.7 stds
+    and viscosity +4 stds, and one head marker held for 10 frames the same, in silence (a probe of stop 58)."""
     which = list(which)
     grid = _resolution(markers) * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
     d2 = np.abs(np.diff(markers[:, which], 2, axis=0))  # (T-2, len(which), 2): d2[k] centred on frame k + 1
@@ -301,8 +301,8 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
 def _check_filled(path: Path, markers: np.ndarray, which, rows_per_frame: int) -> None:
     """Every marker on a straight line at once for REFUSED_FILL_FRAMES or more, or for twice that over the clip's runs,
     is refused (straight_runs; fewer are said by feature_flags, as one marker alone is: a clip rounded to whole pixels
-    at half resolution had shown runs of 3-5 frames in about 1 of 50 rotations, and 15 fills of 4 frames had moved the
-    fit as two of 15 do)."""
+    at half resolution had shown runs of 3-5 frames in about 1 of 50 rotations; many short fills add up, 15 of 4
+    frames filling one frame in five)."""
     whole = [(f, n) for f, n, m in straight_runs(markers, which) if len(m) > 1]
     lengths = [n for _, n in whole]
     if whole and (max(lengths) >= REFUSED_FILL_FRAMES or sum(lengths) >= 2 * REFUSED_FILL_FRAMES):
