@@ -221,6 +221,29 @@ def test_qd_d_in_other_units_than_q_d_per_second_is_refused(tmp_path):
         assert e.value.field == "qd_d" and "degrees" in e.value.problem, e.value
 
 
+def test_a_multi_turn_zero_and_a_step_in_degrees_are_not_refused_as_units_or_wraps(tmp_path):
+    """q and q_d 20 turns off zero (a multi-turn encoder) had been refused as "degrees?", and a consistent log in
+    degrees whose command steps by 63 had been refused as "wrapped at +-pi" (a probe of stop 58); the law is linear in
+    the angle, so both fit as the plain log does. Moving over 100 rad, and a jump of one turn, are still refused."""
+    rate = 200.0
+    t = np.arange(int(4 * rate)) / rate
+    q_d = np.where(t < 1.0, 0.0, 1.1)
+    q = 1.1 * (t >= 1.0) * (1 - np.exp(-np.maximum(t - 1.0, 0.0) / 0.2))
+    f = tmp_path / "log.csv"
+    for shift, scale in ((40 * np.pi, 1.0), (0.0, np.degrees(1.0))):
+        np.savetxt(f, np.c_[t, scale * q + shift, scale * q_d + shift, 0 * t], delimiter=",",
+                   header="time,q,q_d,qd_d", comments="")
+        log = load_log(f)
+        assert np.allclose(log.q_d - log.q, scale * (q_d - q))
+    np.savetxt(f, np.c_[t, 100 * q, 100 * q_d, 0 * t], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError, match="moves over"):
+        load_log(f)
+    wrapped = np.angle(np.exp(1j * (3.0 * t)))  # a joint turning steadily, logged modulo a turn
+    np.savetxt(f, np.c_[t, wrapped, wrapped, 3.0 + 0 * t], delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError, match="unwrap"):
+        load_log(f)
+
+
 def test_a_hole_of_exactly_the_longest_allowed_gap_is_read(tmp_path):
     """A 200 Hz log with 4 samples dropped (a hole of exactly 5 steps, 25 ms) had been refused: 0.025000000000000133 s
     in floating point is more than 5 x 0.005 s (a probe of stop 58)."""

@@ -303,8 +303,10 @@ def load_log(path: str | Path) -> MeasuredLog:
     for j, name in enumerate(LOG_COLUMNS[1:], start=1):
         if np.ptp(arr[:, j]) == 0.0 and name != "qd_d":
             raise InputError(src, name, f"never changes (constant {arr[0, j]:g}): nothing to fit")
-    if np.max(np.abs(arr[:, 1])) > 100.0:
-        raise InputError(src, "q", f"reaches {np.max(np.abs(arr[:, 1])):g} rad: radians expected (degrees?)")
+    # the motion, not the value: a multi-turn encoder's zero (q and q_d 20 turns off) cancels in q_d - q and had been
+    # refused as degrees (a probe of stop 58)
+    if np.ptp(arr[:, 1]) > 100.0:
+        raise InputError(src, "q", f"moves over {np.ptp(arr[:, 1]):g} rad: radians expected (degrees?)")
     # qd_d is the command's velocity: on the right clock it is the rate of change of q_d. Milliseconds at 10 kHz
     # have a step (0.1) and a span a joint log may have in seconds; this tells them apart.
     rate = np.gradient(arr[:, 2], t)
@@ -331,7 +333,8 @@ def load_log(path: str | Path) -> MeasuredLog:
     for j, name in ((1, "q"), (2, "q_d")):
         jumps = np.abs(np.diff(arr[:, j]))
         k = int(np.argmax(jumps))
-        if jumps[k] > 0.9 * 2.0 * np.pi and jumps[k] > 20.0 * max(float(np.median(jumps)), 1e-12):
+        # a turn's jump, not a step of the command (63 deg logged in degrees had been read as a wrap; stop 58)
+        if abs(jumps[k] / (2.0 * np.pi) - 1.0) < 0.1 and jumps[k] > 20.0 * max(float(np.median(jumps)), 1e-12):
             raise InputError(src, f"{name} row {k + 2}", f"jumps {jumps[k]:.3g} rad from one sample to the next: an "
                                                          "angle wrapped at +-pi? unwrap it (numpy.unwrap)")
     _check_command_clock(src, t, arr[:, 2], arr[:, 3], step)
