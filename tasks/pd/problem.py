@@ -810,18 +810,20 @@ def _same_samples(a: MeasuredLog, b: MeasuredLog) -> bool:
                                               for c in cols)
 
 
+JOINT_FLAGS = {"J": "--J", "K_P": "--K-P", "K_D": "--K-D"}  # the single joint's measured values, as options
+
+
 def _joint_values(args) -> None:
     """--J, --K-P, --K-D: the built-in joint's where no log is given; a log's joint must give its own. The log fixes
     J and K_D only relative to K_P (the law is linear in them), so the built-in gains put on another joint's log fit
     values scaled by their ratio, stated with stds of 0.02 % (a joint of K_P 5 fitted J 0.042 for its 0.010 and
     "absorbed"; a probe of stop 58)."""
-    names = {"J": "--J", "K_P": "--K-P", "K_D": "--K-D"}
-    untold = [flag for name, flag in names.items() if getattr(args, name) is None]
+    untold = [flag for name, flag in JOINT_FLAGS.items() if getattr(args, name) is None]
     if args.reference and untold:
         raise InputError(str(args.reference), ", ".join(untold),
                          "not given: a log fixes J and K_D only relative to K_P, so the fit needs the logged joint's "
                          "measured --J, --K-P and --K-D (the built-in joint's are --J 0.05 --K-P 20 --K-D 0.5)")
-    for name in names:
+    for name in JOINT_FLAGS:
         if getattr(args, name) is None:
             setattr(args, name, MEASURED[name])
 
@@ -830,7 +832,7 @@ def build_problems(args, device: str) -> list[PDProblem]:
     if args.reference is not None and not str(args.reference).strip():  # e.g. an unset shell variable
         raise InputError("--reference", "reference", "is empty: name a measured log (.csv), or leave the option out "
                                                      "for the built-in reference")
-    _check_positive({n: getattr(args, n) for n in ("J", "K_P", "K_D") if getattr(args, n) is not None})
+    _check_positive({n: getattr(args, n) for n in JOINT_FLAGS if getattr(args, n) is not None})
     for f in args.f_sim:
         _check_positive({"f_sim": f})
     if args.arm:
@@ -838,7 +840,7 @@ def build_problems(args, device: str) -> list[PDProblem]:
 
         if args.reference or getattr(args, "validate", None) or args.integrator != "semi-implicit":
             raise InputError("--arm", "options", "the arm uses the built-in reference and semi-implicit Euler")
-        given = [f for f, n in (("--J", "J"), ("--K-P", "K_P"), ("--K-D", "K_D")) if getattr(args, n) is not None]
+        given = [flag for name, flag in JOINT_FLAGS.items() if getattr(args, name) is not None]
         if given:
             raise InputError("--arm", ", ".join(given), "the two-link arm has its own inertia and gain matrices; "
                                                         "these are the single joint's")
@@ -848,15 +850,12 @@ def build_problems(args, device: str) -> list[PDProblem]:
     if others and log is None:
         raise InputError("--validate", "validate", "goes with --reference: the built-in reference has its own held-out "
                                                    "commands")
-    for o in others:
-        if log is not None and Path(o).resolve() == Path(args.reference).resolve():
-            raise InputError("--validate", "validate", f"{o} is the fitted log itself: validate on a log of another "
-                                                       "command")
     validate_logs = [load_log(o) for o in others]
-    for o, v in zip(others, validate_logs):  # a copy of the fitted log validates nothing ("absorbed", stop 58)
+    for o, v in zip(others, validate_logs):  # the fitted log, or a copy in other bytes, validates nothing (stop 58)
         if _same_samples(v, log):
-            raise InputError("--validate", "validate", f"{o} holds the samples of the fitted log {args.reference}: "
-                                                       "validate on a log of another command")
+            raise InputError("--validate", "validate", f"{o} holds the samples of the fitted log {args.reference} "
+                                                       "(the fitted log itself, or a copy): validate on a log of "
+                                                       "another command")
     _joint_values(args)  # after the logs: a file's own fault is said first
     rate = getattr(args, "controller_rate", None)
     if rate is not None and log is None:
