@@ -242,6 +242,14 @@ def _resolution(markers: np.ndarray) -> float:
     return float(recurring.min()) if recurring.size else float(values[0])
 
 
+def _swimming(markers: np.ndarray, reference: list[int], pace: float):
+    """Whether the fish swims across a run of frames: (first, last) -> bool, the mean of the markers `reference` (the
+    others beside one marker; for a whole fish, all) going at least `pace` of its median pace a frame."""
+    ref = markers[:, reference].mean(axis=1)
+    usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+    return lambda first, last: bool(np.linalg.norm(ref[last] - ref[first]) > pace * usual * (last - first))
+
+
 def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
     """Runs of frames in which the markers `which` (all together, or one alone) move on a straight line at constant
     speed or stand still while the other markers swim on (at least half their usual pace across the run): (first
@@ -274,15 +282,13 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
         own = float(np.median(np.linalg.norm(np.diff(markers[:, group], axis=0), axis=2)))
         if own < GRID_STEPS_TO_TELL * grid:
             continue  # moving under a grid step or so a frame, a tracked marker steps evenly as often as a filled one
-        whole = len(group) > 1
-        others = list(range(markers.shape[1])) if whole else [m for m in range(markers.shape[1]) if m not in group]
-        ref = markers[:, others].mean(axis=1)
-        usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
         # swimming across the run: the other markers at half their usual pace; a whole fish filled moves at its two
         # ends' mean pace, which a slow beat's stretch can bring under half the median: a quarter, still not at rest
-        pace = 0.25 if whole else 0.5
+        whole = len(group) > 1
+        others = list(range(markers.shape[1])) if whole else [m for m in range(markers.shape[1]) if m not in group]
+        swims = _swimming(markers, others, 0.25 if whole else 0.5)
         for a, n in runs:  # frames a + 1 .. a + n lie on the line through frames a and a + n + 1
-            if n < least or not np.linalg.norm(ref[a + n + 1] - ref[a]) > pace * usual * (n + 1):
+            if n < least or not swims(a, a + n + 1):
                 continue
             # the whole run within a grid step of one line; a real frame beside a fill may extend the run by one
             # on either side without lying on the fill's line
@@ -334,12 +340,11 @@ def cubic_runs(markers: np.ndarray, which) -> list[tuple[int, int]]:
     own = float(np.median(np.linalg.norm(np.diff(markers[:, which], axis=0), axis=2)))
     if own < GRID_STEPS_TO_TELL * _resolution(markers):
         return []
-    ref = markers[:, which].mean(axis=1)
-    usual = float(np.median(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+    swims = _swimming(markers, which, 0.25)
     out = []
     for a, n in true_runs(on):  # frames a + 2 .. a + n + 1 lie inside the cubic through frames a .. a + n + 3
         frames = n + 2  # the frames between the two tracked ones either side that the cubic needs
-        if frames >= CUBIC_FILL_FRAMES and np.linalg.norm(ref[a + n + 3] - ref[a]) > 0.25 * usual * (n + 3):
+        if frames >= CUBIC_FILL_FRAMES and swims(a, a + n + 3):
             out.append((a + 1, frames))
     return out
 
@@ -350,12 +355,8 @@ def held_edges(markers: np.ndarray) -> list[tuple[int, int]]:
     limit_direction="both"); repeats inside the clip are moving_repeats', which at the edges cannot see motion across
     them. 12 such frames at both ends of the 1.00 Hz clip had moved blunt drag -1.65 stds in silence (review of stop
     58). A fish filmed at rest before it swims holds too, at a pixel's rounding; the clip must cruise anyway."""
-    same = np.all((markers[1:] == markers[:-1]).reshape(len(markers) - 1, -1), axis=1)
-    out = []
-    for a, n in true_runs(same):  # frames a + 1 .. a + n repeat frame a
-        if (a == 0 or a + n == len(same)) and n + 1 >= EDGE_HELD_FRAMES:
-            out.append((a, n + 1))
-    return out
+    return [(first - 1, n + 1) for first, n, _, _ in repeated_runs(markers, markers[:, 0])  # copies of frame first - 1
+            if (first == 1 or first + n == len(markers)) and n + 1 >= EDGE_HELD_FRAMES]
 
 
 def _check_repeated_frames(path: Path, markers: np.ndarray) -> None:
