@@ -596,3 +596,19 @@ def test_a_validate_log_sampled_coarsely_or_standing_still_is_said(tmp_path):
     assert any("coarse.csv" in w and "coarser than the simulation's step" in w for w in p.warnings)
     assert any("still.csv" in w and "hardly moves" in w for w in p.warnings)
     assert [c.name for c in p.held_out] == ["log_validate", "coarse"]
+
+
+@pytest.mark.parametrize("lag_deg,needle", [(100.0, "shorter than the joint's lag"), (175.0, "the joint follows")])
+def test_a_q_behind_its_command_is_not_called_only_a_sign_convention(tmp_path, lag_deg, needle):
+    """A 25-row log caught q behind a turning q_d and was refused as a sign convention alone (stop 58's probe): a weak
+    anticorrelation names the short log and the fast command beside the sign; a strong one stays the sign."""
+    t = np.arange(25) * 0.005
+    w = 2.0 * np.pi * 8.0
+    q_d, qd_d = 0.3 * np.sin(w * t), 0.3 * w * np.cos(w * t)
+    q = 0.3 * np.sin(w * t - np.radians(lag_deg))
+    path = tmp_path / "short.csv"
+    np.savetxt(path, np.column_stack([t, q, q_d, qd_d]), delimiter=",", header="time,q,q_d,qd_d", comments="")
+    with pytest.raises(InputError) as e:
+        load_log(path)
+    assert e.value.field == "q" and "runs against q_d" in e.value.problem and needle in e.value.problem
+    assert "sign convention" in e.value.problem
