@@ -48,6 +48,28 @@ def test_swimmer_dropped_rows_refused(tmp_path, lab):
         sd.load_dir(tmp_path)
     assert e.value.source == str(path) and e.value.field.startswith("rows ")
     assert "rows deleted" in e.value.problem and "interpolated" in e.value.problem
+    assert "uneven times" not in e.value.problem
+
+
+@pytest.mark.parametrize("lab", ["1_75", "2_25"])
+def test_frames_at_uneven_times_are_named_beside_rows_deleted(tmp_path, lab):
+    """A camera's frames up to 4 ms off their 60 fps slots, read at one rate, were refused as rows deleted alone (stop
+    58's probe): every step's ratio to its neighbours spreads, which each such refusal now names."""
+    from scipy.interpolate import CubicSpline
+
+    rows = _pixels(lab)
+    t = np.arange(len(rows)) / 60.0
+    problems = []
+    for seed in range(6):
+        jittered = np.clip(t + np.random.default_rng(seed).uniform(-0.004, 0.004, len(t)), 0.0, t[-1])
+        folder = tmp_path / str(seed)
+        folder.mkdir()
+        _write(folder, f"markers_f{lab}.csv", np.round(2.0 * CubicSpline(t, rows, axis=0)(jittered)) / 2.0)
+        try:
+            sd.load_dir(folder)
+        except InputError as e:
+            problems.append(e.problem)
+    assert problems and all("uneven times" in p and "resample" in p for p in problems)
 
 
 @pytest.mark.parametrize("name", ["markers_f_1_25.csv", "markers_1_25.csv", "fish_markers_f1_25.csv",

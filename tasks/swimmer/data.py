@@ -82,6 +82,8 @@ MAX_STEP_RATIO = 1.8  # a frame step along the mean of the steps either side of 
 # noise) goes unseen alone; so do deletions in the 0.50 Hz clip, whose markers move ~1 px a frame
 CLEAR_STEP_RATIO = 2.5  # .. one such step alone must reach this (two rows or more), else two steps must pass 1.8:
 # a foreign clip slower or finer than these (the 0.50 Hz clip at 120 fps: 1.64) may reach 1.8 once by noise
+UNEVEN_STEP_SPREAD = 1.2  # 95th percentile of those ratios above this: frames at uneven times, said beside deleted
+# rows when refusing (the five clips: 0.67-1.07; 4 ms of jitter at 60 fps: 1.3-1.6)
 HEAD_FLEX = 0.05  # relative std of the head markers' distance above this, with the last two markers' below half of
 # it, is a clip written tail first (the head: 0.4-2.9 % in the five clips, with 1 px of noise, rounded or resampled;
 # the last two markers 2.6-13 %)
@@ -215,7 +217,8 @@ def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int)
         raise InputError(str(path), f"row {row} marker {marker}", f"at exactly (0, 0) in frame {frame + 1} "
                          f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate those markers "
                          "from the frames either side (rows removed would be read as frames cut out of the clip; "
-                         f"{FILLED_FRAMES} frames or more of the whole fish on a straight line are refused, and "
+                         f"{REFUSED_FILL_FRAMES} frames or more of the whole fish on a straight line are refused "
+                         f"({FILLED_FRAMES} or more said), and "
                          f"{FILLED_MARKER_FRAMES} or more of one marker said, since they erase the motion within the "
                          "beat: cut the clip at a longer gap)")
 
@@ -414,11 +417,19 @@ def _check_dropped_rows(path: Path, markers: np.ndarray, rows_per_frame: int) ->
     first, last = (j + 1) * rows_per_frame + 1, (j + 3) * rows_per_frame
     frames = ", ".join(f"{b + 2}-{b + 3}" for b in big[:6]) + (", ..." if len(big) > 6 else "")
     steps = f"{len(big)} such step{'s' if len(big) > 1 else ''} in the clip, between frames {frames}"
+    # frames at uneven times (a webcam's clock) raise every step's ratio a little, deleted rows a few steps much:
+    # 4 ms of jitter at 60 fps had been refused as rows deleted alone (stop 58's probe; the five clips' 95th
+    # percentile 0.67-1.07, that jitter's 1.3-1.6)
+    spread = float(np.quantile(ratio[ratio != 0.0], 0.95))
+    jitter = (f" (the steps vary throughout the clip: 95 % of them within {spread:.2f} x their neighbours', a steady "
+              "camera's clip within 1.1 x: frames at uneven times? rows are read at one rate, so resample the clip to "
+              "its frame rate)" if spread > UNEVEN_STEP_SPREAD else "")
     raise InputError(str(path), f"rows {first}-{last}", f"every marker steps {ratio[j]:.1f} x the mean of its steps "
-                     f"either side between frames {j + 2} and {j + 3} ({steps}): rows deleted where the tracker lost "
-                     "the fish? rows are read as consecutive frames, so the clip would swim too fast; put the lost "
-                     "frames back, interpolated from the frames either side (no NaN or empty rows are read; "
-                     f"{FILLED_FRAMES} or more frames so filled in a row are refused: cut the clip there instead)")
+                     f"either side between frames {j + 2} and {j + 3} ({steps}){jitter}: rows deleted where the "
+                     "tracker lost the fish? rows are read as consecutive frames, so the clip would swim too fast; put "
+                     "the lost frames back, interpolated from the frames either side (no NaN or empty rows are read; "
+                     f"{REFUSED_FILL_FRAMES} or more frames so filled in a row are refused, {FILLED_FRAMES} or more "
+                     "said: cut the clip there instead)")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
