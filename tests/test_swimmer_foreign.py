@@ -176,3 +176,17 @@ def test_a_clip_written_tail_first_or_with_its_head_markers_exchanged_names_that
         with pytest.raises(InputError) as e:
             sd.load_dir(tmp_path)
         assert e.value.field == field and said in e.value.problem
+
+
+def test_a_clip_is_long_enough_by_its_seconds_not_its_frames(tmp_path):
+    """Five-second clips filmed at 20 fps (every third frame of the fishsim clips) had been refused by a count of 120
+    frames (stop 58's probe): the rule is two seconds at the clip's rate, so they load with --fps 20, and the same
+    rows read at 60 fps are refused naming the seconds and --fps."""
+    for lab in LABELS:
+        _write(tmp_path, f"markers_f{lab}.csv", _pixels(lab)[::3])
+    rates = sd.load_dir(tmp_path, fps=20.0)
+    assert [len(r.markers) for r in rates] == [len(_pixels(lab)[::3]) for lab in LABELS]
+    assert all(not sd.clip_flags(r) for r in rates)
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path)
+    assert e.value.field == "rows" and "need at least 2 s" in e.value.problem and "--fps" in e.value.problem

@@ -41,7 +41,8 @@ from wrenorm.tasks.swimmer.options import FPS  # the fishsim format's frame rate
 
 HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
 N_MARKERS = 9
-MIN_FRAMES = 120  # two seconds: less cannot hold one tail beat at the lowest rates
+MIN_SECONDS = 2.0  # of a clip at its frame rate: less cannot hold one tail beat at the lowest rates (a count of 120
+# frames had refused 5 s clips at 20 fps; stop 59)
 MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
@@ -185,16 +186,22 @@ def _read_csv(path: Path, columns: int) -> np.ndarray:
     return data
 
 
-def read_pixel_markers(path: Path) -> np.ndarray:
+def read_pixel_markers(path: Path, fps: float = FPS) -> np.ndarray:
     """markers_*.csv -> (frames, 9, 2) metres (scale from the head-marker distance)."""
-    return _read_pixel(path)[1]
+    return _read_pixel(path, fps)[1]
 
 
-def _read_pixel(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _check_duration(path: Path, frames: int, fps: float) -> None:
+    least = int(np.ceil(MIN_SECONDS * fps - 1e-9))
+    if frames < least:
+        raise InputError(str(path), "rows", f"{frames} frames, {frames / fps:.3g} s at {fps:g} fps: need at least "
+                         f"{MIN_SECONDS:g} s ({least} frames; give --fps if the clip was filmed at another rate)")
+
+
+def _read_pixel(path: Path, fps: float = FPS) -> tuple[np.ndarray, np.ndarray]:
     """markers_*.csv -> its rows as read (frames, 18) and the markers (frames, 9, 2) in metres."""
     data = _read_csv(path, 2 * N_MARKERS)
-    if len(data) < MIN_FRAMES:
-        raise InputError(str(path), "rows", f"{len(data)} frames, need at least {MIN_FRAMES}")
+    _check_duration(path, len(data), fps)
     markers = data.reshape(-1, N_MARKERS, 2)
     _check_dropouts(path, markers, range(N_MARKERS), rows_per_frame=1)
     _check_repeated_frames(path, markers)
@@ -441,14 +448,13 @@ def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
                          f"head markers coincide in frame {frame + 1}: no heading")
 
 
-def read_rotated_markers(path: Path) -> np.ndarray:
+def read_rotated_markers(path: Path, fps: float = FPS) -> np.ndarray:
     """rotatedMarkers_*.csv -> (frames, 9, 2) metres."""
     data = _read_csv(path, 2)
     if len(data) % N_MARKERS:
         raise InputError(str(path), "rows", f"{len(data)} rows is not a multiple of {N_MARKERS} markers")
     markers = data.reshape(-1, N_MARKERS, 2)
-    if len(markers) < MIN_FRAMES:
-        raise InputError(str(path), "rows", f"{len(markers)} frames, need at least {MIN_FRAMES}")
+    _check_duration(path, len(markers), fps)
     # marker 0 is the head frame's origin, at (0, 0) in the first frame by construction
     _check_dropouts(path, markers, range(1, N_MARKERS), rows_per_frame=N_MARKERS)
     _check_repeated_frames(path, markers)
@@ -530,9 +536,9 @@ def load_dir(path, fps: float = FPS) -> list[Rate]:
     for label in sorted(found):
         kind, f = found[label]
         if kind == "markers":
-            raw, markers = _read_pixel(f)
+            raw, markers = _read_pixel(f, fps)
         else:
-            markers = read_rotated_markers(f)
+            markers = read_rotated_markers(f, fps)
             raw = markers.reshape(len(markers), -1)
         rows.append((f, kind, raw))
         rates.append(analyse(Rate(label=label, markers=markers, source=f.name, fps=fps,
