@@ -829,8 +829,18 @@ def test_gravity_is_read_from_the_ropes_motion_where_a_clip_cut_from_mid_throw_n
         np.savez(tmp_path / f"{name}.npz", **d)
     with pytest.raises(InputError) as e:
         load_reference(tmp_path / "y_up.npz")
-    assert e.value.field == "markers" and "points along -y" in e.value.problem
+    assert e.value.field == "markers" and "nearest -y" in e.value.problem
     assert "gravity must be -z" in e.value.problem
+    # 50 deg off -z, split between x and y: -z is still the nearest axis, which the refusal had called the direction
+    # it refused ("along -z ..., not -z"; a probe of stop 59)
+    c, s_ = np.cos(np.radians(50.0)), np.sin(np.radians(50.0))
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)  # turn 50 deg about the diagonal of x and y
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    lean = np.eye(3) + s_ * k + (1.0 - c) * k @ k
+    np.savez(tmp_path / "lean.npz", **_turned(z, 40, 130, lean))
+    with pytest.raises(InputError) as e:
+        load_reference(tmp_path / "lean.npz")
+    assert "deg off -z" in e.value.problem and "nearest" not in e.value.problem and "along -z" not in e.value.problem
     said = {n: [w for w in critical(load_reference(tmp_path / f"{n}.npz")).warnings if "gravity" in w]
             for n in ("level", "tilted", "short")}
     assert said["level"] == []
