@@ -1222,6 +1222,9 @@ START_ICI = 2.5  # a longer window is kept while every marker's start velocity s
 # (uniform motion, 0.5 mm of noise, 17 markers: 18 % of draws at 1000 Hz, 8 % at 250 Hz; review of stop 55): a shorter
 # window than the motion allows, so more noise, never more bias
 START_MIN_SAMPLES = 4  # seen samples a marker needs in a window for its quadratic (3 coefficients and one more)
+HAND_STILL_M = 0.002  # m: the hand within this of where it started (and within HAND_STILL_SIGMAS of its noise) is still
+HAND_STILL_SIGMAS = 5.0
+HAND_STILL_MIN_S = 0.02  # .. for at least this long: a hand drifting 0.3 m/s stays within 2.5 mm for 8 ms
 
 
 def _quadratic_start_slopes(time, X, seen, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1258,6 +1261,11 @@ def start_velocity(ref) -> tuple[np.ndarray, float]:
     dt = float(time[1] - time[0])
     m_max = min(int(np.floor(START_WINDOW_MAX / dt + 1e-6)), len(time) - 1)  # 25 Hz: 2.5 frame steps, not 2 or 3
     m = max(3, n)
+    # while the hand holds still the rope moves only as it already did: a window into the hand's smooth start had
+    # read a rope at rest 20-80 ms before a throw as moving 0.2-0.6 m/s (4 sigma; a probe of stop 59)
+    still = hand_still_frames(ref) - 1
+    if still >= m and time[still] - time[0] >= HAND_STILL_MIN_S:
+        m_max = min(m_max, still)
     step = marker_velocity(ref, 0, n)
     if m > m_max:
         return step, float(np.sqrt(3.0) * first_velocity_noise(ref))
@@ -1282,6 +1290,17 @@ def start_velocity(ref) -> tuple[np.ndarray, float]:
     velocity = np.where(lost[:, None], step, velocity)
     k = np.where(lost, first_velocity_noise(ref) / max(sigma, 1e-300), k)
     return velocity, float(np.sqrt(3.0) * sigma * np.sqrt(np.mean(k ** 2)))
+
+
+def hand_still_frames(ref) -> int:
+    """Frames from the first in which the hand stays where it started (the mean of its first three samples) within
+    HAND_STILL_M and HAND_STILL_SIGMAS of its noise."""
+    hand = np.asarray(ref.hand, np.float64)
+    if len(hand) < 4:
+        return len(hand)
+    off = np.linalg.norm(hand - hand[:3].mean(axis=0), axis=1)
+    moved = np.flatnonzero(off > max(HAND_STILL_M, HAND_STILL_SIGMAS * estimate_noise(hand[:20, None])))
+    return int(moved[0]) if moved.size else len(hand)
 
 
 def first_velocity_noise(ref) -> float:
