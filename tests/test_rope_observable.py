@@ -220,15 +220,26 @@ def test_a_slow_rope_whose_first_step_is_within_the_noise_starts_moving_and_a_st
     assert one_step_rest >= 3  # the case the one-step rule got wrong
 
 
-def test_a_rope_at_rest_before_the_hand_moves_starts_at_rest():
+def test_a_rope_at_rest_before_the_hand_moves_starts_at_rest(tmp_path):
     """Real recordings start with the rope hanging still and the hand still for a moment before the throw. The start
-    velocity's window had run into the throw and read such a rope as moving (0.30 m/s RMS, 4 times its noise; 75 of
-    a probe's 210 files, stop 59): it now stops where the hand leaves its start. The file is the first 0.4 s of a
-    throw from the probe's own simulator (its `source` says how it was made); at t = 0 that rope moves 0.001 m/s."""
-    from wrenorm.tasks.rope.reference.events import start_velocity, starts_at_rest
+    velocity's quadratic had run into the throw and read such a rope as moving (0.30 m/s RMS, 4 times its noise; 75 of
+    a probe's 210 files, stop 59); the markers' mean velocity over the hand's still span now says it rests. The file is
+    the first 0.4 s of a throw from the probe's own simulator (its `source` says how it was made; at t = 0 that rope
+    moves 0.001 m/s). The same recording turned about the hand at 0.5 rad/s, a rope swinging at 0.37 m/s RMS while
+    the hand holds still, still starts moving (the review of that change: a quadratic held to the still span had
+    called swings under 1 m/s at rest)."""
+    from wrenorm.tasks.rope.reference.events import starts_at_rest
     from wrenorm.tasks.rope.reference.generate import load_reference
 
-    ref = load_reference(Path(__file__).parent / "data" / "foreign_sim_still_start.npz")
-    assert starts_at_rest(ref)
-    velocity, noise = start_velocity(ref)
-    assert np.sqrt(np.mean(np.sum(velocity ** 2, -1))) < 3.0 * noise
+    path = Path(__file__).parent / "data" / "foreign" / "still_start.npz"
+    assert starts_at_rest(load_reference(path))
+    z = dict(np.load(path))
+    t = z["time"] - z["time"][0]
+    pivot = z["hand"][:3].mean(axis=0)
+    c, s_ = np.cos(0.5 * t), np.sin(0.5 * t)
+    turn = np.zeros((len(t), 3, 3))
+    turn[:, 0, 0], turn[:, 1, 1], turn[:, 1, 2], turn[:, 2, 1], turn[:, 2, 2] = 1.0, c, -s_, s_, c
+    swinging = {"markers": np.einsum("tij,tmj->tmi", turn, z["markers"] - pivot) + pivot,
+                "hand": np.einsum("tij,tj->ti", turn, z["hand"] - pivot) + pivot}
+    np.savez(tmp_path / "swinging.npz", **(z | swinging))
+    assert not starts_at_rest(load_reference(tmp_path / "swinging.npz"))

@@ -1222,7 +1222,7 @@ START_ICI = 2.5  # a longer window is kept while every marker's start velocity s
 # (uniform motion, 0.5 mm of noise, 17 markers: 18 % of draws at 1000 Hz, 8 % at 250 Hz; review of stop 55): a shorter
 # window than the motion allows, so more noise, never more bias
 START_MIN_SAMPLES = 4  # seen samples a marker needs in a window for its quadratic (3 coefficients and one more)
-HAND_STILL_M = 0.002  # m: the hand within this of where it started (and within HAND_STILL_SIGMAS of its noise) is still
+HAND_STILL_M = 0.002  # m: the hand within this of where it started, or HAND_STILL_SIGMAS of its noise if more, is still
 HAND_STILL_SIGMAS = 5.0
 HAND_STILL_MIN_S = 0.02  # .. for at least this long: a hand drifting 0.3 m/s stays within 2.5 mm for 8 ms
 
@@ -1261,11 +1261,6 @@ def start_velocity(ref) -> tuple[np.ndarray, float]:
     dt = float(time[1] - time[0])
     m_max = min(int(np.floor(START_WINDOW_MAX / dt + 1e-6)), len(time) - 1)  # 25 Hz: 2.5 frame steps, not 2 or 3
     m = max(3, n)
-    # while the hand holds still the rope moves only as it already did: a window into the hand's smooth start had
-    # read a rope at rest 20-80 ms before a throw as moving 0.2-0.6 m/s (4 sigma; a probe of stop 59)
-    still = hand_still_frames(ref) - 1
-    if still >= m and time[still] - time[0] >= HAND_STILL_MIN_S:
-        m_max = min(m_max, still)
     step = marker_velocity(ref, 0, n)
     if m > m_max:
         return step, float(np.sqrt(3.0) * first_velocity_noise(ref))
@@ -1294,7 +1289,7 @@ def start_velocity(ref) -> tuple[np.ndarray, float]:
 
 def hand_still_frames(ref) -> int:
     """Frames from the first in which the hand stays where it started (the mean of its first three samples) within
-    HAND_STILL_M and HAND_STILL_SIGMAS of its noise."""
+    HAND_STILL_M, or HAND_STILL_SIGMAS of its noise where that is more."""
     hand = np.asarray(ref.hand, np.float64)
     if len(hand) < 4:
         return len(hand)
@@ -1338,8 +1333,41 @@ def starts_at_rest(ref) -> bool:
         return True
     if not still_within_noise(ref):
         return False
+    still = still_span_speed(ref)
+    if still is not None and still[0] <= max(REST_FIT_SPEED, REST_FIT_SIGMAS * still[1]):
+        return True
     velocity, noise = start_velocity(ref)
     return float(np.sqrt(np.mean(np.sum(velocity ** 2, axis=-1)))) <= max(REST_FIT_SPEED, REST_FIT_SIGMAS * noise)
+
+
+def still_span_speed(ref) -> tuple[float, float] | None:
+    """(the markers' mean velocity, RMS 3D, over the frames in which the hand holds its start, up to START_WINDOW_MAX,
+    and its noise), or None where the hand moves within HAND_STILL_MIN_S. Recordings start with the hand still before
+    the throw: there the rope rests or swings, and a straight-line slope over that span says the rope rests with little
+    noise, where start_velocity's quadratic runs into the throw (a rope hanging still read as moving 0.2-0.6 m/s, 4 of
+    its sigmas: 75 of 210 files from a probe's own rope simulator, stop 59) and a quadratic held to the span is too
+    noisy to see a swing under 1 m/s (the review of that change). It only ever says "at rest": a mean velocity over the
+    span is not the velocity at its start (a rope released from a held curve), which start_velocity judges."""
+    time = np.asarray(ref.time, np.float64)
+    still = min(hand_still_frames(ref), int(np.searchsorted(time, time[0] + START_WINDOW_MAX + 1e-9)))
+    if still < START_MIN_SAMPLES or time[still - 1] - time[0] < HAND_STILL_MIN_S - 1e-9:
+        return None
+    X = np.asarray(ref.markers[:still], np.float64)
+    missing = getattr(ref, "missing", None)
+    seen = np.isfinite(X).all(-1) if missing is None else ~np.asarray(missing[:still], bool) & np.isfinite(X).all(-1)
+    w = seen.astype(np.float64)
+    n = w.sum(0)
+    ok = n >= START_MIN_SAMPLES
+    if not ok.any():
+        return None
+    t_mean = (w * time[:still, None]).sum(0) / np.maximum(n, 1)
+    dt = time[:still, None] - t_mean[None]  # (F, M) each marker's times about its own mean
+    sxx = (w * dt ** 2).sum(0)
+    slope = np.einsum("fm,fm,fmk->mk", w, dt, np.nan_to_num(X - X[:1])) / np.maximum(sxx, 1e-300)[:, None]
+    sigma = estimate_noise(ref.markers[:20], None if missing is None else missing[:20])
+    speed = float(np.sqrt(np.mean(np.sum(slope[ok] ** 2, -1))))
+    noise = float(np.sqrt(3.0) * sigma * np.sqrt(np.mean(1.0 / sxx[ok])))
+    return speed, noise
 
 
 def rest_tilt(ref) -> tuple[float, float] | None:
