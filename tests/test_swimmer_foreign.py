@@ -48,7 +48,7 @@ def test_swimmer_dropped_rows_refused(tmp_path, lab):
         sd.load_dir(tmp_path)
     assert e.value.source == str(path) and e.value.field.startswith("rows ")
     assert "rows deleted" in e.value.problem and "interpolated" in e.value.problem
-    assert "uneven times" not in e.value.problem
+    assert "uneven times" not in e.value.problem and "16 over the clip" in e.value.problem
 
 
 @pytest.mark.parametrize("lab", ["1_75", "2_25"])
@@ -190,3 +190,14 @@ def test_a_clip_is_long_enough_by_its_seconds_not_its_frames(tmp_path):
     with pytest.raises(InputError) as e:
         sd.load_dir(tmp_path)
     assert e.value.field == "rows" and "need at least 2 s" in e.value.problem and "--fps" in e.value.problem
+
+
+def test_a_clip_filmed_too_slowly_for_the_tail_beat_is_refused_on_fps(tmp_path):
+    """Every 30th frame read at --fps 2 holds 2 s or more, which the length rule in seconds let through, and loaded with
+    the tail's wave aliased (0.33 Hz where this robot beats 1.69 Hz; review of stop 59): fewer than 8 frames a beat at
+    the label's expected beat are refused, naming --fps."""
+    for lab in LABELS:
+        _write(tmp_path, f"markers_f{lab}.csv", _pixels(lab)[::30])
+    with pytest.raises(InputError) as e:
+        sd.load_dir(tmp_path, fps=2.0)
+    assert e.value.field == "fps" and "frames a tail beat" in e.value.problem and "--fps" in e.value.problem

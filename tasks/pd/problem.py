@@ -341,12 +341,11 @@ def load_log(path: str | Path) -> MeasuredLog:
     # q follows q_d: a joint whose q runs against its command has q (or q_d) logged with the other sign convention
     follow = float(np.corrcoef(arr[:, 1], arr[:, 2])[0, 1])
     if follow < 0.0:
-        # a log shorter than the joint's lag shows q behind a turning q_d, not against it (25 rows had been refused
-        # as a sign convention alone; stop 58's probe)
-        why = ("the joint follows its command, so" if follow < -0.5 else f"over {span:.3g} s ({len(t)} samples): a "
-               "log shorter than the joint's lag, a command faster than the joint follows, or")
-        raise InputError(src, "q", f"runs against q_d (correlation {follow:.2f}): {why} q or q_d with the other sign "
-                                   "convention?")
+        # q behind a command faster than the joint follows, or a log too short to show it following, runs against q_d
+        # too (25 rows had been refused as a sign convention alone; stop 58's probe): every cause is named
+        raise InputError(src, "q", f"runs against q_d (correlation {follow:.2f} over {span:.3g} s): q or q_d with the "
+                                   "other sign convention? or a command faster than the joint follows (q lagging it "
+                                   "by over a quarter period), or a log too short to show the joint following it")
     motion = float(np.std(arr[:, 1])) / max(float(np.std(arr[:, 2])), 1e-300)
     if not 1.0 / MAX_FOLLOW_MISMATCH <= motion <= MAX_FOLLOW_MISMATCH:
         raise InputError(src, "q", f"moves {motion:.3g} x as much as q_d (standard deviations): the joint follows its "

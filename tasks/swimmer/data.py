@@ -43,6 +43,8 @@ HEAD_MARKER_DISTANCE = 0.142  # m, measured on the hardware
 N_MARKERS = 9
 MIN_SECONDS = 2.0  # of a clip at its frame rate: less cannot hold one tail beat at the lowest rates (a count of 120
 # frames had refused 5 s clips at 20 fps; stop 59)
+MIN_FRAMES_PER_BEAT = 8  # frames per tail beat (at the label's expected beat), at least: fewer alias the tail's wave
+# (the five clips at 60 fps: 36-160; at 20 fps the 2.25 Hz clip has 11.9)
 MIN_SPEED = 0.002  # m/s; the slowest recorded rate swims 0.022 m/s
 MIN_TRAVEL = 0.02  # m over the clip
 HEAD_DISTANCE_RANGE = (0.5, 2.0)  # x HEAD_MARKER_DISTANCE in a rotated (metres) file; mm or cm are 10x-1000x off
@@ -224,8 +226,8 @@ def _check_dropouts(path: Path, markers: np.ndarray, which, rows_per_frame: int)
         raise InputError(str(path), f"row {row} marker {marker}", f"at exactly (0, 0) in frame {frame + 1} "
                          f"({int(zero.sum())} such markers in the clip): a tracking dropout? interpolate those markers "
                          "from the frames either side (rows removed would be read as frames cut out of the clip; "
-                         f"{REFUSED_FILL_FRAMES} frames or more of the whole fish on a straight line are refused "
-                         f"({FILLED_FRAMES} or more said), and "
+                         f"{REFUSED_FILL_FRAMES} frames or more of the whole fish on a straight line in a row, or "
+                         f"{2 * REFUSED_FILL_FRAMES} over the clip, are refused ({FILLED_FRAMES} or more said), and "
                          f"{FILLED_MARKER_FRAMES} or more of one marker said, since they erase the motion within the "
                          "beat: cut the clip at a longer gap)")
 
@@ -427,16 +429,19 @@ def _check_dropped_rows(path: Path, markers: np.ndarray, rows_per_frame: int) ->
     # frames at uneven times (a webcam's clock) raise every step's ratio a little, deleted rows a few steps much:
     # 4 ms of jitter at 60 fps had been refused as rows deleted alone (stop 58's probe; the five clips' 95th
     # percentile 0.67-1.07, that jitter's 1.3-1.6)
-    spread = float(np.quantile(ratio[ratio != 0.0], 0.95))
+    steady = ratio[(ratio != 0.0) & (ratio < MAX_STEP_RATIO)]  # the steps that are no deleted rows themselves (5 %
+    # of single rows deleted had put them in the percentile and the note on a steady clock; review of stop 59)
+    spread = float(np.quantile(steady, 0.95)) if steady.size else 0.0
     jitter = (f" (the steps vary throughout the clip: 95 % of them within {spread:.2f} x their neighbours', a steady "
-              "camera's clip within 1.1 x: frames at uneven times? rows are read at one rate, so resample the clip to "
-              "its frame rate)" if spread > UNEVEN_STEP_SPREAD else "")
+              "camera's clip with no rows deleted within 1.1 x: frames at uneven times, or rows deleted throughout? "
+              "rows are read at one rate, so resample a clip with uneven times to its frame rate)"
+              if spread > UNEVEN_STEP_SPREAD else "")
     raise InputError(str(path), f"rows {first}-{last}", f"every marker steps {ratio[j]:.1f} x the mean of its steps "
                      f"either side between frames {j + 2} and {j + 3} ({steps}){jitter}: rows deleted where the "
                      "tracker lost the fish? rows are read as consecutive frames, so the clip would swim too fast; put "
                      "the lost frames back, interpolated from the frames either side (no NaN or empty rows are read; "
-                     f"{REFUSED_FILL_FRAMES} or more frames so filled in a row are refused, {FILLED_FRAMES} or more "
-                     "said: cut the clip there instead)")
+                     f"{REFUSED_FILL_FRAMES} or more frames so filled in a row, or {2 * REFUSED_FILL_FRAMES} over the "
+                     f"clip, are refused, {FILLED_FRAMES} or more said: cut the clip there instead)")
 
 
 def _check_head(path: Path, markers: np.ndarray, rows_per_frame: int) -> None:
@@ -755,6 +760,14 @@ def analyse(rate: Rate) -> Rate:
                          f"lies {100 * (mean_x[2:i].max() - mean_x[i]):.1f} cm ahead of a marker written before it "
                          "along the body: tail markers 2-8 must be written head to tail")
     _check_body(rate.source or rate.name, rate.markers)
+    expected = TAIL_BEAT_PER_LABEL * rate.label
+    if expected > 0 and rate.fps / expected < MIN_FRAMES_PER_BEAT:
+        # too few frames a beat alias the tail's wave to a slower one (every 30th frame read at 2 fps: 0.33 Hz where
+        # the robot beats 1.69 Hz), which the length rule in seconds had let through (review of stop 59)
+        raise InputError(rate.source or rate.name, "fps",
+                         f"{rate.fps:g} frames per second give {rate.fps / expected:.1f} frames a tail beat (this "
+                         f"robot beats at ~{expected:.3g} Hz at label {rate.label:g}): at least {MIN_FRAMES_PER_BEAT} "
+                         "are needed to follow the tail's wave; give --fps if the clip was filmed at another rate")
     mended = _mend_tail_glitches(local, _resolution(rate.markers))
     rate.tail_freq = tail_frequency(local[:, keep[-1], 1], rate.fps)
     frames = len(rate.markers)

@@ -185,9 +185,9 @@ def _check_gravity_axis(src: str, time: np.ndarray, markers: np.ndarray, hand: n
             # not -z"): the angle is what is refused
             along = "" if _axis_name(v) == "-z" else f", nearest {_axis_name(v)}"
             raise InputError(src, "markers", f"gravity, estimated from the rope's motion, points "
-                             f"{g.degrees_off_down:.0f} deg off -z ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) m/s^2"
-                             f"{along}; more than {GRAVITY_MAX_DEG:g} deg is refused: gravity must be -z (rotate a "
-                             "Y-up or z-down frame)")
+                             f"{g.degrees_off_down:.1f} deg off -z ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) m/s^2"
+                             f"{along}; more than {GRAVITY_MAX_DEG:g} deg is refused: gravity must be -z (rotate the "
+                             "frame: a Y-up or z-down one, or one tilted)")
         return
     weight = np.gradient(s) if len(s) > 2 else np.full(len(s), 0.5)
     centre = np.einsum("tmk,m->tk", markers, weight / weight.sum())
