@@ -41,7 +41,7 @@ import numpy as np
 from wrenorm.jumps import largest_doublet, largest_jump, repeated_runs, true_runs
 from wrenorm.tasks.rope.observable import marker_velocity, velocity_intervals
 
-VERSION = 17  # bump when the detector's answer can change (keys the event cache)
+VERSION = 18  # bump when the detector's answer can change (keys the event cache)
 TIME_TOLERANCE = 0.02  # s: the accuracy the event is wanted to; flags mean "cannot promise this"
 CURL_CHORD_RATIO = 2.0 / np.pi  # chord/arc of a half turn between two markers: its shape is a guess
 GAP_ERROR = 0.001  # m: reconstructed-gap error at a resolved contact (newton dev set, 12 markers: median 2 mm
@@ -66,7 +66,10 @@ HOLD_TIME = 0.01  # s after the touch in which touching pieces stay within the g
 # Confidence rules applied by default. "fold" (the contact closes a loop within two neighbouring marker intervals) is
 # kept for measurements only: on the dev sets it never caught a wrong event that no other rule caught, and it
 # flagged 8 (12 markers) and 11 (8 markers) right newton events.
-RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip", "repeat")
+# "start" (the gap within its uncertainty from the first frame) and "loop" (both contact points inside one marker
+# interval) since stop 59: on the dev sets (42 MuJoCo and 40 newton throws at 8, 12 and 24 markers, 0.5-1 mm of noise)
+# neither changed one answer; a probe's folded and figure-eight throws had read contacts 77-182 ms early there
+RULES = ("earlier", "slow", "parted", "graze", "curl", "occlusion", "jump", "tip", "repeat", "start", "loop")
 MAX_MARKER_JUMP = 10.0  # x the markers' largest frame-to-frame step around it (wrenorm.jumps): the built-in and test
 # references reach 2.1-3.9, 50 frames cut out of a flick with its clock made uniform again 33
 MAX_HAND_DOUBLET = 10.0  # x the hand's second difference around it (wrenorm.jumps.largest_doublet): newton's and
@@ -904,6 +907,13 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
             f"{1000 * (t_event - t_ep):.0f} ms before the detected contact, so the contact time is uncertain by "
             f"more than {1000 * time_tolerance:.0f} ms")
         low.append("slow")
+    elif j == 0 and "start" in rules:
+        # the near-contact was there before the recording began: the approach, which the rules above judge, is not
+        # in it (a rope released folded or coiled read a contact 72-182 ms early with confidence; a probe of stop 59)
+        reasons.append(f"the gap is within its uncertainty of touching from the recording's first frame (t="
+                       f"{time[0]:.3f} s): the approach began before the recording, so whether the pieces touched "
+                       "then or only came near cannot be told")
+        low.append("start")
 
     # after the touch: pieces that touched stay together (rest, slide) for a while in both fine simulators
     # (newton and MuJoCo dev sets: every right event at 8-24 markers is within its uncertainty one frame
@@ -932,6 +942,10 @@ def detect(time, markers, marker_arclength, length, radius, missing=None, hand=N
                        f"s={sfrac[Ie]:.2f}-{sfrac[Je + 1]:.2f}): the markers do not pin the shape of so short a loop")
         low.append("fold")
 
+    if Je == Ie and "loop" in rules:
+        reasons.append(f"loop inside one marker interval: both contact points lie between markers {Ie} and {Ie + 1} "
+                       f"(s={sfrac[Ie]:.2f}-{sfrac[Ie + 1]:.2f}), so the loop is the reconstruction's guess")
+        low.append("loop")
     r_ev = np.minimum(ratio[k, [Ie, Je]], ratio[k - 1, [Ie, Je]])
     diag["event_chord_over_arc"] = [float(x) for x in r_ev]
     curl = [(i, r) for i, r in zip((Ie, Je), r_ev) if r < CURL_CHORD_RATIO]
