@@ -1377,7 +1377,9 @@ def still_span_speed(ref) -> tuple[float, float] | None:
     t_mean = (w * time[:still, None]).sum(0) / np.maximum(n, 1)
     dt = time[:still, None] - t_mean[None]  # (F, M) each marker's times about its own mean
     sxx = (w * dt ** 2).sum(0)
-    slope = np.einsum("fm,fm,fmk->mk", w, dt, np.nan_to_num(X - X[:1])) / np.maximum(sxx, 1e-300)[:, None]
+    # unseen samples weigh 0, and the times are centred on each marker's seen ones, so no origin is needed (X - X[0]
+    # would be NaN for a whole marker unseen in the first frame, read as 0: at rest)
+    slope = np.einsum("fm,fm,fmk->mk", w, dt, np.where(seen[..., None], X, 0.0)) / np.maximum(sxx, 1e-300)[:, None]
     sigma = estimate_noise(ref.markers[:20], None if missing is None else missing[:20])
     speed = float(np.sqrt(np.mean(np.sum(slope[ok] ** 2, -1))))
     noise = float(np.sqrt(3.0) * sigma * np.sqrt(np.mean(1.0 / sxx[ok])))
