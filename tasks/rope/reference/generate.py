@@ -358,8 +358,9 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
                      f"more than {100 * MAX_BROKEN_FRAMES:.0f}% of the frames once exchanges were undone")
         raise InputError(src, "markers", f"marker spacing up to {labels.worst_chord_over_arc:.3g}x the arc length "
                          f"between markers (length {length:g} m) in {how_often}, markers {most} most often: wrong "
-                         "units, wrong length, a rope that stretches, or labels exchanged in a way one swap does not "
-                         f"undo? (marker noise "
+                         "units, wrong length, a rope that stretches, labels exchanged in a way one swap does not "
+                         "undo, or markers on the rope's surface, not its centre line (give marker_offset)? (marker "
+                         "noise "
                          f"{1000 * labels.noise:.1f} mm, allowed for; a tracker's label swaps and ghost samples are "
                          f"read as missing when they break the length in at most {100 * MAX_BROKEN_FRAMES:.0f}% of "
                          "the frames)")
@@ -408,14 +409,17 @@ def validate_arrays(src: str, data: dict) -> RopeReference:
             raise InputError(src, "marker_arclength", f"not in the file, so the {M} markers are taken as evenly spaced "
                              f"over the whole rope, but their intervals never straighten (each interval's straightest "
                              f"chord / arc, median over intervals: {straightest:.3f}, below "
-                             f"{MIN_STRAIGHTEST_CHORD}): markers missing at the tip? give marker_arclength")
+                             f"{MIN_STRAIGHTEST_CHORD}): markers missing at the tip? give marker_arclength (or, if "
+                             "the rope stays coiled or curled through the whole clip, give a clip in which it "
+                             "straightens)")
         # the same on the file's own spacing: a length 10 % long put the contact 23 ms early and 0.12 of the rope
         # off, with confidence; even a throw cut to start late straightens every interval (built-ins from 0.6 s:
         # 1.002-1.007)
         if straightest < MIN_STRAIGHTEST_CHORD:
             raise InputError(src, "length", f"{length:g} m puts the markers' intervals at arcs they never straighten "
                              f"to (each interval's straightest chord / arc, median over intervals: {straightest:.3f}, "
-                             f"below {MIN_STRAIGHTEST_CHORD}): is the length too long for these markers?")
+                             f"below {MIN_STRAIGHTEST_CHORD}): is the length too long for these markers, or does the "
+                             "rope stay coiled or curled through the whole clip?")
     offset = np.linalg.norm(markers[:, 0] - hand, axis=1)[~missing[:, 0]]
     # Without marker_arclength marker 0 is taken to sit at the held end, where the hand is (the built-in and test
     # references: within 0.002 mm). Markers starting 3-5 cm down the rope, read as spread over all of it, put a
