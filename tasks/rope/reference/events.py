@@ -1241,17 +1241,17 @@ HAND_STILL_SIGMAS = 5.0
 HAND_STILL_MIN_S = 0.02  # .. for at least this long: a hand drifting 0.3 m/s stays within 2.5 mm for 8 ms
 
 
-def _quadratic_start_slopes(time, X, seen, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(markers, 3) velocity at time[0] of each marker's least-squares quadratic through its seen samples in frames
-    0..m, and (markers,) its noise per unit marker sigma (one coordinate); NaN for a marker seen in fewer than
-    START_MIN_SAMPLES of them."""
+def _start_slopes(time, X, seen, m: int, terms: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(markers, 3) velocity at time[0] of each marker's least-squares polynomial (`terms` coefficients: 3 a
+    quadratic, 2 a line) through its seen samples in frames 0..m, and (markers,) its noise per unit marker sigma (one
+    coordinate); NaN for a marker seen in fewer than START_MIN_SAMPLES of them."""
     T = np.asarray(time[:m + 1], np.float64) - float(time[0])
     scale = T[-1]
-    A = np.vander(T / scale, 3, increasing=True)  # (F, 3)
+    A = np.vander(T / scale, terms, increasing=True)  # (F, terms)
     w = np.asarray(seen[:m + 1], np.float64)  # (F, M)
     N = np.einsum("fm,fa,fb->mab", w, A, A)
     ok = w.sum(0) >= START_MIN_SAMPLES
-    N[~ok] = np.eye(3)
+    N[~ok] = np.eye(terms)
     inv = np.linalg.inv(N)
     coef = np.einsum("mab,fm,fb,fmk->mak", inv, w, A, np.nan_to_num(np.asarray(X[:m + 1], np.float64)))
     slope = np.where(ok[:, None], coef[:, 1] / scale, np.nan)
@@ -1281,13 +1281,13 @@ def start_velocity(ref) -> tuple[np.ndarray, float]:
     missing = getattr(ref, "missing", None)
     seen = np.ones(np.shape(ref.markers)[:2], bool) if missing is None else ~np.asarray(missing, bool)
     sigma = estimate_noise(ref.markers[:20], None if missing is None else missing[:20])
-    chosen = _quadratic_start_slopes(time, ref.markers, seen, m)
+    chosen = _start_slopes(time, ref.markers, seen, m)
     shorter = [chosen]
     while True:
         m_next = max(m + 1, int(round(m * START_WINDOW_GROWTH)))
         if m_next > m_max:
             break
-        v, k = _quadratic_start_slopes(time, ref.markers, seen, m_next)
+        v, k = _start_slopes(time, ref.markers, seen, m_next)
         with np.errstate(invalid="ignore"):
             if any(np.any(np.linalg.norm(v - vs, axis=-1) > START_ICI * np.sqrt(3.0) * sigma * ks)
                    for vs, ks in shorter):
@@ -1366,23 +1366,15 @@ def still_span_speed(ref) -> tuple[float, float] | None:
     still = min(hand_still_frames(ref), int(np.searchsorted(time, time[0] + START_WINDOW_MAX + 1e-9)))
     if still < START_MIN_SAMPLES or time[still - 1] - time[0] < HAND_STILL_MIN_S - 1e-9:
         return None
-    X = np.asarray(ref.markers[:still], np.float64)
     missing = getattr(ref, "missing", None)
-    seen = np.isfinite(X).all(-1) if missing is None else ~np.asarray(missing[:still], bool) & np.isfinite(X).all(-1)
-    w = seen.astype(np.float64)
-    n = w.sum(0)
-    ok = n >= START_MIN_SAMPLES
+    seen = np.ones(np.shape(ref.markers)[:2], bool) if missing is None else ~np.asarray(missing, bool)
+    slope, k = _start_slopes(time, ref.markers, seen, still - 1, terms=2)  # a line's slope: the span's mean velocity
+    ok = np.isfinite(slope).all(-1)
     if not ok.any():
         return None
-    t_mean = (w * time[:still, None]).sum(0) / np.maximum(n, 1)
-    dt = time[:still, None] - t_mean[None]  # (F, M) each marker's times about its own mean
-    sxx = (w * dt ** 2).sum(0)
-    # unseen samples weigh 0, and the times are centred on each marker's seen ones, so no origin is needed (X - X[0]
-    # would be NaN for a whole marker unseen in the first frame, read as 0: at rest)
-    slope = np.einsum("fm,fm,fmk->mk", w, dt, np.where(seen[..., None], X, 0.0)) / np.maximum(sxx, 1e-300)[:, None]
     sigma = estimate_noise(ref.markers[:20], None if missing is None else missing[:20])
     speed = float(np.sqrt(np.mean(np.sum(slope[ok] ** 2, -1))))
-    noise = float(np.sqrt(3.0) * sigma * np.sqrt(np.mean(1.0 / sxx[ok])))
+    noise = float(np.sqrt(3.0) * sigma * np.sqrt(np.mean(k[ok] ** 2)))
     return speed, noise
 
 
