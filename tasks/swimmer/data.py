@@ -254,6 +254,12 @@ def _resolution(markers: np.ndarray) -> float:
     return float(recurring.min()) if recurring.size else float(values[0])
 
 
+def _too_slow_to_tell(markers: np.ndarray, group: list[int], grid: float) -> bool:
+    """Whether the markers `group` move under GRID_STEPS_TO_TELL steps of the file's grid a frame (median): a tracked
+    marker that slow steps evenly, on a line or a cubic, as often as a filled one."""
+    return float(np.median(np.linalg.norm(np.diff(markers[:, group], axis=0), axis=2))) < GRID_STEPS_TO_TELL * grid
+
+
 def _swimming(markers: np.ndarray, reference: list[int], pace: float):
     """Whether the fish swims across a run of frames: (first, last) -> bool, the mean of the markers `reference` (the
     others beside one marker; for a whole fish, all) going at least `pace` of its median pace a frame."""
@@ -291,9 +297,8 @@ def straight_runs(markers: np.ndarray, which) -> list[tuple[int, int, tuple]]:
             continue  # every frame on a line: this marker's motion is below the file's grid
         if share > 0.0:  # a run this long has less than LIKELY_RUN of a chance in the clip at that rate
             least = max(least, int(np.ceil(np.log(LIKELY_RUN / len(on)) / np.log(share))))
-        own = float(np.median(np.linalg.norm(np.diff(markers[:, group], axis=0), axis=2)))
-        if own < GRID_STEPS_TO_TELL * grid:
-            continue  # moving under a grid step or so a frame, a tracked marker steps evenly as often as a filled one
+        if _too_slow_to_tell(markers, group, grid):
+            continue
         # swimming across the run: the other markers at half their usual pace; a whole fish filled moves at its two
         # ends' mean pace, which a slow beat's stretch can bring under half the median: a quarter, still not at rest
         whole = len(group) > 1
@@ -344,13 +349,13 @@ def cubic_runs(markers: np.ndarray, which) -> list[tuple[int, int]]:
     which = list(which)
     if len(markers) < 5:
         return []
-    grid = _resolution(markers) * CUBIC_GRID_STEPS * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
+    resolution = _resolution(markers)
+    grid = resolution * CUBIC_GRID_STEPS * (1 + 1e-9) + 1e-12 * np.abs(markers).max()
     d4 = np.abs(np.diff(markers[:, which], 4, axis=0))  # d4[k] spans frames k .. k + 4
     if np.median(d4.max(axis=(1, 2))) < 2.0 * grid:
         return []  # a clip this smooth on its grid (fast frames, noise under a grid step) is a cubic everywhere
     on = np.all(d4 <= grid, axis=(1, 2))
-    own = float(np.median(np.linalg.norm(np.diff(markers[:, which], axis=0), axis=2)))
-    if own < GRID_STEPS_TO_TELL * _resolution(markers):
+    if _too_slow_to_tell(markers, which, resolution):
         return []
     swims = _swimming(markers, which, 0.25)
     out = []
