@@ -136,6 +136,41 @@ def test_a_fast_recordings_velocity_is_a_slope_over_the_chains_step_not_a_noisy_
                           (builtin.markers[k + 1] - builtin.markers[k]) / (builtin.time[k + 1] - builtin.time[k]))
 
 
+@pytest.mark.parametrize("hz", [250.0, 1000.0])
+def test_the_velocity_at_an_event_is_interpolated_to_its_time(hz):
+    """Markers under constant acceleration: the velocity at an event anywhere inside a frame interval is v0 + a t*
+    (exact without noise: a window's slope is the velocity at its middle, and the velocity is linear in time). The
+    interval's own velocity, the rule before, is a (frac - 1/2) dt off. Only windows up to the event's interval are
+    used: after the event, the rope's contact forces act, so markers there are moved far off the parabola and the
+    answer must not change; at the recording's first interval the next window extrapolates, still exactly."""
+    from wrenorm.tasks.rope.reference.generate import RopeReference
+
+    dt = 1.0 / hz
+    t = np.arange(200) * dt
+    s = np.linspace(0.0, 1.0, 9)
+    v0, a = np.array([0.9, 0.0, 0.3]), np.array([40.0, -25.0, -9.81])
+    markers = np.stack([0.1 * s, 0.0 * s, 1.6 - 1.1 * s], 1)[None] + (v0 * t[:, None] + 0.5 * a * t[:, None] ** 2)[:,
+                                                                                                                 None]
+    ref = RopeReference(t, markers, markers[:, 0].copy(), 1.1, 0.2, 0.005, None, s, "test")
+    n = crit.velocity_intervals(ref)
+    for k, frac in [(60, 0.1), (60, 0.5), (61, 0.93), (1, 0.2), (len(t) - 1, 0.9)]:
+        exact = v0 + a * (t[k - 1] + frac * dt)
+        np.testing.assert_allclose(crit.event_velocity(ref, k, frac), np.tile(exact, (9, 1)), atol=1e-9)
+        if k == 1:
+            continue  # the next window is all the first interval has
+        kicked = markers.copy()
+        kicked[k + (n - 1) // 2 + 1:] += 0.05  # every frame after the windows about the event's interval
+        np.testing.assert_allclose(crit.event_velocity(RopeReference(t, kicked, kicked[:, 0].copy(), 1.1, 0.2, 0.005,
+                                                                     None, s, "test"), k, frac),
+                                   np.tile(exact, (9, 1)), atol=1e-9)
+    from types import SimpleNamespace
+
+    state = crit.from_reference(ref, SimpleNamespace(index=60, time=t[59] + 0.1 * dt, s_a=0.2, s_b=0.7))
+    np.testing.assert_allclose(state.vel[0], np.tile(v0 + a * (t[59] + 0.1 * dt), (crit.SAMPLES, 1)), atol=1e-9)
+    interval = crit.marker_velocity(ref, 60 - 1 - (n - 1) // 2, n)
+    assert np.abs(interval - (v0 + a * (t[59] + 0.1 * dt))).max() == pytest.approx(40.0 * 0.4 * dt, rel=1e-6)
+
+
 def test_the_chains_start_velocity_is_fitted_over_as_long_a_window_as_the_motion_allows():
     """The chain starts from the markers' velocity at the first frame: a quadratic over a window the data choose
     (events.start_velocity). On a parabola (the analytic velocity known) at 1000 Hz with 0.5 mm of noise it is exact

@@ -1,7 +1,8 @@
 """Is the velocity floor of a stalled correction a sampling artefact? (README, "Seeds the loop never saw")
 
-The critical state's velocity is the marker difference over the frame interval that holds the first contact, so it
-could carry the impact's response or jump when the contact time crosses a frame. This simulates the goal throw and
+The critical state's velocity was the marker difference over the frame interval that holds the first contact (since
+stop 60 it is interpolated to the contact's time from that interval's and its neighbour's), so it could carry the
+impact's response or jump when the contact time crosses a frame. This simulates the goal throw and
 every trial of a finished run twice: at the engine's frame rate (the rule the correction scores with) and at
 1000 Hz with the same physics step, where the state at the contact time is taken from the three frames BEFORE the
 contact (quadratic in time), free of the impact. It prints each trial's error to the goal both ways.

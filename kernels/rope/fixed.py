@@ -90,6 +90,7 @@ def _build(n: int):
         nm1 = cfg.n - 1  # runtime bounds keep the pair loops rolled (code size, compile time)
         P = Mat()
         V = Mat()
+        VB = Mat()  # velocities of the step before, for the hit's (record_hit)
         Q = Mat()  # positions at the start of the step
         L = Mat()  # bending multipliers (row i: centre node i)
         CQ = Mat()
@@ -103,6 +104,8 @@ def _build(n: int):
             P[i] = state.pos[b, i]
             V[i] = state.vel[b, i]
         for step in range(step0, step0 + nsteps):
+            for i in range(N):
+                VB[i] = V[i]
             Q[0] = P[0]
             P[0] = hand[path_index[b], step + 1]
             for i in range(1, N):
@@ -153,7 +156,7 @@ def _build(n: int):
                                                           cfg.cull, link, nm1)
             if best_a >= 0:
                 st = 1
-                record_hit(events, b, step, best, best_a, best_b, P, Q, V, NM1)
+                record_hit(events, b, step, best, best_a, best_b, P, Q, V, VB, NM1)
                 if stop_at_hit != 0:
                     events.clearance[b] = cl
                     finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)

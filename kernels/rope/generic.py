@@ -132,10 +132,11 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
                     pos[b, i] = xa
                     pos[b, i + 1] = xb
                     state.lam_link[b, i] = ll
-        # 4: velocities
+        # 4: velocities (the step before's kept for the hit's, record_hit)
         vv = float(0.0)
         for i in range(n):
             v = (pos[b, i] - prev[b, i]) * inv_dt
+            state.prev_vel[b, i] = state.vel[b, i]
             state.vel[b, i] = v
             vv = vv + wp.dot(v, v)  # a sum propagates NaN (max would drop it)
         if not (vv < vmax2):
@@ -169,7 +170,7 @@ def rollout_kernel(state, hand, path_index, params, cfg, step0, nsteps, stop_at_
                     cl = margin
         if best_a >= 0:
             st = 1
-            record_hit(events, b, step, best, best_a, best_b, pos[b], prev[b], state.vel[b], nseg)
+            record_hit(events, b, step, best, best_a, best_b, pos[b], prev[b], state.vel[b], state.prev_vel[b], nseg)
             if stop_at_hit != 0:
                 events.clearance[b] = cl
                 fill_remaining_frames(state, b, n, step, cfg.frame_every, cfg.frame_end)

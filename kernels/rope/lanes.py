@@ -160,9 +160,17 @@ def _build(n: int, lanes: int):
         P = Mat()
         Q = Mat()
         V = Mat()
+        VB = Mat()
+        BX = LM()  # velocities of the step before, for the hit's (record_hit)
+        BY = LM()
+        BZ = LM()
         KBl = Flags()
         CPl = Flags()
         for step in range(step0, step0 + nsteps):
+            for i in range(n):
+                BX[i] = VX[i]
+                BY[i] = VY[i]
+                BZ[i] = VZ[i]
             QX[0] = X[0]
             QY[0] = Y[0]
             QZ[0] = Z[0]
@@ -308,7 +316,8 @@ def _build(n: int, lanes: int):
                     ST[l] = 1
                     for i in range(N):
                         V[i] = wp.vec3(VX[i, l], VY[i, l], VZ[i, l])
-                    record_hit(events, b, step, best, best_a, best_b, P, Q, V, NM1)
+                        VB[i] = wp.vec3(BX[i, l], BY[i, l], BZ[i, l])
+                    record_hit(events, b, step, best, best_a, best_b, P, Q, V, VB, NM1)
                     if stop_at_hit != 0:
                         events.clearance[b] = cl
                         finish(state, b, P, V, step, cfg.frame_every, cfg.frame_end)

@@ -89,13 +89,15 @@ def node_w(i: int, n: int, m: float, ml: float, slope: float) -> float:
 
 @wp.struct
 class ChainState:
-    """Per chain and node: positions, velocities, positions at the start of the step, bending and link
-    multipliers, and segment bounding spheres (midpoint, half length); and the recorded trajectory, frames[f]
-    the positions after step min(f * frame_every, frame_end) (ChainSettings), written by the kernel itself."""
+    """Per chain and node: positions, velocities, positions at the start of the step, velocities of the step
+    before (the generic kernel's, for record_hit), bending and link multipliers, and segment bounding spheres
+    (midpoint, half length); and the recorded trajectory, frames[f] the positions after step
+    min(f * frame_every, frame_end) (ChainSettings), written by the kernel itself."""
 
     pos: wp.array2d(dtype=wp.vec3)
     vel: wp.array2d(dtype=wp.vec3)
     prev: wp.array2d(dtype=wp.vec3)
+    prev_vel: wp.array2d(dtype=wp.vec3)
     lam: wp.array2d(dtype=wp.vec3)
     lam_link: wp.array2d(dtype=float)
     seg: wp.array2d(dtype=wp.vec4)
@@ -255,17 +257,28 @@ def running(status: int, stop_at_hit: int) -> int:
 
 
 @wp.func
+def hit_velocity(v: wp.vec3, v_before: wp.vec3, alpha: float) -> wp.vec3:
+    """A node's velocity at the crossing, alpha of the way through the step. A position-based step's velocity
+    (x_end - x_start) / dt is its mean over the step, the velocity at mid-step; the crossing's follows linearly in
+    time from the two steps' mid-step velocities. The step's mean alone is up to a dt / 2 off and jumps by a dt
+    wherever a command moves the crossing into the next step, a staircase in the command that a central difference
+    over a few steps' worth of event time reads as all or nothing (README, "The velocity at the contact")."""
+    return v + (alpha - 0.5) * (v - v_before)
+
+
+@wp.func
 def record_hit(events: ChainEvents, b: int, step: int, best: float, best_a: int, best_b: int, P: Any, Q: Any, V: Any,
-               nm1: int):
-    """Chain b's first hit in `step`: the state interpolated to the crossing (positions) and the step's velocity,
-    and the arc-length fractions of the hit pair's closest points."""
+               VB: Any, nm1: int):
+    """Chain b's first hit in `step`: the state interpolated to the crossing (positions from the step's start Q
+    and end P, velocities from the step's V and the step before's VB), and the arc-length fractions of the hit
+    pair's closest points."""
     events.status[b] = 1
     events.hit_frame[b] = step + 1
     events.hit_alpha[b] = best
     for i in range(nm1 + 1):
         p0 = Q[i]
         events.crit_pos[b, i] = p0 + best * (P[i] - p0)
-        events.crit_vel[b, i] = V[i]
+        events.crit_vel[b, i] = hit_velocity(V[i], VB[i], best)
     res = seg_closest(P[best_a], P[best_a + 1], P[best_b], P[best_b + 1])
     events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nm1), (float(best_b) + res[2]) / float(nm1))
 

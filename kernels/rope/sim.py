@@ -142,6 +142,7 @@ class RopeSim:
         state = ChainState()
         state.pos, state.vel = v3(pos0), v3(vel0)
         state.prev = wp.zeros((B, n), dtype=wp.vec3, device=dev)
+        state.prev_vel = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         state.lam = wp.zeros((B, n), dtype=wp.vec3, device=dev)
         state.lam_link = wp.zeros((B, n), dtype=float, device=dev)
         state.seg = wp.zeros((B, n), dtype=wp.vec4, device=dev)

@@ -10,8 +10,9 @@ in the frame), so the constraint passes run out of local memory. Here:
     indexed by compile-time constants only (the node count is a constant, the passes are unrolled);
   - shared memory holds what is read-only during the passes (per-node inverse masses and the constraint factors
     built from them, the positions at the start of the step) and what the pair test indexes at run time (the
-    positions at the end of the step and the segments' bounding spheres). The positions are double-buffered by
-    step parity: the end of one step is the start of the next;
+    positions at the end of the step and the segments' bounding spheres). The positions are triple-buffered by
+    step modulo 3: the end of one step is the start of the next, and the step before's gives the velocity a hit
+    interpolates from (model.record_hit);
   - the pair test culls with the generic kernel's segment spheres (no temporal bookkeeping to keep per thread);
     like every culled variant it gives the all-pairs record.
 
@@ -90,17 +91,21 @@ def _build(n: int):
             den = K[W, i, lane] + K[W, i + 1, lane] + at_s
             K[FA, i, lane] = K[W, i, lane] / den
             K[FB, i, lane] = K[W, i + 1, lane] / den
-        X = wp.tile_empty(shape=(2, N, BLOCK), dtype=wp.vec3, storage="shared")  # [step parity, node, lane]
+        X = wp.tile_empty(shape=(3, N, BLOCK), dtype=wp.vec3, storage="shared")  # [step modulo 3, node, lane]
         S = wp.tile_empty(shape=(NM1, BLOCK), dtype=wp.vec4, storage="shared")  # segment spheres
         BARRIER = wp.tile_empty(shape=(BLOCK,), dtype=float, storage="shared")
         P = Mat()
         L = Mat()  # bending multipliers (row i: centre node i)
         LL = Vec()  # link multipliers
         for i in range(N):
-            X[(step0 + 1) % 2, i, lane] = state.pos[b, i]
+            X[(step0 + 2) % 3, i, lane] = state.pos[b, i]
+            # the step before the launch's first, as its velocity says, for a hit in that first step: a branch to
+            # state.vel in the hit's loop instead spilled 224 bytes a thread on sm_90 (16 without)
+            X[(step0 + 1) % 3, i, lane] = state.pos[b, i] - dt * state.vel[b, i]
         for step in range(step0, step0 + nsteps):
-            cur = step % 2
-            prv = 1 - cur  # X[prv]: the positions at the start of this step, X[cur] those one step earlier
+            cur = step % 3  # X[cur]: the positions at the end of this step, written once its passes are done
+            prv = (step + 2) % 3  # the positions at the start of this step
+            old = (step + 1) % 3  # those at the start of the step before
             # no chain state stays in registers from one step to the next (the pair test needs them for its own):
             # positions and velocities come back from the shared copies, bit for bit what the last step computed
             P[0] = hand[path_index[b], step + 1]
@@ -108,7 +113,7 @@ def _build(n: int):
                 xi = X[prv, i, lane]
                 vi = state.vel[b, i]
                 if step != step0:
-                    vi = (xi - X[cur, i, lane]) * inv_dt
+                    vi = (xi - X[old, i, lane]) * inv_dt
                 li = link
                 if i == LAST:
                     li = 0.5 * link
@@ -198,7 +203,8 @@ def _build(n: int):
                     p0 = X[prv, i, lane]
                     p1 = X[cur, i, lane]
                     events.crit_pos[b, i] = p0 + best * (p1 - p0)
-                    events.crit_vel[b, i] = (p1 - p0) * inv_dt
+                    events.crit_vel[b, i] = chain.hit_velocity((p1 - p0) * inv_dt, (p0 - X[old, i, lane]) * inv_dt,
+                                                               best)
                 res = chain.seg_closest(X[cur, best_a, lane], X[cur, best_a + 1, lane], X[cur, best_b, lane],
                                   X[cur, best_b + 1, lane])
                 events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(NM1), (float(best_b) + res[2]) / float(NM1))
@@ -220,11 +226,11 @@ def _build(n: int):
             if wp.tile_max(wp.tile(act))[0] == 0:  # the block's chains have all finished
                 break
         if act != 0 and nsteps > 0:  # chains that ran every step (with none, the state stays as it was)
-            cur = (step0 + nsteps - 1) % 2
+            cur = (step0 + nsteps - 1) % 3
             events.clearance[b] = cl
             for i in range(N):
                 p1 = X[cur, i, lane]
                 state.pos[b, i] = p1
-                state.vel[b, i] = (p1 - X[1 - cur, i, lane]) * inv_dt
+                state.vel[b, i] = (p1 - X[(step0 + nsteps + 1) % 3, i, lane]) * inv_dt
 
     return rollout_tiled

@@ -212,7 +212,7 @@ def _rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n:
                 al = np.where(g0 > 0, g0 / (g0 - gap), 0.0).astype(np.float32)
             al = np.where(gap <= 0, al, 2.0)
             which = np.argmin(al, axis=1)
-            xn, pn, vn = xp.numpy(x), xp.numpy(prev), xp.numpy(v)
+            xn, pn, vn, vb = xp.numpy(x), xp.numpy(prev), xp.numpy(v), xp.numpy(vel)
             for bi in np.nonzero(new_hit)[0]:
                 p = which[bi]
                 a_, b_ = ia[p], ib[p]
@@ -221,7 +221,8 @@ def _rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n:
                 _, s, t = seg_closest(_Np(), xn[bi, a_], xn[bi, a_ + 1], xn[bi, b_], xn[bi, b_ + 1])
                 status[bi], hit_frame[bi], hit_alpha[bi] = 1, step + 1, alpha
                 hit_s[bi] = ((a_ + float(s)) / (n - 1), (b_ + float(t)) / (n - 1))
-                crit_pos[bi], crit_vel[bi] = cp, vn[bi]
+                # the velocity at the crossing, from the step's mean and the step before's (model.hit_velocity)
+                crit_pos[bi], crit_vel[bi] = cp, vn[bi] + (alpha - np.float32(0.5)) * (vn[bi] - vb[bi])
         keep = xp.asarray(active.astype(np.float32))[:, None, None] > 0
         pos = xp.where(keep, x, pos)
         vel = xp.where(keep, v, vel)

@@ -108,6 +108,30 @@ def marker_velocity(ref, first: int, intervals: int) -> np.ndarray:
     return np.einsum("f,fmk->mk", dt / np.sum(dt * dt), x)
 
 
+def event_velocity(ref, k: int, frac: float) -> np.ndarray:
+    """(markers, 3) the markers' velocity at an event frac of the way through frame interval (k-1, k]. The velocity
+    over a window (marker_velocity) is the velocity at the window's middle, so the event's follows linearly in time
+    from the window centred on its interval and the window one frame earlier, the chain kernel's rule for its steps
+    (kernels/rope/model.hit_velocity). Never from a later window: after the first contact a rope's own contact forces
+    act (the chain has none), and interpolating toward the next interval's velocity lost on held-out seeds (README,
+    "The velocity at the contact"). At a recording's first interval the next window extrapolates instead. The
+    interval's velocity alone is up to a dt / 2 off the event's and jumps by a dt where the event crosses a frame."""
+    t = np.asarray(ref.time, np.float64)
+    n = velocity_intervals(ref)
+    last = max(len(t) - 1 - n, 0)
+    first = int(np.clip(k - 1 - (n - 1) // 2, 0, last))
+
+    def middle(f: int) -> float:
+        return 0.5 * (t[f] + t[f + n])
+
+    other = first - 1 if first > 0 else first + 1
+    here = marker_velocity(ref, first, n)
+    if not 0 <= other <= last:
+        return here
+    when = t[k - 1] + frac * (t[k] - t[k - 1])
+    return here + (when - middle(first)) / (middle(other) - middle(first)) * (marker_velocity(ref, other, n) - here)
+
+
 def reference_critical(ref):
     """Where a reference's critical moment comes from (reference/events.py `critical`): the file's
     `critical_time` annotation when it has one, else the first self-contact detected in its markers, with
@@ -127,8 +151,9 @@ def from_reference(ref, event=None) -> CriticalStates:
     """Critical state of one rope trajectory (a reference, a real trial), batch of one.
 
     At the event time t* inside frame interval (k-1, k]: positions interpolated linearly between the two
-    frames, velocity the frame difference over that interval (the rule the chain kernel uses too); where frames come
-    faster than VELOCITY_WINDOW, the slope over the frames about that window centred on the interval."""
+    frames, velocity extrapolated to t* from the frame differences over that interval and the one before
+    (event_velocity; the chain kernel's rule too); where frames come faster than VELOCITY_WINDOW, from the slopes over
+    the frames about that window centred on the intervals."""
     ev = reference_event(ref) if event is None else event
     if ev is None:
         from wrenorm.tasks.rope.reference.events import detect_reference
@@ -142,8 +167,7 @@ def from_reference(ref, event=None) -> CriticalStates:
     t, k = ref.time, ev.index
     frac = (ev.time - t[k - 1]) / (t[k] - t[k - 1])
     pos = ref.markers[k - 1] + frac * (ref.markers[k] - ref.markers[k - 1])
-    n = velocity_intervals(ref)
-    vel = marker_velocity(ref, int(np.clip(k - 1 - (n - 1) // 2, 0, max(len(t) - 1 - n, 0))), n)
+    vel = event_velocity(ref, k, frac)
     s_k = np.linspace(0.0, 1.0, SAMPLES)
     s = ref.marker_arclength
     return CriticalStates(resample(pos, s, s_k)[None], resample(vel, s, s_k)[None],
