@@ -30,8 +30,9 @@ the hand path, node N-1 is the lead mass):
 First hit (frame k is the first frame with some gap <= 0): alpha = g_{k-1} / (g_{k-1} - g_k)
 (0 if the pair already touched at frame k-1); among pairs hitting in that frame the smallest
 alpha wins. Recorded: hit_frame = k, hit_alpha, time t0 + (k - 1 + alpha) dt (done in Python),
-critical positions x_{k-1} + alpha (x_k - x_{k-1}) and critical velocities (x_k - x_{k-1}) / dt
-(the velocity the position-based step carries over that interval), and the arc-length
+critical positions x_{k-1} + alpha (x_k - x_{k-1}) and critical velocities at the same time, from the velocity the
+position-based step carries over that interval, (x_k - x_{k-1}) / dt, and the interval's before (model.hit_velocity),
+and the arc-length
 fractions of the closest points of the hit pair at frame k (as tasks/rope_collision.py does).
 
 `clearance` is min over frames and pairs of min(gap, margin): continuous in the state and equal

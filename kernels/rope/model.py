@@ -257,13 +257,15 @@ def running(status: int, stop_at_hit: int) -> int:
 
 
 @wp.func
-def hit_velocity(v: wp.vec3, v_before: wp.vec3, alpha: float) -> wp.vec3:
-    """A node's velocity at the crossing, alpha of the way through the step. A position-based step's velocity
+def hit_velocity(v: wp.vec3, v_before: wp.vec3, alpha: float, step: int) -> wp.vec3:
+    """A node's velocity at the crossing, alpha of the way through `step`. A position-based step's velocity
     (x_end - x_start) / dt is its mean over the step, the velocity at mid-step; the crossing's follows linearly in
-    time from the two steps' mid-step velocities. The step's mean alone is up to a dt / 2 off and jumps by a dt
+    time from it and the step before's, at mid-step too, except in a rollout's first step, where the velocity
+    before is the start's own, at the step's start. The step's mean alone is up to a dt / 2 off and jumps by a dt
     wherever a command moves the crossing into the next step, a staircase in the command that a central difference
     over a few steps' worth of event time reads as all or nothing (README, "The velocity at the contact")."""
-    return v + (alpha - 0.5) * (v - v_before)
+    c = wp.where(step == 0, 2.0 * alpha - 1.0, alpha - 0.5)
+    return v + c * (v - v_before)
 
 
 @wp.func
@@ -278,7 +280,7 @@ def record_hit(events: ChainEvents, b: int, step: int, best: float, best_a: int,
     for i in range(nm1 + 1):
         p0 = Q[i]
         events.crit_pos[b, i] = p0 + best * (P[i] - p0)
-        events.crit_vel[b, i] = hit_velocity(V[i], VB[i], best)
+        events.crit_vel[b, i] = hit_velocity(V[i], VB[i], best, step)
     res = seg_closest(P[best_a], P[best_a + 1], P[best_b], P[best_b + 1])
     events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(nm1), (float(best_b) + res[2]) / float(nm1))
 

@@ -2,7 +2,9 @@
 registers, everything else in shared memory, and no stack frame.
 
 Same model, same operation order, same arguments, and bit-identical results on the CPU (tests/test_rope_kernel.py
-compares it with the generic kernel testing every pair, with one lane per block and with real blocks). fixed.py
+compares it with the generic kernel testing every pair, with one lane per block and with real blocks), but for the
+critical velocity of a hit in a launch's first step: the velocity of the step before it is rebuilt from the launch's
+stored velocity through the positions buffer, (x - (x - dt v)) / dt, within float32 rounding of v (1e-7 m/s). fixed.py
 keeps the whole chain in kernel-local matrices; on sm_90 that needs 255 registers and a 1.4 KB stack frame per
 thread at N = 16 (the pair test indexes positions at run time, and one run-time index puts a whole local matrix
 in the frame), so the constraint passes run out of local memory. Here:
@@ -31,7 +33,7 @@ from wrenorm.kernels.rope import model as chain
 BLOCK = 32  # chains (threads) per block: one warp, so a block barrier costs no waiting on other warps
 OPTIONS = {"enable_backward": False, "optimization_level": 3, "cpu_compiler_flags": "-march=native",
            "max_unroll": 64, "block_dim": BLOCK}
-MAX_NODES = 16  # sm_90 build within 255 registers and no stack frame (tests/test_cuda_build.py)
+MAX_NODES = 16  # sm_90 build within 255 registers and a few spilled words (tests/test_cuda_build.py)
 _CACHE: dict = {}
 
 
@@ -204,7 +206,7 @@ def _build(n: int):
                     p1 = X[cur, i, lane]
                     events.crit_pos[b, i] = p0 + best * (p1 - p0)
                     events.crit_vel[b, i] = chain.hit_velocity((p1 - p0) * inv_dt, (p0 - X[old, i, lane]) * inv_dt,
-                                                               best)
+                                                               best, step)
                 res = chain.seg_closest(X[cur, best_a, lane], X[cur, best_a + 1, lane], X[cur, best_b, lane],
                                   X[cur, best_b + 1, lane])
                 events.hit_s[b] = wp.vec2((float(best_a) + res[1]) / float(NM1), (float(best_b) + res[2]) / float(NM1))

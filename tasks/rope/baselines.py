@@ -222,7 +222,8 @@ def _rollout(backend: str, pos0, vel0, hand, path_index, params: ChainParams, n:
                 status[bi], hit_frame[bi], hit_alpha[bi] = 1, step + 1, alpha
                 hit_s[bi] = ((a_ + float(s)) / (n - 1), (b_ + float(t)) / (n - 1))
                 # the velocity at the crossing, from the step's mean and the step before's (model.hit_velocity)
-                crit_pos[bi], crit_vel[bi] = cp, vn[bi] + (alpha - np.float32(0.5)) * (vn[bi] - vb[bi])
+                c = np.float32(2.0) * alpha - np.float32(1.0) if step == 0 else alpha - np.float32(0.5)
+                crit_pos[bi], crit_vel[bi] = cp, vn[bi] + c * (vn[bi] - vb[bi])
         keep = xp.asarray(active.astype(np.float32))[:, None, None] > 0
         pos = xp.where(keep, x, pos)
         vel = xp.where(keep, v, vel)

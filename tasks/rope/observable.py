@@ -114,8 +114,9 @@ def event_velocity(ref, k: int, frac: float) -> np.ndarray:
     from the window centred on its interval and the window one frame earlier, the chain kernel's rule for its steps
     (kernels/rope/model.hit_velocity). Never from a later window: after the first contact a rope's own contact forces
     act (the chain has none), and interpolating toward the next interval's velocity lost on held-out seeds (README,
-    "The velocity at the contact"). At a recording's first interval the next window extrapolates instead. The
-    interval's velocity alone is up to a dt / 2 off the event's and jumps by a dt where the event crosses a frame."""
+    "The velocity at the contact"). Where no window starts before the event's (its first frames), the one window
+    gives it, as before. The interval's velocity alone is up to a dt / 2 off the event's and jumps by a dt where the
+    event crosses a frame."""
     t = np.asarray(ref.time, np.float64)
     n = velocity_intervals(ref)
     last = max(len(t) - 1 - n, 0)
@@ -124,10 +125,10 @@ def event_velocity(ref, k: int, frac: float) -> np.ndarray:
     def middle(f: int) -> float:
         return 0.5 * (t[f] + t[f + n])
 
-    other = first - 1 if first > 0 else first + 1
     here = marker_velocity(ref, first, n)
-    if not 0 <= other <= last:
+    if first == 0:
         return here
+    other = first - 1
     when = t[k - 1] + frac * (t[k] - t[k - 1])
     return here + (when - middle(first)) / (middle(other) - middle(first)) * (marker_velocity(ref, other, n) - here)
 
