@@ -9,6 +9,9 @@ from wrenorm.kernels import rope
 from wrenorm.tasks.rope import baselines as rb
 from wrenorm.tasks.rope.bench import swing_paths
 
+KERNEL_VARIANTS = {"generic": dict(fixed=False), "lanes": dict(), "fixed": dict(lanes=0, tiled=False),
+                   "tiled": dict(tiled=True)}  # RopeSim options that pick each rollout kernel
+
 
 def _params(batch, **kw):
     base = dict(node_mass=0.02, lead_mass=0.02, bend_k=1e-12, bend_b=0.0, drag_lin=0.0, drag_quad=0.0, radius=0.005)
@@ -109,10 +112,8 @@ def test_critical_velocity_is_the_velocity_at_the_crossing(variant, first_step):
         res = rb.rollout("numpy", pos0, vel0, hand, [0], _params(1, radius=r), 5, link, dt, steps=steps,
                          gravity=(0, 0, 0), iterations=rope.RopeSim(5, link, dt).iterations)
     else:
-        kw = {"generic": dict(fixed=False), "lanes": dict(), "fixed": dict(lanes=0, tiled=False),
-              "tiled": dict(tiled=True)}[variant]
-        res = rope.RopeSim(5, link, dt, gravity=(0, 0, 0), **kw).rollout(pos0, vel0, hand, [0], _params(1, radius=r),
-                                                                         steps)
+        sim = rope.RopeSim(5, link, dt, gravity=(0, 0, 0), **KERNEL_VARIANTS[variant])
+        res = sim.rollout(pos0, vel0, hand, [0], _params(1, radius=r), steps)
     assert res.status[0] == 1
     assert res.hit_frame[0] == 1 and 0.25 < res.hit_alpha[0] < 0.35 if first_step else 0.03 < res.hit_alpha[0] < 0.1
     phi = np.pi - omega * t_star
@@ -355,9 +356,7 @@ def test_every_variant_records_its_trajectory_in_one_launch(variant, stop):
     """The kernels write the trajectory frames themselves (no launch per frame): frame k is the final state of a
     rollout of min(k * every, steps) steps, for chains that run on, hit and stop, or blow up part way."""
     pos0, v0, paths, pidx, params, n, link, dt, steps = _tiled_case(16, B=70, steps=150)
-    kw = {"generic": dict(fixed=False), "lanes": dict(), "fixed": dict(lanes=0, tiled=False),
-          "tiled": dict(tiled=True)}[variant]
-    sim = rope.RopeSim(n, link, dt, **kw)
+    sim = rope.RopeSim(n, link, dt, **KERNEL_VARIANTS[variant])
     every = 17
     res = sim.rollout(pos0, v0, paths, pidx, params, steps, stop_at_hit=stop, trajectory_every=every)
     marks = np.minimum(np.arange(res.trajectory.shape[0]) * every, steps)
