@@ -144,7 +144,12 @@ def test_the_velocity_at_an_event_is_interpolated_to_its_time(hz):
     used: after the event, the rope's contact forces act, so markers there are moved far off the parabola and the
     answer must not change; in the recording's first frames, with no window before the event's, that one window
     gives the velocity, as before."""
+    from types import SimpleNamespace
+
     from wrenorm.tasks.rope.reference.generate import RopeReference
+
+    def recording(markers):
+        return RopeReference(t, markers, markers[:, 0].copy(), 1.1, 0.2, 0.005, None, s, "test")
 
     dt = 1.0 / hz
     t = np.arange(200) * dt
@@ -152,7 +157,7 @@ def test_the_velocity_at_an_event_is_interpolated_to_its_time(hz):
     v0, a = np.array([0.9, 0.0, 0.3]), np.array([40.0, -25.0, -9.81])
     markers = np.stack([0.1 * s, 0.0 * s, 1.6 - 1.1 * s], 1)[None] + (v0 * t[:, None] + 0.5 * a * t[:, None] ** 2)[:,
                                                                                                                  None]
-    ref = RopeReference(t, markers, markers[:, 0].copy(), 1.1, 0.2, 0.005, None, s, "test")
+    ref = recording(markers)
     n = crit.velocity_intervals(ref)
     starts = [(k, 0.1) for k in range(1, (n - 1) // 2 + 2)]
     for k, frac in [(60, 0.1), (60, 0.5), (61, 0.93), (len(t) - 1, 0.9)] + starts:
@@ -160,11 +165,7 @@ def test_the_velocity_at_an_event_is_interpolated_to_its_time(hz):
         np.testing.assert_allclose(crit.event_velocity(ref, k, frac), np.tile(exact, (9, 1)), atol=1e-9)
         kicked = markers.copy()
         kicked[max(k + (n - 1) // 2, n) + 1:] += 0.05  # every frame after the windows about the event's interval
-        np.testing.assert_allclose(crit.event_velocity(RopeReference(t, kicked, kicked[:, 0].copy(), 1.1, 0.2, 0.005,
-                                                                     None, s, "test"), k, frac),
-                                   np.tile(exact, (9, 1)), atol=1e-9)
-    from types import SimpleNamespace
-
+        np.testing.assert_allclose(crit.event_velocity(recording(kicked), k, frac), np.tile(exact, (9, 1)), atol=1e-9)
     state = crit.from_reference(ref, SimpleNamespace(index=60, time=t[59] + 0.1 * dt, s_a=0.2, s_b=0.7))
     np.testing.assert_allclose(state.vel[0], np.tile(v0 + a * (t[59] + 0.1 * dt), (crit.SAMPLES, 1)), atol=1e-9)
     interval = crit.marker_velocity(ref, 60 - 1 - (n - 1) // 2, n)
